@@ -1,0 +1,2 @@
+// Ceres bundle adjustment: filled in by the solver work.
+#include <ceres/ceres.h>

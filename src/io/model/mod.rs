@@ -1,0 +1,1 @@
+//! COLMAP model files (cameras, images, points3D), text and binary.

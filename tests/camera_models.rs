@@ -1,0 +1,1 @@
+//! Integration tests: camera_models.

@@ -1,0 +1,9 @@
+//! The one integration-test binary (`autotests = false`): Ceres is linked once.
+mod common;
+
+mod camera_models;
+mod database;
+mod map;
+mod model_io;
+mod solver;
+mod synth;
