@@ -18,6 +18,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::Vector2;
 use rusqlite::{Connection, OpenFlags};
 
+use crate::scene::correspondence_graph::CorrespondenceGraph;
 use crate::scene::{Camera, CameraId, CameraModel, ImageId, Rigid3};
 
 /// COLMAP's bound on image ids used in pair ids.
@@ -132,6 +133,16 @@ impl DatabaseSnapshot {
 
     pub fn image_by_name(&self, name: &str) -> Option<&DbImage> {
         self.images.values().find(|i| i.name == name)
+    }
+
+    /// The correspondence graph of the verified inlier matches.
+    pub fn correspondence_graph(&self) -> CorrespondenceGraph {
+        CorrespondenceGraph::new(
+            self.images.keys().map(|&id| (id, self.num_keypoints(id))),
+            self.two_view_geometries
+                .iter()
+                .map(|g| (g.image_id1, g.image_id2, g.inlier_matches.as_slice())),
+        )
     }
 }
 
