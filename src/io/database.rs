@@ -163,7 +163,7 @@ const KNOWN_TABLES: &[&str] = &[
 
 /// Opens `path` strictly read-only.
 ///
-/// When no `-wal`/`-journal` file lies beside it (no process has it open), the
+/// When no `-wal`/`-shm`/`-journal` file lies beside it (no process has it open), the
 /// database is opened `immutable`, which reads without creating any file and
 /// works on read-only files and folders. Otherwise it is opened `mode=ro`, which
 /// sees the pending write-ahead log and reports locks.
@@ -179,9 +179,9 @@ fn open_read_only(path: &Path) -> Result<Connection, DatabaseError> {
         s.push(suffix);
         PathBuf::from(s)
     };
-    let live = [sibling("-wal"), sibling("-journal")]
+    let live = [sibling("-wal"), sibling("-shm"), sibling("-journal")]
         .iter()
-        .any(|p| p.metadata().map(|m| m.len() > 0).unwrap_or(false));
+        .any(|p| p.exists());
     let abs = path.canonicalize().unwrap_or_else(|_| path.to_owned());
     let mut uri = String::from("file:");
     for b in abs.to_string_lossy().bytes() {
