@@ -17,6 +17,7 @@
 
 #include <cmath>
 #include <memory>
+#include <mutex>
 #include <sstream>
 #include <stdexcept>
 #include <string>
@@ -581,9 +582,16 @@ ceres::Solver::Options MakeSolverOptions(const BaOptionsFfi& o,
 }
 
 void SetLogLevel(bool logging) {
-  // Ceres writes warnings through glog; keep them quiet unless asked for.
-  FLAGS_minloglevel = logging ? 0 : 2;
-  FLAGS_logtostderr = true;
+  // Ceres writes through glog: to stderr only, and nothing below FATAL unless
+  // asked for (the summary carries Ceres' message anyway).
+  static std::once_flag init;
+  std::call_once(init, [] {
+    FLAGS_logtostderr = true;
+    if (!google::IsGoogleLoggingInitialized()) {
+      google::InitGoogleLogging("colmap-lidar");
+    }
+  });
+  FLAGS_minloglevel = logging ? google::GLOG_INFO : google::GLOG_FATAL;
 }
 
 BaSummaryFfi SolveImpl(BaProblemFfi& p, const BaOptionsFfi& o) {

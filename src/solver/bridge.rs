@@ -157,18 +157,27 @@ pub(crate) fn to_ffi_problem(problem: &BundleAdjustmentProblem) -> ffi::BaProble
     p
 }
 
-/// Writes the solved values back (poses, intrinsics, points).
+/// Writes the solved values back: variable poses, variable intrinsics and
+/// variable points only, so constant blocks stay bit-identical (the bridge
+/// re-normalises quaternions, which may change their last bit).
 pub(crate) fn from_ffi_problem(p: &ffi::BaProblemFfi, problem: &mut BundleAdjustmentProblem) {
     for (pose, values) in problem.poses.iter_mut().zip(p.poses.chunks_exact(7)) {
-        pose.cam_from_world.copy_from_slice(values);
+        if !pose.constant {
+            pose.cam_from_world.copy_from_slice(values);
+        }
     }
     for (c, camera) in problem.cameras.iter_mut().enumerate() {
         let begin = p.camera_param_offsets[c] as usize;
-        let end = p.camera_param_offsets[c + 1] as usize;
-        camera.params.copy_from_slice(&p.camera_params[begin..end]);
+        for k in 0..camera.params.len() {
+            if !camera.is_param_constant(k) {
+                camera.params[k] = p.camera_params[begin + k];
+            }
+        }
     }
     for (point, values) in problem.points.iter_mut().zip(p.points.chunks_exact(3)) {
-        point.position_in_world.copy_from_slice(values);
+        if !point.constant {
+            point.position_in_world.copy_from_slice(values);
+        }
     }
 }
 
@@ -245,4 +254,93 @@ pub(crate) fn evaluate(
         families: family_costs(&e.family_num_blocks, &e.family_cost, &e.family_cost),
         num_failed_blocks: e.num_failed_blocks as usize,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::Rigid3;
+    use crate::solver::problem::{BaCamera, BaObservation, BaPoint, BaPose};
+
+    fn tiny_problem() -> BundleAdjustmentProblem {
+        BundleAdjustmentProblem {
+            poses: vec![BaPose::new(&Rigid3::identity(), false)],
+            cameras: vec![BaCamera {
+                model_id: 1,
+                params: vec![100.0, 100.0, 50.0, 50.0],
+                constant: ConstantParams::All,
+            }],
+            points: vec![BaPoint {
+                position_in_world: [0.1, -0.2, 2.0],
+                constant: false,
+            }],
+            observations: vec![BaObservation {
+                pose_idx: 0,
+                camera_idx: 0,
+                point_idx: 0,
+                pixel_px: [55.0, 40.0],
+                weight: 1.0,
+            }],
+            ..Default::default()
+        }
+    }
+
+    /// The C++ side's own checks turn bad input that slipped past Rust into an
+    /// exception, i.e. an `Err`, never a glog CHECK abort.
+    #[test]
+    fn cpp_checks_reject_what_rust_validation_would() {
+        let problem = tiny_problem();
+        let options = SolverOptions::default();
+        let o = to_ffi_options(&problem, &options, LinearSolver::DenseSchur);
+
+        let mut ok = to_ffi_problem(&problem);
+        let e = ffi::evaluate_bundle_adjustment(&mut ok, &o).expect("valid problem");
+        // Hand-computed: (100 * 0.1 / 2 + 50 - 55, 100 * -0.2 / 2 + 50 - 40).
+        assert_eq!(e.residuals.len(), 2);
+        assert!((e.residuals[0] - 0.0).abs() < 1e-12 && (e.residuals[1] - 0.0).abs() < 1e-12);
+
+        type Mutation = fn(&mut ffi::BaProblemFfi);
+        let mutations: [(&str, Mutation); 6] = [
+            ("point index", |p| p.obs_point[0] = 7),
+            ("pose index", |p| p.obs_pose[0] = 1),
+            ("NaN point", |p| p.points[2] = f64::NAN),
+            ("short pixel array", |p| {
+                p.obs_pixel.pop();
+            }),
+            ("non-unit quaternion", |p| p.poses[0] = 3.0),
+            ("parameter count", |p| p.camera_model_ids[0] = 0),
+        ];
+        for (name, mutate) in mutations {
+            let mut p = to_ffi_problem(&problem);
+            mutate(&mut p);
+            let Err(err) = ffi::solve_bundle_adjustment(&mut p, &o) else {
+                panic!("{name}: accepted");
+            };
+            assert!(
+                err.what().starts_with("bundle adjustment:"),
+                "{name}: {}",
+                err.what()
+            );
+        }
+        let mut bad_options = to_ffi_options(&problem, &options, LinearSolver::DenseSchur);
+        bad_options.loss_kind[0] = 9;
+        let mut p = to_ffi_problem(&problem);
+        assert!(ffi::solve_bundle_adjustment(&mut p, &bad_options).is_err());
+    }
+
+    #[test]
+    fn family_indices_round_trip() {
+        for family in [
+            ResidualFamily::Reprojection,
+            ResidualFamily::PosePrior,
+            ResidualFamily::Plane(PlaneFamily::Projection),
+            ResidualFamily::Plane(PlaneFamily::Nearest),
+            ResidualFamily::Plane(PlaneFamily::Ground),
+            ResidualFamily::Plane(PlaneFamily::Other(0)),
+            ResidualFamily::Plane(PlaneFamily::Other(63)),
+        ] {
+            assert_eq!(ResidualFamily::from_index(family.index()), Some(family));
+        }
+        assert_eq!(ResidualFamily::from_index(2 + 3 + 64), None);
+    }
 }
