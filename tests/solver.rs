@@ -1020,3 +1020,44 @@ fn auto_linear_solver_follows_problem_size() {
     // Debian's Ceres 2.1 is built with SuiteSparse.
     assert!(solver::sparse_linear_algebra_available());
 }
+
+/// Timing of a medium problem: 160 poses along 5 m, each seeing the points
+/// within 0.5 m of its own x (about 30 views a point). Auto picks sparse Schur
+/// at >= 150 variable poses. Opt-in: `cargo test -- --ignored`.
+#[test]
+#[ignore]
+fn medium_problem_timing() {
+    let scene = room_scene(160, 250, 500, 24);
+    let mut rng = ChaCha8Rng::seed_from_u64(25);
+    let mut problem = problem_from_scene(&scene, 0.5, Some(100.0), &mut rng);
+    problem.observations.retain(|o| {
+        let pose_x = scene.poses[o.pose_idx as usize].camera_center().x;
+        (scene.points[o.point_idx as usize].x - pose_x).abs() < 0.5
+    });
+    // The side walls are out of view now: floor and back wall alone leave the
+    // gauge free along x, so fix the end poses.
+    problem.poses[0].constant = true;
+    problem.poses[159].constant = true;
+    perturb(&mut problem, 0.3, 0.03, &mut rng);
+    for linear_solver in [LinearSolver::Auto, LinearSolver::DenseSchur] {
+        let mut p = problem.clone();
+        let options = SolverOptions {
+            linear_solver,
+            ..Default::default()
+        };
+        let summary = solver::solve(&mut p, &options).expect("solve");
+        let e = errors(&p, &scene);
+        eprintln!(
+            "medium BA: {} poses, {} points, {} obs, {} planes: {:?}, {:.2} s, {} iterations, errors {e:?}",
+            p.poses.len(),
+            p.points.len(),
+            p.observations.len(),
+            p.planes.len(),
+            summary.linear_solver,
+            summary.time_s,
+            summary.num_iterations
+        );
+        assert!(summary.usable, "{}", summary.message);
+        assert!(e.0 < 0.02, "{e:?}");
+    }
+}
