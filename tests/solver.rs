@@ -367,6 +367,21 @@ fn synthetic_ba_converges_to_ground_truth() {
 }
 
 #[test]
+fn solves_are_deterministic() {
+    let scene = room_scene(8, 10, 10, 26);
+    let mut rng = ChaCha8Rng::seed_from_u64(27);
+    let mut problem = problem_from_scene(&scene, 0.5, Some(100.0), &mut rng);
+    perturb(&mut problem, 0.5, 0.05, &mut rng);
+    let mut first = problem.clone();
+    let mut second = problem.clone();
+    let summary = solver::solve(&mut first, &SolverOptions::default()).expect("solve");
+    solver::solve(&mut second, &SolverOptions::default()).expect("solve");
+    assert!(first == second, "two identical solves differ");
+    assert!(first != problem);
+    eprintln!("deterministic: {summary}");
+}
+
+#[test]
 fn planes_hold_gauge_and_metric_scale() {
     let scene = room_scene(12, 20, 20, 3);
     let mut rng = ChaCha8Rng::seed_from_u64(4);

@@ -86,6 +86,32 @@ pub struct SolveSummary {
     pub families: Vec<FamilyCost>,
 }
 
+impl std::fmt::Display for SolveSummary {
+    /// One line for logs: costs, iterations, time, solver, outcome, and the
+    /// final cost of each family.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "cost {:.4e} -> {:.4e} in {} iterations ({:.3} s, {:?}, {:?}{})",
+            self.initial_cost,
+            self.final_cost,
+            self.num_iterations,
+            self.time_s,
+            self.linear_solver,
+            self.termination,
+            if self.usable { "" } else { ", NOT usable" }
+        )?;
+        for family in &self.families {
+            write!(
+                f,
+                "; {:?} x{}: {:.4e} -> {:.4e}",
+                family.family, family.num_residual_blocks, family.initial_cost, family.final_cost
+            )?;
+        }
+        Ok(())
+    }
+}
+
 impl SolveSummary {
     /// The cost entry of one family, if present.
     pub fn family(&self, family: ResidualFamily) -> Option<&FamilyCost> {
