@@ -203,7 +203,9 @@ struct BuiltProblem {
   std::vector<ResidualRecord> records;  // observations, planes, priors
   std::unique_ptr<ceres::Problem> problem;
   size_t num_families = 0;
-  size_t num_points_in_problem = 0;
+  // Parameter blocks in the problem: points (Schur group 0) and the rest.
+  std::vector<double*> point_blocks;
+  std::vector<double*> camera_and_pose_blocks;
 };
 
 std::unique_ptr<ceres::LossFunction> MakeLoss(int kind, double scale,
@@ -421,6 +423,8 @@ std::unique_ptr<BuiltProblem> BuildProblem(BaProblemFfi& p,
     if (!pose_used[i]) continue;
     double* q = &p.poses[7 * i];
     double* t = &p.poses[7 * i + 4];
+    built->camera_and_pose_blocks.push_back(q);
+    built->camera_and_pose_blocks.push_back(t);
     problem.SetManifold(q, built->quaternion_manifold.get());
     if (p.pose_constant[i] != 0) {
       problem.SetParameterBlockConstant(q);
@@ -436,6 +440,7 @@ std::unique_ptr<BuiltProblem> BuildProblem(BaProblemFfi& p,
       if (p.camera_param_constant[begin + k] != 0) constant.push_back(k);
     }
     double* params = &p.camera_params[begin];
+    built->camera_and_pose_blocks.push_back(params);
     if (static_cast<int>(constant.size()) == size) {
       problem.SetParameterBlockConstant(params);
     } else if (!constant.empty()) {
@@ -446,7 +451,7 @@ std::unique_ptr<BuiltProblem> BuildProblem(BaProblemFfi& p,
   }
   for (size_t i = 0; i < num_points; ++i) {
     if (!point_used[i]) continue;
-    ++built->num_points_in_problem;
+    built->point_blocks.push_back(&p.points[3 * i]);
     if (p.point_constant[i] != 0) {
       problem.SetParameterBlockConstant(&p.points[3 * i]);
     }
@@ -520,7 +525,6 @@ ceres::SparseLinearAlgebraLibraryType AvailableSparseLibrary() {
 }
 
 ceres::Solver::Options MakeSolverOptions(const BaOptionsFfi& o,
-                                         BaProblemFfi& p,
                                          const BuiltProblem& built) {
   ceres::Solver::Options options;
   options.max_num_iterations = o.max_iterations;
@@ -566,15 +570,13 @@ ceres::Solver::Options MakeSolverOptions(const BaOptionsFfi& o,
   // Schur elimination: points (group 0) first, then poses and cameras. The
   // ordering must list every parameter block of the problem, constant ones
   // included (Ceres drops those itself).
-  if (schur && built.num_points_in_problem > 0) {
+  if (schur && !built.point_blocks.empty()) {
     auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
-    std::vector<double*> blocks;
-    built.problem->GetParameterBlocks(&blocks);
-    const double* points_begin = p.points.data();
-    const double* points_end = points_begin + p.points.size();
-    for (double* block : blocks) {
-      const bool is_point = block >= points_begin && block < points_end;
-      ordering->AddElementToGroup(block, is_point ? 0 : 1);
+    for (double* block : built.point_blocks) {
+      ordering->AddElementToGroup(block, 0);
+    }
+    for (double* block : built.camera_and_pose_blocks) {
+      ordering->AddElementToGroup(block, 1);
     }
     options.linear_solver_ordering = ordering;
   }
@@ -623,7 +625,7 @@ BaSummaryFfi SolveImpl(BaProblemFfi& p, const BaOptionsFfi& o) {
     return out;
   }
 
-  ceres::Solver::Options options = MakeSolverOptions(o, p, *built);
+  ceres::Solver::Options options = MakeSolverOptions(o, *built);
   std::string options_error;
   if (!options.IsValid(&options_error)) {
     Fail("invalid solver options: " + options_error);

@@ -97,6 +97,23 @@ pub struct BaPoint {
     pub constant: bool,
 }
 
+impl BaPoint {
+    pub fn new(position_in_world: &Vector3<f64>, constant: bool) -> Self {
+        Self {
+            position_in_world: [
+                position_in_world.x,
+                position_in_world.y,
+                position_in_world.z,
+            ],
+            constant,
+        }
+    }
+
+    pub fn position(&self) -> Vector3<f64> {
+        Vector3::from(self.position_in_world)
+    }
+}
+
 /// One reprojection residual: `weight * (project(camera, pose * point) - pixel_px)`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BaObservation {
@@ -108,6 +125,19 @@ pub struct BaObservation {
     /// Multiplies the residual (so the cost scales with its square); 1 for a
     /// plain observation. Finite and >= 0.
     pub weight: f64,
+}
+
+impl BaObservation {
+    /// An observation with weight 1.
+    pub fn new(pose_idx: u32, camera_idx: u32, point_idx: u32, pixel_px: [f64; 2]) -> Self {
+        Self {
+            pose_idx,
+            camera_idx,
+            point_idx,
+            pixel_px,
+            weight: 1.0,
+        }
+    }
 }
 
 /// Kinds of point-to-plane constraints: each family has its own robust loss and
