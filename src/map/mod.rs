@@ -4,6 +4,8 @@ pub mod cloud;
 pub mod depth_image;
 pub mod grid;
 pub mod index;
+pub mod io;
+pub mod prepare;
 pub mod projection;
 
 pub use cloud::PointCloud;
