@@ -71,6 +71,10 @@ pub struct Frustum {
     /// `None` when the field of view is too wide for such bounds (fisheye
     /// models near or beyond 180 degrees): then only depth and distance cull.
     pub normalized_bounds: Option<[f64; 4]>,
+    /// Half-angle (rad) of a cone around the optical axis holding the field of
+    /// view, used when `normalized_bounds` is `None` (wide fisheyes); `None`
+    /// when unknown too (then only depth and distance cull).
+    pub cone_half_angle_rad: Option<f64>,
 }
 
 /// Normalised coordinates beyond this (about 84 degrees off axis) are treated
@@ -93,11 +97,24 @@ impl Frustum {
         far_m: f64,
         margin_px: f64,
     ) -> Self {
+        let normalized_bounds = normalized_bounds(camera, margin_px);
+        let cone_half_angle_rad = if normalized_bounds.is_some() {
+            None
+        } else {
+            // The margin as an angle: at most ~1/f rad a pixel for the models
+            // here; doubled for safety.
+            let focal_px = camera.mean_focal_length().abs().max(1e-9);
+            camera
+                .max_half_fov_rad()
+                .map(|a| a + 2.0 * margin_px / focal_px)
+                .filter(|a| a.is_finite() && *a < std::f64::consts::FRAC_PI_2)
+        };
         Self {
             cam_from_world: *cam_from_world,
             near_m,
             far_m,
-            normalized_bounds: normalized_bounds(camera, margin_px),
+            normalized_bounds,
+            cone_half_angle_rad,
         }
     }
 
@@ -107,10 +124,13 @@ impl Frustum {
             return false;
         }
         match self.normalized_bounds {
-            None => true,
             Some([x0, x1, y0, y1]) => {
                 p.x >= x0 * p.z && p.x <= x1 * p.z && p.y >= y0 * p.z && p.y <= y1 * p.z
             }
+            None => match self.cone_half_angle_rad {
+                Some(a) => p.xy().norm().atan2(p.z) <= a,
+                None => true,
+            },
         }
     }
 
@@ -174,6 +194,17 @@ impl Frustum {
                 || outside_all(&|c| c.y > y1 * c.z)
             {
                 return false;
+            }
+        } else if let Some(alpha) = self.cone_half_angle_rad {
+            // Bounding sphere of the box against the cone.
+            let half = 0.5 * (box_max_rel - box_min_rel);
+            let c = rotation * (box_min_rel + half - centre_rel);
+            let (dist, radius) = (c.norm(), half.norm());
+            if dist > radius {
+                let phi = c.xy().norm().atan2(c.z);
+                if phi - (radius / dist).asin() > alpha {
+                    return false;
+                }
             }
         }
         true

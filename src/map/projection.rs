@@ -178,8 +178,19 @@ pub struct ProjectedPoint {
 
 /// Camera projection with closed forms for the distortion-free models.
 enum Projector<'a> {
-    Pinhole { fx: f64, fy: f64, cx: f64, cy: f64 },
-    Model(&'a Camera),
+    Pinhole {
+        fx: f64,
+        fy: f64,
+        cx: f64,
+        cy: f64,
+    },
+    /// The camera model; points beyond `max_normalized_radius_sq` (where the
+    /// distortion folds back and a point far off to the side would land inside
+    /// the image) are not projected.
+    Model {
+        camera: &'a Camera,
+        max_normalized_radius_sq: f64,
+    },
 }
 
 impl<'a> Projector<'a> {
@@ -205,7 +216,19 @@ impl<'a> Projector<'a> {
                 cx: p[2],
                 cy: p[3],
             },
-            _ => Projector::Model(camera),
+            _ => {
+                let r = camera
+                    .max_normalized_radius()
+                    .ok_or(ProjectionError::BadCamera {
+                        model: camera.model.name(),
+                        got: p.len(),
+                        expected: camera.model.num_params(),
+                    })?;
+                Projector::Model {
+                    camera,
+                    max_normalized_radius_sq: r * r,
+                }
+            }
         })
     }
 
@@ -219,7 +242,18 @@ impl<'a> Projector<'a> {
                     fy * point_in_cam.y * iz + cy,
                 ))
             }
-            Projector::Model(camera) => camera.project(point_in_cam),
+            Projector::Model {
+                camera,
+                max_normalized_radius_sq,
+            } => {
+                let z = point_in_cam.z;
+                let r_sq =
+                    (point_in_cam.x * point_in_cam.x + point_in_cam.y * point_in_cam.y) / (z * z);
+                if !(r_sq <= max_normalized_radius_sq) {
+                    return None;
+                }
+                camera.project(point_in_cam)
+            }
         }
     }
 }

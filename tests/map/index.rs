@@ -50,25 +50,70 @@ pub fn building_cloud(n: usize, jitter_m: f32, seed: u64) -> PointCloud {
     let mut rects: Vec<Rect> = Vec::new();
     for s in 0..=storeys {
         let z = s as f32 * storey;
-        rects.push(([0.0, 0.0, z], [lx, 0.0, 0.0], [0.0, ly, 0.0], [0.0, 0.0, 1.0]));
+        rects.push((
+            [0.0, 0.0, z],
+            [lx, 0.0, 0.0],
+            [0.0, ly, 0.0],
+            [0.0, 0.0, 1.0],
+        ));
     }
     let h = storey * storeys as f32;
-    rects.push(([0.0, 0.0, 0.0], [lx, 0.0, 0.0], [0.0, 0.0, h], [0.0, 1.0, 0.0]));
-    rects.push(([0.0, ly, 0.0], [lx, 0.0, 0.0], [0.0, 0.0, h], [0.0, -1.0, 0.0]));
-    rects.push(([0.0, 0.0, 0.0], [0.0, ly, 0.0], [0.0, 0.0, h], [1.0, 0.0, 0.0]));
-    rects.push(([lx, 0.0, 0.0], [0.0, ly, 0.0], [0.0, 0.0, h], [-1.0, 0.0, 0.0]));
+    rects.push((
+        [0.0, 0.0, 0.0],
+        [lx, 0.0, 0.0],
+        [0.0, 0.0, h],
+        [0.0, 1.0, 0.0],
+    ));
+    rects.push((
+        [0.0, ly, 0.0],
+        [lx, 0.0, 0.0],
+        [0.0, 0.0, h],
+        [0.0, -1.0, 0.0],
+    ));
+    rects.push((
+        [0.0, 0.0, 0.0],
+        [0.0, ly, 0.0],
+        [0.0, 0.0, h],
+        [1.0, 0.0, 0.0],
+    ));
+    rects.push((
+        [lx, 0.0, 0.0],
+        [0.0, ly, 0.0],
+        [0.0, 0.0, h],
+        [-1.0, 0.0, 0.0],
+    ));
     // Inner walls every 10 m along x.
     for k in 1..6 {
         let x = k as f32 * 10.0;
-        rects.push(([x, 0.0, 0.0], [0.0, ly * 0.8, 0.0], [0.0, 0.0, h], [1.0, 0.0, 0.0]));
+        rects.push((
+            [x, 0.0, 0.0],
+            [0.0, ly * 0.8, 0.0],
+            [0.0, 0.0, h],
+            [1.0, 0.0, 0.0],
+        ));
     }
     // Boxes (tops and two sides) on the ground floor.
     for k in 0..12 {
         let (bx, by) = (3.0 + 4.7 * k as f32, 5.0 + 2.5 * (k % 5) as f32);
         let (sx, sy, sz) = (1.2f32, 0.8f32, 1.0f32);
-        rects.push(([bx, by, sz], [sx, 0.0, 0.0], [0.0, sy, 0.0], [0.0, 0.0, 1.0]));
-        rects.push(([bx, by, 0.0], [sx, 0.0, 0.0], [0.0, 0.0, sz], [0.0, -1.0, 0.0]));
-        rects.push(([bx, by, 0.0], [0.0, sy, 0.0], [0.0, 0.0, sz], [-1.0, 0.0, 0.0]));
+        rects.push((
+            [bx, by, sz],
+            [sx, 0.0, 0.0],
+            [0.0, sy, 0.0],
+            [0.0, 0.0, 1.0],
+        ));
+        rects.push((
+            [bx, by, 0.0],
+            [sx, 0.0, 0.0],
+            [0.0, 0.0, sz],
+            [0.0, -1.0, 0.0],
+        ));
+        rects.push((
+            [bx, by, 0.0],
+            [0.0, sy, 0.0],
+            [0.0, 0.0, sz],
+            [-1.0, 0.0, 0.0],
+        ));
     }
     let area: f32 = rects
         .iter()
@@ -160,7 +205,10 @@ fn check_against_oracle(cloud: &PointCloud, seed: u64) {
             // nearest_within
             match index.nearest_within(&q, radius) {
                 None => {
-                    assert!(d_min > radius - TOL_M, "missed a point at {d_min} < {radius}");
+                    assert!(
+                        d_min > radius - TOL_M,
+                        "missed a point at {d_min} < {radius}"
+                    );
                     found_none += 1;
                 }
                 Some(n) => {
@@ -181,12 +229,19 @@ fn check_against_oracle(cloud: &PointCloud, seed: u64) {
                 assert!((n.dist_sq.sqrt() - d).abs() < TOL_M);
             }
             for &(d, i) in all.iter().take_while(|(d, _)| *d < radius - TOL_M) {
-                assert!(seen.contains(&(i as u32)), "point {i} at {d} < {radius} missing");
+                assert!(
+                    seen.contains(&(i as u32)),
+                    "point {i} at {d} < {radius} missing"
+                );
             }
             assert!(w.windows(2).all(|p| p[0].dist_sq <= p[1].dist_sq));
             // k_nearest_within
             let kw = index.k_nearest_within(&q, 4, radius);
-            let expect = all.iter().filter(|(d, _)| *d <= radius - TOL_M).count().min(4);
+            let expect = all
+                .iter()
+                .filter(|(d, _)| *d <= radius - TOL_M)
+                .count()
+                .min(4);
             assert!(kw.len() >= expect && kw.len() <= 4);
             for (n, (d_or, _)) in kw.iter().zip(&all) {
                 assert!((dist(cloud, n.point_idx as usize, &q) - d_or).abs() < TOL_M);
@@ -200,12 +255,18 @@ fn check_against_oracle(cloud: &PointCloud, seed: u64) {
             for (n, (d_or, _)) in kn.iter().zip(&all) {
                 assert!(seen.insert(n.point_idx));
                 let d = dist(cloud, n.point_idx as usize, &q);
-                assert!((d - d_or).abs() < TOL_M, "k-th distance {d} vs oracle {d_or}");
+                assert!(
+                    (d - d_or).abs() < TOL_M,
+                    "k-th distance {d} vs oracle {d_or}"
+                );
             }
         }
     }
     // The radii were chosen so that both outcomes occur.
-    assert!(found_some > 50 && found_none > 50, "{found_some} / {found_none}");
+    assert!(
+        found_some > 50 && found_none > 50,
+        "{found_some} / {found_none}"
+    );
 }
 
 #[test]
@@ -242,14 +303,28 @@ fn ties_and_empty_results() {
     let k8: std::collections::BTreeSet<u32> =
         index.k_nearest(&q, 8).iter().map(|n| n.point_idx).collect();
     assert_eq!(k8, cube);
-    let w: Vec<u32> = index.within_radius(&q, 1.0).iter().map(|n| n.point_idx).collect();
-    assert_eq!(w.iter().copied().collect::<std::collections::BTreeSet<_>>(), cube);
+    let w: Vec<u32> = index
+        .within_radius(&q, 1.0)
+        .iter()
+        .map(|n| n.point_idx)
+        .collect();
+    assert_eq!(
+        w.iter().copied().collect::<std::collections::BTreeSet<_>>(),
+        cube
+    );
     let n = index.nearest_within(&q, 1.0).unwrap();
     assert!(cube.contains(&n.point_idx));
     // Deterministic: the same answer every time.
     for _ in 0..3 {
         assert_eq!(index.nearest_within(&q, 1.0).unwrap(), n);
-        assert_eq!(index.within_radius(&q, 1.0).iter().map(|n| n.point_idx).collect::<Vec<_>>(), w);
+        assert_eq!(
+            index
+                .within_radius(&q, 1.0)
+                .iter()
+                .map(|n| n.point_idx)
+                .collect::<Vec<_>>(),
+            w
+        );
     }
     // Radius below the tie distance: nothing.
     assert!(index.nearest_within(&q, 0.8).is_none());
