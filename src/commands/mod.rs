@@ -1,2 +1,4 @@
 //! One module per command of the `colmap-lidar` binary.
+pub mod depth;
 pub mod inspect;
+pub mod prepare_map;

@@ -1,0 +1,5 @@
+//! Integration tests: map.
+mod index;
+mod io;
+mod prepare;
+mod projection;
