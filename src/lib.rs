@@ -9,5 +9,6 @@ pub mod commands;
 pub mod io;
 pub mod map;
 pub mod scene;
+pub mod sfm;
 pub mod solver;
 pub mod synth;
