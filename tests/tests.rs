@@ -4,6 +4,7 @@ mod common;
 mod camera_models;
 mod database;
 mod map;
+mod mapper;
 mod model_io;
 mod solver;
 mod synth;

@@ -1,4 +1,5 @@
 //! One module per command of the `colmap-lidar` binary.
 pub mod depth;
 pub mod inspect;
+pub mod map;
 pub mod prepare_map;

@@ -1,3 +1,29 @@
-//! Incremental structure-from-motion inside a LiDAR map (method.md section 4).
+//! Incremental structure-from-motion inside a LiDAR map (method.md section 4),
+//! in GLOMAP-like stages: each stage is one module with one options struct
+//! ([`options`]) and one entry point; [`mapper::run_mapper`] runs them as
+//! numbered, timed, logged stages.
+//!
+//! * [`state`]: the reconstruction under construction (tracks, next-best-view
+//!   book-keeping);
+//! * [`initialize`]: the initial image at the user's pose, features on the
+//!   map's tangent planes, the second image by PnP;
+//! * [`register`]: next-best view, P3P LO-RANSAC, refinement;
+//! * [`triangulate`]: new points, track continuation and merging;
+//! * [`bundle`] + [`associate`]: local/global BA through Ceres with LiDAR
+//!   point-to-plane terms from a pluggable associator;
+//! * [`filter`]: outlier filters; [`report`]: `report.json`.
+pub mod associate;
 pub mod body_pose;
+pub mod bundle;
+pub mod filter;
 pub mod geometry;
+pub mod initialize;
+pub mod mapper;
+pub mod options;
+pub mod register;
+pub mod report;
+pub mod state;
+pub mod triangulate;
+
+pub use mapper::{run_mapper, MapperError, MapperOutput};
+pub use options::MapperOptions;

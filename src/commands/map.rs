@@ -1,0 +1,307 @@
+//! `colmap-lidar map`: incremental structure-from-motion of a COLMAP
+//! database inside a LiDAR map; writes a COLMAP model in the map frame and a
+//! `report.json`, atomically (a failed run leaves nothing behind).
+//!
+//! Every option can also come from a TOML file (`--options FILE`): top-level
+//! keys `database`, `lidar`, `output`, `init_image`, `init_pose`,
+//! `output_type`, `no_lidar_constraints`, and a `[mapper]` table with the
+//! stage options of [`MapperOptions`] (`seed`, `[mapper.register]`, ...).
+//! Command-line values win over the file.
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use serde::Deserialize;
+
+use crate::io::database::{read_database, DatabaseSnapshot};
+use crate::io::model::{write_model, ModelFormat};
+use crate::map::io::read_point_cloud;
+use crate::map::prepare::{estimate_normals, NormalOptions};
+use crate::map::PointCloud;
+use crate::scene::{ImageId, Rigid3};
+use crate::sfm::body_pose::BodyPoseDeg;
+use crate::sfm::options::AssociationKind;
+use crate::sfm::{run_mapper, MapperOptions};
+
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct MapArgs {
+    /// COLMAP database with features and verified matches (opened read-only).
+    #[arg(long, visible_alias = "database_path", value_name = "DB")]
+    pub database: Option<PathBuf>,
+    /// LiDAR map: .ply, .pcd, .las or .laz (normals estimated when missing).
+    #[arg(long, visible_alias = "lidar_path", value_name = "MAP")]
+    pub lidar: Option<PathBuf>,
+    /// Output folder of the COLMAP model and report.json (replaced atomically).
+    #[arg(long, visible_alias = "output_path", value_name = "DIR")]
+    pub output: Option<PathBuf>,
+    /// Initial image, by name or id. Default: the smallest image id.
+    #[arg(long, visible_alias = "init_image", value_name = "NAME|ID")]
+    pub init_image: Option<String>,
+    /// Pose of the initial image in the map frame: x,y,z (camera centre, m),
+    /// roll,pitch,yaw (degrees); body x forward, y left, z up. Default: the
+    /// database's pose prior of the image, if it has one.
+    #[arg(
+        long,
+        visible_alias = "init_pose",
+        value_name = "X,Y,Z,ROLL,PITCH,YAW",
+        allow_hyphen_values = true
+    )]
+    pub init_pose: Option<String>,
+    /// TOML options file; command-line values win.
+    #[arg(long, value_name = "FILE")]
+    pub options: Option<PathBuf>,
+    /// Model format: text (default) or binary.
+    #[arg(long, visible_alias = "output_type", value_name = "text|binary")]
+    pub output_type: Option<String>,
+    /// Seed of every random choice (default 0).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Plain SfM: no LiDAR point-to-plane terms in BA.
+    #[arg(long, visible_alias = "no_lidar_constraints")]
+    pub no_lidar_constraints: bool,
+    /// Refine the intrinsics in the final bundle adjustment.
+    #[arg(long, visible_alias = "refine_intrinsics")]
+    pub refine_intrinsics: bool,
+    /// Ceres threads (default 1: byte-identical output).
+    #[arg(long)]
+    pub threads: Option<usize>,
+}
+
+/// The options file.
+#[derive(Debug, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+struct OptionsFile {
+    database: Option<PathBuf>,
+    lidar: Option<PathBuf>,
+    output: Option<PathBuf>,
+    init_image: Option<toml::Value>,
+    init_pose: Option<String>,
+    output_type: Option<String>,
+    no_lidar_constraints: Option<bool>,
+    mapper: MapperOptions,
+}
+
+/// The validated configuration of a run.
+#[derive(Debug, Clone)]
+pub struct MapConfig {
+    pub database: PathBuf,
+    pub lidar: PathBuf,
+    pub output: PathBuf,
+    pub init_image: Option<String>,
+    pub init_pose: Option<BodyPoseDeg>,
+    pub format: ModelFormat,
+    pub options: MapperOptions,
+}
+
+impl MapArgs {
+    /// Merges the options file (if any) and the command line, validates.
+    pub fn config(&self) -> Result<MapConfig> {
+        let file: OptionsFile = match &self.options {
+            Some(path) => {
+                let text = std::fs::read_to_string(path)
+                    .with_context(|| format!("reading the options file {}", path.display()))?;
+                toml::from_str(&text)
+                    .with_context(|| format!("parsing the options file {}", path.display()))?
+            }
+            None => OptionsFile::default(),
+        };
+        let need = |cli: &Option<PathBuf>, file: &Option<PathBuf>, flag: &str| -> Result<PathBuf> {
+            cli.clone()
+                .or_else(|| file.clone())
+                .with_context(|| format!("missing --{flag} (or `{flag}` in the options file)"))
+        };
+        let database = need(&self.database, &file.database, "database")?;
+        let lidar = need(&self.lidar, &file.lidar, "lidar")?;
+        let output = need(&self.output, &file.output, "output")?;
+        let init_image = self.init_image.clone().or(match file.init_image {
+            Some(toml::Value::String(s)) => Some(s),
+            Some(toml::Value::Integer(i)) => Some(i.to_string()),
+            Some(other) => {
+                bail!("init_image in the options file must be a name or an id, got {other}")
+            }
+            None => None,
+        });
+        let init_pose = self
+            .init_pose
+            .clone()
+            .or(file.init_pose)
+            .map(|s| BodyPoseDeg::parse(&s).map_err(|e| anyhow::anyhow!("--init-pose {e}")))
+            .transpose()?;
+        let format = match self.output_type.clone().or(file.output_type).as_deref() {
+            None | Some("text") | Some("TXT") | Some("txt") => ModelFormat::Text,
+            Some("binary") | Some("BIN") | Some("bin") => ModelFormat::Binary,
+            Some(other) => bail!("--output-type must be text or binary, got `{other}`"),
+        };
+        let mut options = file.mapper;
+        if let Some(seed) = self.seed {
+            options.seed = seed;
+        }
+        if self.no_lidar_constraints || file.no_lidar_constraints == Some(true) {
+            options.association.kind = AssociationKind::None;
+        }
+        if self.refine_intrinsics {
+            options.bundle.refine_intrinsics = true;
+        }
+        if let Some(t) = self.threads {
+            options.bundle.num_threads = t;
+        }
+        options.validate()?;
+        Ok(MapConfig {
+            database,
+            lidar,
+            output,
+            init_image,
+            init_pose,
+            format,
+            options,
+        })
+    }
+}
+
+/// The initial image: by exact name first, then by id; default the smallest id.
+pub fn resolve_init_image(db: &DatabaseSnapshot, spec: Option<&str>) -> Result<ImageId> {
+    match spec {
+        None => db
+            .images
+            .keys()
+            .next()
+            .copied()
+            .with_context(|| format!("the database {} has no images", db.path.display())),
+        Some(s) => {
+            if let Some(img) = db.image_by_name(s) {
+                return Ok(img.id);
+            }
+            if let Ok(id) = s.trim().parse::<u32>() {
+                if db.images.contains_key(&ImageId(id)) {
+                    return Ok(ImageId(id));
+                }
+            }
+            let examples: Vec<&str> = db
+                .images
+                .values()
+                .take(3)
+                .map(|i| i.name.as_str())
+                .collect();
+            bail!(
+                "unknown initial image `{s}`: no image of that name or id in {} ({} images, e.g. {})",
+                db.path.display(),
+                db.images.len(),
+                examples.join(", ")
+            )
+        }
+    }
+}
+
+/// Files we may replace in an existing output folder.
+const REPLACEABLE: [&str; 7] = [
+    "cameras.txt",
+    "images.txt",
+    "points3D.txt",
+    "cameras.bin",
+    "images.bin",
+    "points3D.bin",
+    "report.json",
+];
+
+fn check_output(dir: &Path) -> Result<()> {
+    if !dir.exists() {
+        return Ok(());
+    }
+    if !dir.is_dir() {
+        bail!("the output {} exists and is not a folder", dir.display());
+    }
+    for entry in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
+        let name = entry?.file_name();
+        let name = name.to_string_lossy();
+        if !REPLACEABLE.contains(&name.as_ref()) {
+            bail!(
+                "the output folder {} holds `{name}`, which is not a model file: refusing to replace it",
+                dir.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Reads the map; estimates normals where missing.
+pub fn load_map(path: &Path) -> Result<PointCloud> {
+    let (mut cloud, load) = read_point_cloud(path)
+        .with_context(|| format!("reading the LiDAR map {}", path.display()))?;
+    if cloud.is_empty() {
+        bail!("the LiDAR map {} holds no points", path.display());
+    }
+    if !load.had_normals || load.normals_invalid > 0 {
+        let report = estimate_normals(&mut cloud, &NormalOptions::default())
+            .with_context(|| format!("estimating normals of {}", path.display()))?;
+        log::info!(
+            "map normals: {} kept, {} estimated, {} failed",
+            report.kept,
+            report.estimated,
+            report.failed
+        );
+    }
+    Ok(cloud)
+}
+
+pub fn run(args: &MapArgs) -> Result<()> {
+    let config = args.config()?;
+    check_output(&config.output)?;
+    let db = read_database(&config.database)
+        .with_context(|| format!("reading the database {}", config.database.display()))?;
+    let init_image = resolve_init_image(&db, config.init_image.as_deref())?;
+    let init_cam_from_world: Rigid3 = match &config.init_pose {
+        Some(p) => p.to_cam_from_world(),
+        None => match db.pose_priors.get(&init_image).and_then(|p| p.cam_from_world) {
+            Some(pose) => pose,
+            None => bail!(
+                "no initial pose for image `{}`: pass --init-pose x,y,z,roll,pitch,yaw (map frame, metres, degrees)",
+                db.images[&init_image].name
+            ),
+        },
+    };
+    let cloud = load_map(&config.lidar)?;
+    let total = db.images.len();
+    let bar = std::io::stderr().is_terminal().then(|| {
+        let bar = indicatif::ProgressBar::new(total as u64);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{elapsed_precise} [{bar:40}] {pos}/{len} images registered",
+            )
+            .expect("the template is valid"),
+        );
+        bar
+    });
+    let mut progress = |done: usize, _total: usize| {
+        if let Some(bar) = &bar {
+            bar.set_position(done as u64);
+        }
+    };
+    let out = run_mapper(
+        &db,
+        &cloud,
+        init_image,
+        &init_cam_from_world,
+        &config.options,
+        &mut progress,
+    )?;
+    if let Some(bar) = &bar {
+        bar.finish_and_clear();
+    }
+    let report_json =
+        serde_json::to_string_pretty(&out.report).context("serialising the report")?;
+    crate::io::atomic::write_dir_atomically(&config.output, |tmp| -> Result<()> {
+        write_model(tmp, &out.reconstruction, config.format)?;
+        std::fs::write(tmp.join("report.json"), format!("{report_json}\n"))?;
+        Ok(())
+    })
+    .with_context(|| format!("writing the model to {}", config.output.display()))?;
+    println!(
+        "registered {}/{} images, {} points, mean reprojection error {:.3} px; model in {}",
+        out.report.num_registered,
+        out.report.num_images,
+        out.report.num_points,
+        out.report.mean_reprojection_error_px,
+        config.output.display()
+    );
+    Ok(())
+}

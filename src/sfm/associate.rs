@@ -1,0 +1,183 @@
+//! LiDAR point-to-plane associations for bundle adjustment (method.md 4.6).
+//!
+//! Before every solve the mapper asks a [`PlaneAssociator`] for planes of the
+//! solve's variable 3D points; each plane becomes a residual
+//! `w * (n . X - n . l)`. Two associators exist: [`NoAssociation`] (plain SfM,
+//! option `--no-lidar-constraints`) and [`NearestNeighbourAssociator`] (nearest
+//! map point within a radius that shrinks as the point takes part in global
+//! BAs, its tangent plane). Projection associations and per-kind weights are
+//! the next step; they plug in through the same trait.
+use nalgebra::Vector3;
+
+use super::options::AssociationOptions;
+use crate::map::index::MapIndex;
+use crate::map::PointCloud;
+use crate::solver::{PlaneConstraint, PlaneFamily};
+
+/// Which solve the planes are for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SolveKind {
+    Local,
+    Global,
+    Final,
+}
+
+/// A variable 3D point of a solve.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AssociationQuery {
+    /// Index of the point in the solve's problem.
+    pub point_idx: u32,
+    pub position_in_world: Vector3<f64>,
+    /// Global BAs the point took part in.
+    pub num_global_ba: u32,
+    pub track_len: usize,
+}
+
+/// Computes the planes of one solve.
+pub trait PlaneAssociator {
+    fn name(&self) -> &'static str;
+    /// Planes for some of `queries` (at most one per point), in query order.
+    fn associate(&self, kind: SolveKind, queries: &[AssociationQuery]) -> Vec<PlaneConstraint>;
+    /// Huber scale for the plane residuals (pixel equivalents), if any.
+    fn loss_scale(&self) -> Option<f64> {
+        None
+    }
+}
+
+/// No LiDAR terms.
+pub struct NoAssociation;
+
+impl PlaneAssociator for NoAssociation {
+    fn name(&self) -> &'static str {
+        "none"
+    }
+
+    fn associate(&self, _: SolveKind, _: &[AssociationQuery]) -> Vec<PlaneConstraint> {
+        Vec::new()
+    }
+}
+
+/// The nearest map point within `r = max(max_radius - k * radius_drop,
+/// min_radius)` (k = global BAs the point took part in), kept when the point
+/// lies within `max_plane_distance_m` of that point's tangent plane. Ground
+/// planes (normal near vertical) get `ground_weight`.
+pub struct NearestNeighbourAssociator<'a> {
+    pub cloud: &'a PointCloud,
+    pub index: &'a MapIndex,
+    pub options: AssociationOptions,
+}
+
+impl NearestNeighbourAssociator<'_> {
+    pub fn radius_m(&self, num_global_ba: u32) -> f64 {
+        let o = &self.options;
+        (o.max_radius_m - f64::from(num_global_ba) * o.radius_drop_m).max(o.min_radius_m)
+    }
+}
+
+impl PlaneAssociator for NearestNeighbourAssociator<'_> {
+    fn name(&self) -> &'static str {
+        "nearest"
+    }
+
+    fn loss_scale(&self) -> Option<f64> {
+        Some(self.options.loss_scale)
+    }
+
+    fn associate(&self, _kind: SolveKind, queries: &[AssociationQuery]) -> Vec<PlaneConstraint> {
+        let Some(normals) = self.cloud.normals.as_ref() else {
+            return Vec::new();
+        };
+        let cos_ground = self.options.ground_max_tilt_deg.to_radians().cos();
+        let mut planes = Vec::new();
+        for q in queries {
+            let radius = self.radius_m(q.num_global_ba);
+            let Some(nb) = self.index.nearest_within(&q.position_in_world, radius) else {
+                continue;
+            };
+            let i = nb.point_idx as usize;
+            let n = normals[i];
+            let normal = Vector3::new(f64::from(n[0]), f64::from(n[1]), f64::from(n[2]));
+            let Some(normal) = normal.try_normalize(1e-9) else {
+                continue;
+            };
+            let l = self.cloud.point_in_map(i);
+            let offset_m = normal.dot(&l);
+            if (normal.dot(&q.position_in_world) - offset_m).abs()
+                > self.options.max_plane_distance_m
+            {
+                continue;
+            }
+            let ground = normal.z.abs() >= cos_ground;
+            planes.push(PlaneConstraint {
+                point_idx: q.point_idx,
+                normal: [normal.x, normal.y, normal.z],
+                offset_m,
+                weight: if ground {
+                    self.options.ground_weight
+                } else {
+                    self.options.weight
+                },
+                family: if ground {
+                    PlaneFamily::Ground
+                } else {
+                    PlaneFamily::Nearest
+                },
+            });
+        }
+        planes
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nearest_association_gates_and_shrinks() {
+        // A floor patch z = 0 around the origin, 0.1 m spacing, normals up.
+        let mut points = Vec::new();
+        for i in -10..=10 {
+            for j in -10..=10 {
+                points.push([i as f32 * 0.1, j as f32 * 0.1, 0.0]);
+            }
+        }
+        let normals = vec![[0.0f32, 0.0, 1.0]; points.len()];
+        let cloud = PointCloud {
+            origin: Vector3::new(100.0, 200.0, 10.0),
+            points,
+            normals: Some(normals),
+            planarity: None,
+        };
+        let index = MapIndex::build(&cloud).unwrap();
+        let assoc = NearestNeighbourAssociator {
+            cloud: &cloud,
+            index: &index,
+            options: AssociationOptions::default(),
+        };
+        assert_eq!(assoc.radius_m(0), 1.5);
+        assert!((assoc.radius_m(3) - 0.9).abs() < 1e-12);
+        assert_eq!(assoc.radius_m(100), 0.1);
+        let q = |idx: u32, x: f64, y: f64, z: f64, k: u32| AssociationQuery {
+            point_idx: idx,
+            position_in_world: Vector3::new(100.0 + x, 200.0 + y, 10.0 + z),
+            num_global_ba: k,
+            track_len: 2,
+        };
+        let planes = assoc.associate(
+            SolveKind::Local,
+            &[
+                q(0, 0.03, 0.02, 0.05, 0), // near the floor: kept
+                q(1, 0.0, 0.0, 0.5, 0),    // 0.5 m above: beyond the plane gate
+                q(2, 1.5, 0.0, 0.1, 10),   // 0.5 m from the patch edge, radius 0.1: none
+            ],
+        );
+        assert_eq!(planes.len(), 1);
+        assert_eq!(planes[0].point_idx, 0);
+        assert_eq!(planes[0].family, PlaneFamily::Ground);
+        assert!((planes[0].offset_m - 10.0).abs() < 1e-6);
+        assert!(NoAssociation
+            .associate(SolveKind::Global, &[q(0, 0.0, 0.0, 0.0, 0)])
+            .is_empty());
+    }
+}

@@ -1,0 +1,208 @@
+//! Bundle adjustment of the map state through the Ceres bridge: builds a
+//! [`BundleAdjustmentProblem`] for a local or global solve (what varies is the
+//! [`BundleConfig`]), asks the associator for LiDAR planes of the variable
+//! points, solves, and writes poses, points and (optionally) intrinsics back.
+use std::collections::{BTreeMap, BTreeSet};
+
+use serde::Serialize;
+
+use super::associate::{AssociationQuery, PlaneAssociator, SolveKind};
+use super::options::BundleOptions;
+use super::state::MapState;
+use crate::scene::{CameraId, ImageId, Point3DId};
+use crate::solver::{
+    solve, BaCamera, BaObservation, BaPoint, BaPose, BundleAdjustmentProblem, ConstantParams,
+    LossFunction, PlaneFamily, SolverError, SolverOptions,
+};
+
+/// What varies in one solve.
+#[derive(Clone, Debug, Default)]
+pub struct BundleConfig {
+    /// Images whose poses vary (registered ones only).
+    pub variable_images: BTreeSet<ImageId>,
+    /// Images held fixed even if listed as variable (the gauge).
+    pub fixed_images: BTreeSet<ImageId>,
+    /// Refine the intrinsics of the cameras of the variable images.
+    pub refine_intrinsics: bool,
+}
+
+/// One solve, as reported.
+#[derive(Clone, Debug, Serialize)]
+pub struct SolveRecord {
+    pub kind: SolveKind,
+    /// Registered images when the solve ran.
+    pub num_registered: usize,
+    pub num_variable_poses: usize,
+    pub num_constant_poses: usize,
+    pub num_points: usize,
+    pub num_observations: usize,
+    pub num_planes: usize,
+    pub num_ground_planes: usize,
+    pub initial_cost: f64,
+    pub final_cost: f64,
+    pub iterations: usize,
+    pub usable: bool,
+    pub time_s: f64,
+}
+
+/// Runs one bundle adjustment on `state`. The variable points are those
+/// observed by a variable image; every other registered image observing them
+/// joins as a constant pose.
+pub fn bundle_adjust(
+    state: &mut MapState,
+    config: &BundleConfig,
+    kind: SolveKind,
+    associator: &dyn PlaneAssociator,
+    options: &BundleOptions,
+) -> Result<SolveRecord, SolverError> {
+    let point_ids: BTreeSet<Point3DId> = config
+        .variable_images
+        .iter()
+        .filter_map(|i| state.images.get(i))
+        .filter(|img| img.is_registered())
+        .flat_map(|img| img.point3d.iter().flatten().copied())
+        .collect();
+    let mut problem = BundleAdjustmentProblem::default();
+    let mut pose_idx: BTreeMap<ImageId, u32> = BTreeMap::new();
+    let mut camera_idx: BTreeMap<CameraId, u32> = BTreeMap::new();
+    let mut point_list: Vec<Point3DId> = Vec::with_capacity(point_ids.len());
+    let mut queries = Vec::with_capacity(point_ids.len());
+    // Poses and cameras in image-id order for determinism.
+    let mut images_needed: BTreeSet<ImageId> = BTreeSet::new();
+    for pid in &point_ids {
+        for e in &state.points[pid].track {
+            if state.pose(e.image_id).is_some() {
+                images_needed.insert(e.image_id);
+            }
+        }
+    }
+    for &image in &images_needed {
+        let variable =
+            config.variable_images.contains(&image) && !config.fixed_images.contains(&image);
+        let pose = state.pose(image).expect("registered, checked above");
+        pose_idx.insert(image, problem.poses.len() as u32);
+        problem.poses.push(BaPose::new(&pose, !variable));
+        let cam_id = state.images[&image].camera_id;
+        if !camera_idx.contains_key(&cam_id) {
+            camera_idx.insert(cam_id, problem.cameras.len() as u32);
+            let constant = if config.refine_intrinsics {
+                ConstantParams::None
+            } else {
+                ConstantParams::All
+            };
+            problem
+                .cameras
+                .push(BaCamera::new(&state.cameras[&cam_id], constant));
+        }
+    }
+    for pid in &point_ids {
+        let p = &state.points[pid];
+        let idx = problem.points.len() as u32;
+        problem.points.push(BaPoint::new(&p.xyz, false));
+        point_list.push(*pid);
+        for e in &p.track {
+            let Some(&pi) = pose_idx.get(&e.image_id) else {
+                continue;
+            };
+            let xy = state.keypoint(*e);
+            problem.observations.push(BaObservation::new(
+                pi,
+                camera_idx[&state.images[&e.image_id].camera_id],
+                idx,
+                [xy.x, xy.y],
+            ));
+        }
+        queries.push(AssociationQuery {
+            point_idx: idx,
+            position_in_world: p.xyz,
+            num_global_ba: p.num_global_ba,
+            track_len: p.track.len(),
+        });
+    }
+    let num_variable_poses = problem.poses.iter().filter(|p| !p.constant).count();
+    if problem.observations.is_empty() || num_variable_poses == 0 && point_list.is_empty() {
+        return Ok(SolveRecord {
+            kind,
+            num_registered: state.num_registered(),
+            num_variable_poses,
+            num_constant_poses: problem.poses.len() - num_variable_poses,
+            num_points: 0,
+            num_observations: 0,
+            num_planes: 0,
+            num_ground_planes: 0,
+            initial_cost: 0.0,
+            final_cost: 0.0,
+            iterations: 0,
+            usable: true,
+            time_s: 0.0,
+        });
+    }
+    problem.planes = associator.associate(kind, &queries);
+    let anchored: BTreeSet<u32> = problem.planes.iter().map(|p| p.point_idx).collect();
+    let solver_options = SolverOptions {
+        reprojection_loss: LossFunction::SoftL1 {
+            scale: options.reprojection_loss_px,
+        },
+        plane_loss: LossFunction::Huber {
+            scale: super_plane_loss(associator),
+        },
+        max_iterations: match kind {
+            SolveKind::Local => options.local_max_iterations,
+            _ => options.global_max_iterations,
+        },
+        num_threads: options.num_threads,
+        ..Default::default()
+    };
+    let summary = solve(&mut problem, &solver_options)?;
+    if summary.usable {
+        for (&image, &pi) in &pose_idx {
+            if !problem.poses[pi as usize].constant {
+                let pose = problem.poses[pi as usize].rigid();
+                state.register(image, pose);
+            }
+        }
+        for (i, pid) in point_list.iter().enumerate() {
+            if let Some(p) = state.points.get_mut(pid) {
+                p.xyz = problem.points[i].position();
+                p.anchored = anchored.contains(&(i as u32));
+                if kind != SolveKind::Local {
+                    p.num_global_ba += 1;
+                }
+            }
+        }
+        if config.refine_intrinsics {
+            for (cam_id, &ci) in &camera_idx {
+                if let Some(c) = state.cameras.get_mut(cam_id) {
+                    c.params = problem.cameras[ci as usize].params.clone();
+                }
+            }
+        }
+    } else {
+        log::warn!("{kind:?} bundle adjustment not usable: {}", summary.message);
+    }
+    Ok(SolveRecord {
+        kind,
+        num_registered: state.num_registered(),
+        num_variable_poses,
+        num_constant_poses: problem.poses.len() - num_variable_poses,
+        num_points: point_list.len(),
+        num_observations: problem.observations.len(),
+        num_planes: problem.planes.len(),
+        num_ground_planes: problem
+            .planes
+            .iter()
+            .filter(|p| p.family == PlaneFamily::Ground)
+            .count(),
+        initial_cost: summary.initial_cost,
+        final_cost: summary.final_cost,
+        iterations: summary.num_iterations,
+        usable: summary.usable,
+        time_s: summary.time_s,
+    })
+}
+
+/// Huber scale of plane residuals: the associator's own, 20 px-equivalents
+/// otherwise.
+fn super_plane_loss(associator: &dyn PlaneAssociator) -> f64 {
+    associator.loss_scale().unwrap_or(20.0)
+}

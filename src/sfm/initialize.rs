@@ -1,0 +1,259 @@
+//! Initialisation from the map (method.md 4.4). The initial image gets the
+//! user's pose; its features that see the map get 3D points by intersecting
+//! their viewing rays with the tangent planes of the LiDAR points they see,
+//! **in the world frame** (right for any initial pose); a second image is
+//! registered by PnP against those points, trying candidates in order of how
+//! many of its verified matches with the initial image have such a point. The
+//! PnP inliers become the first 3D points.
+use std::collections::BTreeMap;
+
+use nalgebra::Vector3;
+use rand_chacha::ChaCha8Rng;
+
+use super::geometry::intersect_ray_plane;
+use super::options::{InitOptions, RegisterOptions};
+use super::register::{estimate_pose, PoseOutcome};
+use super::state::MapState;
+use crate::map::grid::FrustumGrid;
+use crate::map::projection::{project_map_at_pixels, ProjectionError, ProjectionOptions};
+use crate::map::PointCloud;
+use crate::scene::{ImageId, Rigid3, TrackElement};
+
+/// One second-image candidate that was tried.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct InitAttempt {
+    pub image_id: u32,
+    pub image_name: String,
+    /// Verified matches with the initial image whose feature has a LiDAR point.
+    pub num_lidar_matches: usize,
+    /// PnP inliers (0 when PnP did not run or found nothing).
+    pub num_inliers: usize,
+}
+
+/// Why initialisation failed.
+#[derive(Debug, thiserror::Error)]
+pub enum InitError {
+    #[error(transparent)]
+    Projection(#[from] ProjectionError),
+    #[error(
+        "the initial image `{name}` (id {id}) sees no usable map point at its pose: \
+         {num_hits} of its {num_features} features hit the map, {num_supported} got a 3D point \
+         from a tangent plane (need {needed}). Is the initial pose in the map frame, \
+         in metres and degrees (x,y,z,roll,pitch,yaw), and does the map cover the view?"
+    )]
+    NoMapSupport {
+        name: String,
+        id: ImageId,
+        num_features: usize,
+        num_hits: usize,
+        num_supported: usize,
+        needed: usize,
+    },
+    #[error(
+        "no second image could be registered against the {num_supported} LiDAR-supported \
+         features of the initial image `{name}` (id {id}); tried: {}",
+        describe(.attempts)
+    )]
+    NoSecondImage {
+        name: String,
+        id: ImageId,
+        num_supported: usize,
+        attempts: Vec<InitAttempt>,
+    },
+}
+
+fn describe(attempts: &[InitAttempt]) -> String {
+    if attempts.is_empty() {
+        return "no image shares verified matches with it".to_owned();
+    }
+    attempts
+        .iter()
+        .map(|a| {
+            format!(
+                "`{}` (id {}): {} matches with LiDAR points, {} PnP inliers",
+                a.image_name, a.image_id, a.num_lidar_matches, a.num_inliers
+            )
+        })
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+/// What initialisation did.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct InitSummary {
+    pub initial_image: u32,
+    pub second_image: u32,
+    pub num_features: usize,
+    pub num_map_hits: usize,
+    pub num_supported: usize,
+    pub num_points: usize,
+    pub attempts: Vec<InitAttempt>,
+}
+
+/// 3D points of the initial image's features from the map: keypoint index ->
+/// point in the world frame. Returns (points, number of features that hit the map).
+pub fn lidar_points_of_image(
+    state: &MapState,
+    image: ImageId,
+    cam_from_world: &Rigid3,
+    cloud: &PointCloud,
+    grid: &FrustumGrid,
+    options: &InitOptions,
+) -> Result<(BTreeMap<u32, Vector3<f64>>, usize), ProjectionError> {
+    let camera = state.camera_of(image);
+    let keypoints = &state.images[&image].keypoints;
+    let projection = ProjectionOptions {
+        min_depth_m: options.min_depth_m,
+        max_depth_m: options.max_depth_m,
+        ..Default::default()
+    };
+    let hits = project_map_at_pixels(cloud, grid, camera, cam_from_world, keypoints, &projection)?;
+    let world_from_cam = cam_from_world.inverse();
+    let centre = cam_from_world.camera_center();
+    let min_cos = options.min_ray_plane_angle_deg.to_radians().sin();
+    let mut out = BTreeMap::new();
+    let mut num_hits = 0;
+    for (k, hit) in hits.iter().enumerate() {
+        let Some(hit) = hit else { continue };
+        num_hits += 1;
+        let Some(normal) = hit.normal_in_map.and_then(|n| n.try_normalize(1e-9)) else {
+            continue;
+        };
+        let Some(ray_in_cam) = camera.unproject(&keypoints[k]) else {
+            continue;
+        };
+        let dir = world_from_cam.rotation * ray_in_cam;
+        let offset = normal.dot(&hit.point_in_map);
+        let Some(x) = intersect_ray_plane(&centre, &dir, &normal, offset, min_cos) else {
+            continue;
+        };
+        if (x - hit.point_in_map).norm() > options.max_plane_extrapolation_m {
+            continue;
+        }
+        out.insert(k as u32, x);
+    }
+    Ok((out, num_hits))
+}
+
+/// Registers the initial image at `cam_from_world` and a second image by PnP
+/// against its LiDAR-supported features; creates the first 3D points.
+#[allow(clippy::too_many_arguments)]
+pub fn initialize(
+    state: &mut MapState,
+    image: ImageId,
+    cam_from_world: &Rigid3,
+    cloud: &PointCloud,
+    grid: &FrustumGrid,
+    options: &InitOptions,
+    register: &RegisterOptions,
+    rng: &mut ChaCha8Rng,
+) -> Result<InitSummary, InitError> {
+    let (lidar, num_hits) =
+        lidar_points_of_image(state, image, cam_from_world, cloud, grid, options)?;
+    let name = state.images[&image].name.clone();
+    let num_features = state.images[&image].keypoints.len();
+    if lidar.len() < options.min_lidar_features {
+        return Err(InitError::NoMapSupport {
+            name,
+            id: image,
+            num_features,
+            num_hits,
+            num_supported: lidar.len(),
+            needed: options.min_lidar_features,
+        });
+    }
+    // Candidates: matches of LiDAR-supported features per other image.
+    let mut per_image: BTreeMap<ImageId, Vec<(u32, u32)>> = BTreeMap::new();
+    for &k in lidar.keys() {
+        for c in state.graph.correspondences(image, k) {
+            if c.image_id != image {
+                per_image
+                    .entry(c.image_id)
+                    .or_default()
+                    .push((k, c.point2d_idx));
+            }
+        }
+    }
+    let mut candidates: Vec<(ImageId, Vec<(u32, u32)>)> = per_image.into_iter().collect();
+    candidates.sort_by(|a, b| b.1.len().cmp(&a.1.len()).then(a.0.cmp(&b.0)));
+    let mut attempts = Vec::new();
+    for (other, pairs) in candidates.into_iter().take(options.max_candidates) {
+        let img = &state.images[&other];
+        let pixels: Vec<_> = pairs
+            .iter()
+            .map(|(_, k2)| img.keypoints[*k2 as usize])
+            .collect();
+        let points: Vec<_> = pairs.iter().map(|(k1, _)| lidar[k1]).collect();
+        let camera = state.camera_of(other).clone();
+        let outcome = estimate_pose(&camera, &pixels, &points, register, rng);
+        let mut attempt = InitAttempt {
+            image_id: other.0,
+            image_name: img.name.clone(),
+            num_lidar_matches: pairs.len(),
+            num_inliers: 0,
+        };
+        match outcome {
+            PoseOutcome::Found {
+                cam_from_world: pose2,
+                inliers,
+            } => {
+                attempt.num_inliers = inliers.len();
+                attempts.push(attempt);
+                state.register(image, *cam_from_world);
+                state.register(other, pose2);
+                for i in &inliers {
+                    let (k1, k2) = pairs[*i];
+                    let id = state.add_point(
+                        lidar[&k1],
+                        vec![
+                            TrackElement {
+                                image_id: image,
+                                point2d_idx: k1,
+                            },
+                            TrackElement {
+                                image_id: other,
+                                point2d_idx: k2,
+                            },
+                        ],
+                    );
+                    if let Some(p) = state.points.get_mut(&id) {
+                        p.anchored = true;
+                    }
+                }
+                return Ok(InitSummary {
+                    initial_image: image.0,
+                    second_image: other.0,
+                    num_features,
+                    num_map_hits: num_hits,
+                    num_supported: lidar.len(),
+                    num_points: state.points.len(),
+                    attempts,
+                });
+            }
+            PoseOutcome::TooFewInliers { inliers, .. } => {
+                attempt.num_inliers = inliers;
+                log::info!(
+                    "initialisation: `{}` failed ({} LiDAR matches, {} inliers)",
+                    attempt.image_name,
+                    attempt.num_lidar_matches,
+                    inliers
+                );
+                attempts.push(attempt);
+            }
+            PoseOutcome::TooFewCorrespondences { .. } => {
+                log::info!(
+                    "initialisation: `{}` has only {} LiDAR matches",
+                    attempt.image_name,
+                    attempt.num_lidar_matches
+                );
+                attempts.push(attempt);
+            }
+        }
+    }
+    Err(InitError::NoSecondImage {
+        name,
+        id: image,
+        num_supported: lidar.len(),
+        attempts,
+    })
+}

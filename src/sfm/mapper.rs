@@ -1,0 +1,397 @@
+//! The incremental mapper: numbered, timed, logged stages.
+//!
+//! 1. Correspondence graph (built once from the verified matches).
+//! 2. Map index (kd-tree for associations, frustum grid for projection).
+//! 3. Initialisation from the map (initial image + second image by PnP).
+//! 4. Incremental registration: next-best view, PnP, triangulation, local BA,
+//!    filtering, track completion; periodic global BA; re-triangulation when
+//!    registration stalls.
+//! 5. Final global BA and filtering.
+use std::collections::{BTreeMap, BTreeSet};
+use std::time::Instant;
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use super::associate::{NearestNeighbourAssociator, NoAssociation, PlaneAssociator, SolveKind};
+use super::bundle::{bundle_adjust, BundleConfig};
+use super::filter::{filter_observations, filter_small_angle_points};
+use super::initialize::{initialize, InitError};
+use super::options::{AssociationKind, MapperOptions, OptionsError};
+use super::register::{next_best_images, register_image, PoseOutcome, RegistrationOutcome};
+use super::report::{ImageRecord, MapReport, StageRecord};
+use super::state::MapState;
+use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulate_image};
+use crate::io::database::DatabaseSnapshot;
+use crate::map::grid::{FrustumGrid, GridError, GridOptions};
+use crate::map::index::{IndexError, MapIndex};
+use crate::map::PointCloud;
+use crate::scene::{ImageId, Point3DId, Reconstruction, Rigid3};
+use crate::solver::SolverError;
+
+/// Why a run failed.
+#[derive(Debug, thiserror::Error)]
+pub enum MapperError {
+    #[error(transparent)]
+    Options(#[from] OptionsError),
+    #[error("the database {0} has no verified image pairs (two_view_geometries is empty): run a matcher first")]
+    NoVerifiedPairs(String),
+    #[error("the initial image id {0} is not in the database")]
+    UnknownImage(ImageId),
+    #[error("the LiDAR map is empty")]
+    EmptyMap,
+    #[error("the LiDAR map has no normals (estimate them first)")]
+    NoNormals,
+    #[error("building the map index: {0}")]
+    Index(#[from] IndexError),
+    #[error("building the map grid: {0}")]
+    Grid(#[from] GridError),
+    #[error("initialisation failed: {0}")]
+    Init(#[from] InitError),
+    #[error("bundle adjustment failed: {0}")]
+    Solver(#[from] SolverError),
+}
+
+/// The result of a run.
+pub struct MapperOutput {
+    pub reconstruction: Reconstruction,
+    pub report: MapReport,
+}
+
+/// Called after every registration with (registered, total).
+pub type Progress<'a> = &'a mut dyn FnMut(usize, usize);
+
+struct Stages {
+    start: Instant,
+    records: Vec<StageRecord>,
+}
+
+impl Stages {
+    fn done(&mut self, name: &str) {
+        let t = self.start.elapsed().as_secs_f64();
+        log::info!("stage {}: {name} ({t:.2} s)", self.records.len() + 1);
+        self.records.push(StageRecord {
+            name: name.to_owned(),
+            time_s: t,
+        });
+        self.start = Instant::now();
+    }
+}
+
+/// Runs the whole mapper.
+pub fn run_mapper(
+    db: &DatabaseSnapshot,
+    cloud: &PointCloud,
+    init_image: ImageId,
+    init_cam_from_world: &Rigid3,
+    options: &MapperOptions,
+    progress: Progress<'_>,
+) -> Result<MapperOutput, MapperError> {
+    options.validate()?;
+    if !db.images.contains_key(&init_image) {
+        return Err(MapperError::UnknownImage(init_image));
+    }
+    if db
+        .two_view_geometries
+        .iter()
+        .all(|g| g.inlier_matches.is_empty())
+    {
+        return Err(MapperError::NoVerifiedPairs(db.path.display().to_string()));
+    }
+    if cloud.is_empty() {
+        return Err(MapperError::EmptyMap);
+    }
+    if cloud.normals.is_none() {
+        return Err(MapperError::NoNormals);
+    }
+    let mut stages = Stages {
+        start: Instant::now(),
+        records: Vec::new(),
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(options.seed);
+
+    // 1. Correspondence graph.
+    let mut state = MapState::new(db, options.register.pyramid_levels);
+    log::info!(
+        "{} images, {} verified pairs",
+        state.images.len(),
+        state.graph.pairs().count()
+    );
+    stages.done("correspondence graph");
+
+    // 2. Map index.
+    let index = MapIndex::build(cloud)?;
+    let grid = FrustumGrid::build(cloud, &GridOptions::default())?;
+    log::info!("map: {} points", cloud.len());
+    stages.done("map index");
+    let nearest;
+    let associator: &dyn PlaneAssociator = match options.association.kind {
+        AssociationKind::None => &NoAssociation,
+        AssociationKind::Nearest => {
+            nearest = NearestNeighbourAssociator {
+                cloud,
+                index: &index,
+                options: options.association.clone(),
+            };
+            &nearest
+        }
+    };
+
+    let mut report = MapReport {
+        seed: options.seed,
+        association: associator.name().to_owned(),
+        images: state
+            .images
+            .values()
+            .map(|img| ImageRecord {
+                image_id: img.id.0,
+                name: img.name.clone(),
+                ..Default::default()
+            })
+            .collect(),
+        ..Default::default()
+    };
+
+    // 3. Initialisation.
+    let init = initialize(
+        &mut state,
+        init_image,
+        init_cam_from_world,
+        cloud,
+        &grid,
+        &options.init,
+        &options.register,
+        &mut rng,
+    )?;
+    log::info!(
+        "initialised: image {} at the given pose ({} of {} features on the map), image {} by PnP, {} points",
+        init.initial_image,
+        init.num_supported,
+        init.num_features,
+        init.second_image,
+        init.num_points
+    );
+    let second = ImageId(init.second_image);
+    if let Some(rec) = report.record_mut(second) {
+        let a = init.attempts.last();
+        rec.attempts = 1;
+        rec.pnp_inliers = a.map_or(0, |a| a.num_inliers);
+        rec.num_correspondences = a.map_or(0, |a| a.num_lidar_matches);
+    }
+    report.init = Some(init);
+    // Gauge: with map terms the initial image stays fixed for the first
+    // registrations; without them the first two images stay fixed for good.
+    let lidar_gauge = options.association.kind != AssociationKind::None;
+    let fixed_for = |state: &MapState| -> BTreeSet<ImageId> {
+        if !lidar_gauge {
+            BTreeSet::from([init_image, second])
+        } else if state.num_registered() <= options.bundle.fix_initial_for {
+            BTreeSet::from([init_image])
+        } else {
+            BTreeSet::new()
+        }
+    };
+    let stats = triangulate_image(&mut state, second, &options.triangulate);
+    log::debug!("second image: {stats:?}");
+    let config = BundleConfig {
+        variable_images: BTreeSet::from([init_image, second]),
+        fixed_images: fixed_for(&state),
+        refine_intrinsics: false,
+    };
+    report.solves.push(bundle_adjust(
+        &mut state,
+        &config,
+        SolveKind::Local,
+        associator,
+        &options.bundle,
+    )?);
+    filter_observations(&mut state, None, options.filter.max_reprojection_error_px);
+    progress(state.num_registered(), state.images.len());
+    stages.done("initialisation");
+
+    // 4. Incremental registration.
+    let mut failed: BTreeMap<ImageId, usize> = BTreeMap::new();
+    let mut last_global_size = state.num_registered();
+    let mut since_global = 0usize;
+    let mut retriangulated = false;
+    loop {
+        let candidates = next_best_images(&state, &failed, &options.register);
+        let mut registered = None;
+        for image in candidates {
+            let outcome = register_image(&mut state, image, &options.register, &mut rng);
+            let rec = report.record_mut(image).expect("every image has a record");
+            rec.attempts += 1;
+            match outcome {
+                RegistrationOutcome::Registered {
+                    num_correspondences,
+                    num_inliers,
+                } => {
+                    rec.num_correspondences = num_correspondences;
+                    rec.pnp_inliers = num_inliers;
+                    registered = Some(image);
+                    break;
+                }
+                RegistrationOutcome::Failed(why) => {
+                    match why {
+                        PoseOutcome::TooFewInliers {
+                            inliers,
+                            correspondences,
+                        } => {
+                            rec.pnp_inliers = inliers;
+                            rec.num_correspondences = correspondences;
+                        }
+                        PoseOutcome::TooFewCorrespondences { found, .. } => {
+                            rec.num_correspondences = found;
+                            rec.pnp_inliers = 0;
+                        }
+                        PoseOutcome::Found { .. } => {}
+                    }
+                    log::debug!("image {image} not registered: {why:?}");
+                    failed.insert(image, state.images[&image].num_visible);
+                }
+            }
+        }
+        let Some(image) = registered else {
+            if retriangulated {
+                break;
+            }
+            let stats = retriangulate_all(&mut state, &options.triangulate);
+            log::info!("registration stalled: re-triangulated ({stats:?})");
+            failed.clear();
+            retriangulated = true;
+            continue;
+        };
+        retriangulated = false;
+        failed.remove(&image);
+        let stats = triangulate_image(&mut state, image, &options.triangulate);
+        log::debug!(
+            "registered image {image} ({}/{}), {stats:?}",
+            state.num_registered(),
+            state.images.len()
+        );
+        // Local BA: the new image and its most co-visible registered images.
+        let mut covisible: Vec<(usize, ImageId)> = state
+            .registration_order
+            .iter()
+            .filter(|&&i| i != image)
+            .map(|&i| (state.num_shared_points(image, i), i))
+            .filter(|(n, _)| *n > 0)
+            .collect();
+        covisible.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
+        let mut variable: BTreeSet<ImageId> = covisible
+            .iter()
+            .take(options.bundle.local_num_neighbours)
+            .map(|(_, i)| *i)
+            .collect();
+        variable.insert(image);
+        let config = BundleConfig {
+            variable_images: variable.clone(),
+            fixed_images: fixed_for(&state),
+            refine_intrinsics: false,
+        };
+        report.solves.push(bundle_adjust(
+            &mut state,
+            &config,
+            SolveKind::Local,
+            associator,
+            &options.bundle,
+        )?);
+        filter_observations(
+            &mut state,
+            Some(&variable),
+            options.filter.max_reprojection_error_px,
+        );
+        let points: Vec<Point3DId> = state.images[&image]
+            .point3d
+            .iter()
+            .flatten()
+            .copied()
+            .collect();
+        for p in points {
+            complete_and_merge_point(&mut state, p, &options.triangulate);
+        }
+        since_global += 1;
+        let grown = state.num_registered() as f64
+            >= last_global_size as f64 * (1.0 + options.bundle.global_growth_ratio);
+        if since_global >= options.bundle.global_every_images || grown {
+            let fixed = fixed_for(&state);
+            global_ba(
+                &mut state,
+                SolveKind::Global,
+                &fixed,
+                associator,
+                options,
+                &mut report,
+            )?;
+            since_global = 0;
+            last_global_size = state.num_registered();
+        }
+        progress(state.num_registered(), state.images.len());
+    }
+    stages.done("incremental registration");
+
+    // 5. Final global BA.
+    retriangulate_all(&mut state, &options.triangulate);
+    for _ in 0..2 {
+        let fixed = fixed_for(&state);
+        global_ba(
+            &mut state,
+            SolveKind::Final,
+            &fixed,
+            associator,
+            options,
+            &mut report,
+        )?;
+    }
+    stages.done("final bundle adjustment");
+
+    report.finish(&state);
+    report.stages = stages.records;
+    log::info!(
+        "registered {}/{} images, {} points, mean reprojection error {:.3} px",
+        report.num_registered,
+        report.num_images,
+        report.num_points,
+        report.mean_reprojection_error_px
+    );
+    Ok(MapperOutput {
+        reconstruction: state.to_reconstruction(),
+        report,
+    })
+}
+
+/// Global BA over every registered image, then filtering and track completion.
+fn global_ba(
+    state: &mut MapState,
+    kind: SolveKind,
+    fixed: &BTreeSet<ImageId>,
+    associator: &dyn PlaneAssociator,
+    options: &MapperOptions,
+    report: &mut MapReport,
+) -> Result<(), MapperError> {
+    let config = BundleConfig {
+        variable_images: state.registration_order.iter().copied().collect(),
+        fixed_images: fixed.clone(),
+        refine_intrinsics: options.bundle.refine_intrinsics && kind == SolveKind::Final,
+    };
+    let record = bundle_adjust(state, &config, kind, associator, &options.bundle)?;
+    log::info!(
+        "{kind:?} BA: {} images, {} points, {} planes, cost {:.4e} -> {:.4e} ({:.2} s)",
+        record.num_variable_poses,
+        record.num_points,
+        record.num_planes,
+        record.initial_cost,
+        record.final_cost,
+        record.time_s
+    );
+    report.solves.push(record);
+    let removed = filter_observations(state, None, options.filter.max_reprojection_error_px);
+    let removed_angle =
+        filter_small_angle_points(state, options.filter.min_triangulation_angle_deg);
+    log::debug!("filtered {removed} observations, {removed_angle} small-angle points");
+    let points: Vec<Point3DId> = state.points.keys().copied().collect();
+    for p in points {
+        complete_and_merge_point(state, p, &options.triangulate);
+    }
+    Ok(())
+}

@@ -1,0 +1,431 @@
+//! Options of the mapper, one struct per stage, each with documented defaults
+//! (units in the names) and a `validate()`. All of them deserialise from the
+//! `[mapper]` table of a TOML options file (missing keys keep their defaults,
+//! unknown keys are errors).
+use serde::Deserialize;
+
+/// An option out of range: names the option and the value.
+#[derive(Debug, thiserror::Error)]
+#[error("invalid mapper option `{name}`: {message}")]
+pub struct OptionsError {
+    pub name: String,
+    pub message: String,
+}
+
+fn check(ok: bool, name: &str, message: impl Into<String>) -> Result<(), OptionsError> {
+    if ok {
+        Ok(())
+    } else {
+        Err(OptionsError {
+            name: name.to_owned(),
+            message: message.into(),
+        })
+    }
+}
+
+fn positive(name: &str, v: f64) -> Result<(), OptionsError> {
+    check(
+        v.is_finite() && v > 0.0,
+        name,
+        format!("must be finite and > 0, got {v}"),
+    )
+}
+
+fn non_negative(name: &str, v: f64) -> Result<(), OptionsError> {
+    check(
+        v.is_finite() && v >= 0.0,
+        name,
+        format!("must be finite and >= 0, got {v}"),
+    )
+}
+
+/// Initialisation from the map (method.md 4.4).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct InitOptions {
+    /// Map points closer than this along the optical axis are ignored, metres. Default 0.5.
+    pub min_depth_m: f64,
+    /// Map points deeper than this are ignored, metres. Default 40.
+    pub max_depth_m: f64,
+    /// Rays closer than this angle to the tangent plane are rejected, degrees. Default 10.
+    pub min_ray_plane_angle_deg: f64,
+    /// The ray-plane intersection may lie at most this far from the LiDAR
+    /// point whose plane it uses, metres. Default 0.5.
+    pub max_plane_extrapolation_m: f64,
+    /// Fewest LiDAR-supported features the initial image needs. Default 30.
+    pub min_lidar_features: usize,
+    /// Second-image candidates tried before giving up. Default 20.
+    pub max_candidates: usize,
+}
+
+impl Default for InitOptions {
+    fn default() -> Self {
+        Self {
+            min_depth_m: 0.5,
+            max_depth_m: 40.0,
+            min_ray_plane_angle_deg: 10.0,
+            max_plane_extrapolation_m: 0.5,
+            min_lidar_features: 30,
+            max_candidates: 20,
+        }
+    }
+}
+
+impl InitOptions {
+    pub fn validate(&self) -> Result<(), OptionsError> {
+        positive("init.min_depth_m", self.min_depth_m)?;
+        check(
+            self.max_depth_m.is_finite() && self.max_depth_m > self.min_depth_m,
+            "init.max_depth_m",
+            "must be finite and > min_depth_m",
+        )?;
+        check(
+            (0.0..90.0).contains(&self.min_ray_plane_angle_deg),
+            "init.min_ray_plane_angle_deg",
+            "must be in [0, 90)",
+        )?;
+        positive(
+            "init.max_plane_extrapolation_m",
+            self.max_plane_extrapolation_m,
+        )?;
+        check(
+            self.min_lidar_features >= 4,
+            "init.min_lidar_features",
+            "must be >= 4",
+        )?;
+        check(
+            self.max_candidates >= 1,
+            "init.max_candidates",
+            "must be >= 1",
+        )
+    }
+}
+
+/// Registration of an image by PnP (P3P in LO-RANSAC, then refinement).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RegisterOptions {
+    /// RANSAC inlier threshold on the reprojection error, pixels. Default 4.
+    pub max_error_px: f64,
+    /// Fewest inliers for a registration. Default 30.
+    pub min_num_inliers: usize,
+    /// Smallest inlier ratio for a registration. Default 0.25.
+    pub min_inlier_ratio: f64,
+    /// RANSAC confidence. Default 0.9999.
+    pub confidence: f64,
+    /// Fewest RANSAC iterations. Default 100.
+    pub min_iterations: usize,
+    /// Most RANSAC iterations. Default 10000.
+    pub max_iterations: usize,
+    /// Huber scale of the pose refinement, pixels. Default 1.
+    pub refine_huber_px: f64,
+    /// Levels of the visibility pyramid for next-best-view scoring. Default 6.
+    pub pyramid_levels: usize,
+    /// An image that failed is retried only once it sees this many more 3D
+    /// points than at its last failure. Default 10.
+    pub retry_min_new_points: usize,
+}
+
+impl Default for RegisterOptions {
+    fn default() -> Self {
+        Self {
+            max_error_px: 4.0,
+            min_num_inliers: 30,
+            min_inlier_ratio: 0.25,
+            confidence: 0.9999,
+            min_iterations: 100,
+            max_iterations: 10_000,
+            refine_huber_px: 1.0,
+            pyramid_levels: 6,
+            retry_min_new_points: 10,
+        }
+    }
+}
+
+impl RegisterOptions {
+    pub fn validate(&self) -> Result<(), OptionsError> {
+        positive("register.max_error_px", self.max_error_px)?;
+        check(
+            self.min_num_inliers >= 4,
+            "register.min_num_inliers",
+            "must be >= 4",
+        )?;
+        check(
+            (0.0..=1.0).contains(&self.min_inlier_ratio),
+            "register.min_inlier_ratio",
+            "must be in [0, 1]",
+        )?;
+        check(
+            self.confidence > 0.0 && self.confidence < 1.0,
+            "register.confidence",
+            "must be in (0, 1)",
+        )?;
+        check(
+            self.min_iterations >= 1 && self.max_iterations >= self.min_iterations,
+            "register.max_iterations",
+            "need 1 <= min_iterations <= max_iterations",
+        )?;
+        positive("register.refine_huber_px", self.refine_huber_px)?;
+        check(
+            (1..=12).contains(&self.pyramid_levels),
+            "register.pyramid_levels",
+            "must be in 1..=12",
+        )
+    }
+}
+
+/// Triangulation, track continuation and merging.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TriangulateOptions {
+    /// Largest reprojection error of an observation of a new point, pixels. Default 4.
+    pub max_error_px: f64,
+    /// Smallest triangulation angle of a new point, degrees. Default 1.5.
+    pub min_angle_deg: f64,
+    /// Largest reprojection error when continuing or merging tracks, pixels. Default 4.
+    pub max_merge_error_px: f64,
+}
+
+impl Default for TriangulateOptions {
+    fn default() -> Self {
+        Self {
+            max_error_px: 4.0,
+            min_angle_deg: 1.5,
+            max_merge_error_px: 4.0,
+        }
+    }
+}
+
+impl TriangulateOptions {
+    pub fn validate(&self) -> Result<(), OptionsError> {
+        positive("triangulate.max_error_px", self.max_error_px)?;
+        non_negative("triangulate.min_angle_deg", self.min_angle_deg)?;
+        positive("triangulate.max_merge_error_px", self.max_merge_error_px)
+    }
+}
+
+/// Bundle adjustment schedule and losses.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct BundleOptions {
+    /// Images co-visible with the new one that join its local BA. Default 5.
+    pub local_num_neighbours: usize,
+    /// Levenberg-Marquardt iterations of a local BA. Default 30.
+    pub local_max_iterations: usize,
+    /// Levenberg-Marquardt iterations of a global BA. Default 50.
+    pub global_max_iterations: usize,
+    /// Run a global BA after this many new registrations. Default 5.
+    pub global_every_images: usize,
+    /// Also run a global BA when the model grew by this fraction. Default 0.1.
+    pub global_growth_ratio: f64,
+    /// Soft-L1 scale on reprojection residuals, pixels. Default 1.
+    pub reprojection_loss_px: f64,
+    /// Refine the intrinsics in global BA. Default false.
+    pub refine_intrinsics: bool,
+    /// The initial image stays fixed for this many registrations (when LiDAR
+    /// constraints hold the gauge). Default 8.
+    pub fix_initial_for: usize,
+    /// Threads of the Ceres solver. More than one may change the last bits
+    /// between runs. Default 1 (byte-identical output).
+    pub num_threads: usize,
+}
+
+impl Default for BundleOptions {
+    fn default() -> Self {
+        Self {
+            local_num_neighbours: 5,
+            local_max_iterations: 30,
+            global_max_iterations: 50,
+            global_every_images: 5,
+            global_growth_ratio: 0.1,
+            reprojection_loss_px: 1.0,
+            refine_intrinsics: false,
+            fix_initial_for: 8,
+            num_threads: 1,
+        }
+    }
+}
+
+impl BundleOptions {
+    pub fn validate(&self) -> Result<(), OptionsError> {
+        check(
+            self.local_max_iterations >= 1,
+            "bundle.local_max_iterations",
+            "must be >= 1",
+        )?;
+        check(
+            self.global_max_iterations >= 1,
+            "bundle.global_max_iterations",
+            "must be >= 1",
+        )?;
+        check(
+            self.global_every_images >= 1,
+            "bundle.global_every_images",
+            "must be >= 1",
+        )?;
+        non_negative("bundle.global_growth_ratio", self.global_growth_ratio)?;
+        positive("bundle.reprojection_loss_px", self.reprojection_loss_px)?;
+        check(
+            (1..=256).contains(&self.num_threads),
+            "bundle.num_threads",
+            "must be in 1..=256",
+        )
+    }
+}
+
+/// How 3D points are tied to the map during BA.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AssociationKind {
+    /// No LiDAR terms: plain SfM with the gauge fixed by the first two images.
+    None,
+    /// Nearest map point within a shrinking radius, its tangent plane.
+    Nearest,
+}
+
+/// LiDAR point-to-plane associations.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AssociationOptions {
+    /// Default: nearest.
+    pub kind: AssociationKind,
+    /// Search radius of a point that has not yet been in a global BA, metres. Default 1.5.
+    pub max_radius_m: f64,
+    /// The radius shrinks by this much per global BA the point took part in, metres. Default 0.2.
+    pub radius_drop_m: f64,
+    /// Smallest radius, metres. Default 0.1.
+    pub min_radius_m: f64,
+    /// Largest point-to-plane distance of an association, metres. Default 0.2.
+    pub max_plane_distance_m: f64,
+    /// Weight of a plane residual (pixel equivalents per metre: 1000 makes
+    /// 1 mm count like 1 px). Default 1000.
+    pub weight: f64,
+    /// Weight of a ground plane (normal within `ground_max_tilt_deg` of
+    /// vertical). Default 1000.
+    pub ground_weight: f64,
+    /// Default 5.7.
+    pub ground_max_tilt_deg: f64,
+    /// Huber scale on plane residuals, pixel equivalents. Default 20 (2 cm at weight 1000).
+    pub loss_scale: f64,
+}
+
+impl Default for AssociationOptions {
+    fn default() -> Self {
+        Self {
+            kind: AssociationKind::Nearest,
+            max_radius_m: 1.5,
+            radius_drop_m: 0.2,
+            min_radius_m: 0.1,
+            max_plane_distance_m: 0.2,
+            weight: 1000.0,
+            ground_weight: 1000.0,
+            ground_max_tilt_deg: 5.7,
+            loss_scale: 20.0,
+        }
+    }
+}
+
+impl AssociationOptions {
+    pub fn validate(&self) -> Result<(), OptionsError> {
+        positive("association.max_radius_m", self.max_radius_m)?;
+        non_negative("association.radius_drop_m", self.radius_drop_m)?;
+        check(
+            self.min_radius_m > 0.0 && self.min_radius_m <= self.max_radius_m,
+            "association.min_radius_m",
+            "need 0 < min_radius_m <= max_radius_m",
+        )?;
+        positive(
+            "association.max_plane_distance_m",
+            self.max_plane_distance_m,
+        )?;
+        non_negative("association.weight", self.weight)?;
+        non_negative("association.ground_weight", self.ground_weight)?;
+        check(
+            (0.0..90.0).contains(&self.ground_max_tilt_deg),
+            "association.ground_max_tilt_deg",
+            "must be in [0, 90)",
+        )?;
+        positive("association.loss_scale", self.loss_scale)
+    }
+}
+
+/// Outlier filtering after each BA.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FilterOptions {
+    /// Observations with a larger reprojection error are removed, pixels. Default 4.
+    pub max_reprojection_error_px: f64,
+    /// Points whose largest triangulation angle is smaller are removed
+    /// (points held by the map are kept), degrees. Default 1.5.
+    pub min_triangulation_angle_deg: f64,
+}
+
+impl Default for FilterOptions {
+    fn default() -> Self {
+        Self {
+            max_reprojection_error_px: 4.0,
+            min_triangulation_angle_deg: 1.5,
+        }
+    }
+}
+
+impl FilterOptions {
+    pub fn validate(&self) -> Result<(), OptionsError> {
+        positive(
+            "filter.max_reprojection_error_px",
+            self.max_reprojection_error_px,
+        )?;
+        non_negative(
+            "filter.min_triangulation_angle_deg",
+            self.min_triangulation_angle_deg,
+        )
+    }
+}
+
+/// Everything the mapper needs, one struct per stage.
+#[derive(Clone, Debug, PartialEq, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MapperOptions {
+    /// Seed of every random choice. Default 0.
+    pub seed: u64,
+    pub init: InitOptions,
+    pub register: RegisterOptions,
+    pub triangulate: TriangulateOptions,
+    pub bundle: BundleOptions,
+    pub association: AssociationOptions,
+    pub filter: FilterOptions,
+}
+
+impl MapperOptions {
+    pub fn validate(&self) -> Result<(), OptionsError> {
+        self.init.validate()?;
+        self.register.validate()?;
+        self.triangulate.validate()?;
+        self.bundle.validate()?;
+        self.association.validate()?;
+        self.filter.validate()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_validate_and_toml_overrides() {
+        MapperOptions::default().validate().unwrap();
+        let o: MapperOptions = toml::from_str(
+            "seed = 3\n[register]\nmax_error_px = 2.5\n[association]\nkind = \"none\"\n",
+        )
+        .unwrap();
+        assert_eq!(o.seed, 3);
+        assert_eq!(o.register.max_error_px, 2.5);
+        assert_eq!(o.register.min_num_inliers, 30);
+        assert_eq!(o.association.kind, AssociationKind::None);
+        assert!(toml::from_str::<MapperOptions>("[register]\nmax_eror_px = 2.5\n").is_err());
+        let mut bad = MapperOptions::default();
+        bad.filter.max_reprojection_error_px = -1.0;
+        let err = bad.validate().unwrap_err().to_string();
+        assert!(err.contains("filter.max_reprojection_error_px"), "{err}");
+    }
+}

@@ -1,0 +1,294 @@
+//! Registration of the next image (method.md 4.5): next-best-view choice,
+//! P3P inside LO-RANSAC with a seeded RNG, non-linear refinement, inlier checks.
+use std::collections::BTreeMap;
+
+use nalgebra::{Vector2, Vector3};
+use rand::seq::index::sample;
+use rand_chacha::ChaCha8Rng;
+
+use super::geometry::{p3p, refine_pose, reprojection_error_sq};
+use super::options::RegisterOptions;
+use super::state::MapState;
+use crate::scene::{Camera, ImageId, Point3DId, Rigid3, TrackElement};
+
+/// What an absolute-pose estimate gave.
+#[derive(Clone, Debug, PartialEq)]
+pub enum PoseOutcome {
+    /// Pose found; `inliers` indexes the correspondences.
+    Found {
+        cam_from_world: Rigid3,
+        inliers: Vec<usize>,
+    },
+    /// Fewer 2D-3D correspondences than the minimum number of inliers.
+    TooFewCorrespondences { found: usize, needed: usize },
+    /// The best model had too few inliers (or too small a ratio).
+    TooFewInliers {
+        inliers: usize,
+        correspondences: usize,
+    },
+}
+
+/// Robust absolute pose: P3P in LO-RANSAC (local optimisation: the refined
+/// pose of the inliers of every new best model), then refinement on the final
+/// inliers and a last inlier count. `rng` makes the run reproducible.
+pub fn estimate_pose(
+    camera: &Camera,
+    pixels: &[Vector2<f64>],
+    points_in_world: &[Vector3<f64>],
+    options: &RegisterOptions,
+    rng: &mut ChaCha8Rng,
+) -> PoseOutcome {
+    let n = pixels.len();
+    if n < options.min_num_inliers.max(4) {
+        return PoseOutcome::TooFewCorrespondences {
+            found: n,
+            needed: options.min_num_inliers.max(4),
+        };
+    }
+    let bearings: Vec<Option<Vector3<f64>>> = pixels
+        .iter()
+        .map(|x| camera.unproject(x).map(|v| v.normalize()))
+        .collect();
+    let thr_sq = options.max_error_px * options.max_error_px;
+    let inliers_of = |pose: &Rigid3| -> Vec<usize> {
+        (0..n)
+            .filter(|&i| {
+                reprojection_error_sq(camera, pose, &points_in_world[i], &pixels[i])
+                    .is_some_and(|e| e < thr_sq)
+            })
+            .collect()
+    };
+    let refine_on = |pose: &Rigid3, idx: &[usize], iterations: usize| -> Rigid3 {
+        let px: Vec<Vector2<f64>> = idx.iter().map(|&i| pixels[i]).collect();
+        let pw: Vec<Vector3<f64>> = idx.iter().map(|&i| points_in_world[i]).collect();
+        refine_pose(camera, pose, &px, &pw, options.refine_huber_px, iterations)
+    };
+    let mut best: Option<(Rigid3, Vec<usize>)> = None;
+    let mut needed = options.max_iterations;
+    let mut it = 0;
+    while it < options.max_iterations && (it < options.min_iterations || it < needed) {
+        it += 1;
+        let s = sample(rng, n, 3);
+        let idx = [s.index(0), s.index(1), s.index(2)];
+        let (Some(b0), Some(b1), Some(b2)) = (bearings[idx[0]], bearings[idx[1]], bearings[idx[2]])
+        else {
+            continue;
+        };
+        let pts = [
+            points_in_world[idx[0]],
+            points_in_world[idx[1]],
+            points_in_world[idx[2]],
+        ];
+        for pose in p3p(&[b0, b1, b2], &pts) {
+            let inl = inliers_of(&pose);
+            if best.as_ref().is_some_and(|(_, b)| inl.len() <= b.len()) || inl.len() < 4 {
+                continue;
+            }
+            // Local optimisation of the new best model.
+            let refined = refine_on(&pose, &inl, 10);
+            let inl_refined = inliers_of(&refined);
+            let (pose, inl) = if inl_refined.len() >= inl.len() {
+                (refined, inl_refined)
+            } else {
+                (pose, inl)
+            };
+            let ratio = inl.len() as f64 / n as f64;
+            let p_fail = 1.0 - ratio.powi(3);
+            needed = if p_fail <= 1e-12 {
+                0
+            } else {
+                ((1.0 - options.confidence).ln() / p_fail.ln()).ceil() as usize
+            };
+            best = Some((pose, inl));
+        }
+    }
+    let Some((pose, inliers)) = best else {
+        return PoseOutcome::TooFewInliers {
+            inliers: 0,
+            correspondences: n,
+        };
+    };
+    let pose = refine_on(&pose, &inliers, 50);
+    let inliers = inliers_of(&pose);
+    if inliers.len() < options.min_num_inliers
+        || (inliers.len() as f64) < options.min_inlier_ratio * n as f64
+    {
+        return PoseOutcome::TooFewInliers {
+            inliers: inliers.len(),
+            correspondences: n,
+        };
+    }
+    PoseOutcome::Found {
+        cam_from_world: pose,
+        inliers,
+    }
+}
+
+/// The 2D-3D correspondences of an unregistered image: each keypoint with the
+/// distinct 3D points its correspondences observe (sorted by point id).
+pub fn correspondences_2d3d(state: &MapState, image: ImageId) -> Vec<(u32, Point3DId)> {
+    let img = &state.images[&image];
+    let mut out = Vec::new();
+    for k in 0..img.keypoints.len() as u32 {
+        let mut ids: Vec<Point3DId> = state
+            .graph
+            .correspondences(image, k)
+            .iter()
+            .filter_map(|c| state.point_of(*c))
+            .collect();
+        ids.sort();
+        ids.dedup();
+        out.extend(ids.into_iter().map(|p| (k, p)));
+    }
+    out
+}
+
+/// What registering one image gave.
+#[derive(Clone, Debug, PartialEq)]
+pub enum RegistrationOutcome {
+    Registered {
+        num_correspondences: usize,
+        num_inliers: usize,
+    },
+    Failed(PoseOutcome),
+}
+
+/// Registers `image` against the current 3D points: on success sets its pose
+/// and adds its inlier keypoints to the tracks of their points.
+pub fn register_image(
+    state: &mut MapState,
+    image: ImageId,
+    options: &RegisterOptions,
+    rng: &mut ChaCha8Rng,
+) -> RegistrationOutcome {
+    let corrs = correspondences_2d3d(state, image);
+    let img = &state.images[&image];
+    let pixels: Vec<Vector2<f64>> = corrs
+        .iter()
+        .map(|(k, _)| img.keypoints[*k as usize])
+        .collect();
+    let points: Vec<Vector3<f64>> = corrs.iter().map(|(_, p)| state.points[p].xyz).collect();
+    let camera = state.camera_of(image).clone();
+    match estimate_pose(&camera, &pixels, &points, options, rng) {
+        PoseOutcome::Found {
+            cam_from_world,
+            inliers,
+        } => {
+            state.register(image, cam_from_world);
+            let mut added = 0;
+            for i in &inliers {
+                let (k, p) = corrs[*i];
+                if state.add_observation(
+                    p,
+                    TrackElement {
+                        image_id: image,
+                        point2d_idx: k,
+                    },
+                ) {
+                    added += 1;
+                }
+            }
+            log::debug!(
+                "image {image}: {} inliers, {added} observations added",
+                inliers.len()
+            );
+            RegistrationOutcome::Registered {
+                num_correspondences: corrs.len(),
+                num_inliers: inliers.len(),
+            }
+        }
+        other => RegistrationOutcome::Failed(other),
+    }
+}
+
+/// Unregistered images ranked for registration: visibility-pyramid score,
+/// then number of visible points, then id. Images that failed are left out
+/// until they see `retry_min_new_points` more points than at their failure
+/// (`failed`: image -> visible points at the last failure).
+pub fn next_best_images(
+    state: &MapState,
+    failed: &BTreeMap<ImageId, usize>,
+    options: &RegisterOptions,
+) -> Vec<ImageId> {
+    let mut ranked: Vec<(u64, usize, ImageId)> = state
+        .images
+        .values()
+        .filter(|img| !img.is_registered() && img.num_visible >= 4)
+        .filter(|img| {
+            failed
+                .get(&img.id)
+                .is_none_or(|&n| img.num_visible >= n + options.retry_min_new_points)
+        })
+        .map(|img| (img.pyramid.score(), img.num_visible, img.id))
+        .collect();
+    ranked.sort_by(|a, b| b.0.cmp(&a.0).then(b.1.cmp(&a.1)).then(a.2.cmp(&b.2)));
+    ranked.into_iter().map(|(_, _, id)| id).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{CameraId, CameraModel};
+    use nalgebra::UnitQuaternion;
+    use rand::{Rng, SeedableRng};
+
+    #[test]
+    fn lo_ransac_finds_pose_among_outliers() {
+        let camera = Camera {
+            id: CameraId(1),
+            model: CameraModel::from_name("PINHOLE").unwrap(),
+            width: 640,
+            height: 480,
+            params: vec![500.0, 500.0, 320.0, 240.0],
+        };
+        let pose = Rigid3::new(
+            UnitQuaternion::from_euler_angles(0.1, -0.3, 0.2),
+            Vector3::new(0.5, -0.2, 1.0),
+        );
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let mut pixels = Vec::new();
+        let mut points = Vec::new();
+        for i in 0..200 {
+            let pc = Vector3::new(
+                rng.gen_range(-3.0..3.0),
+                rng.gen_range(-2.0..2.0),
+                rng.gen_range(3.0..10.0),
+            );
+            let x = camera.project(&pc).unwrap();
+            let pw = pose.inverse().transform_point(&pc);
+            // 40% outliers: random pixels.
+            let x = if i % 5 < 2 {
+                Vector2::new(rng.gen_range(0.0..640.0), rng.gen_range(0.0..480.0))
+            } else {
+                x + Vector2::new(rng.gen_range(-0.5..0.5), rng.gen_range(-0.5..0.5))
+            };
+            pixels.push(x);
+            points.push(pw);
+        }
+        let options = RegisterOptions::default();
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let PoseOutcome::Found {
+            cam_from_world,
+            inliers,
+        } = estimate_pose(&camera, &pixels, &points, &options, &mut rng)
+        else {
+            panic!("no pose");
+        };
+        assert!(
+            inliers.len() >= 120 && inliers.len() <= 130,
+            "{}",
+            inliers.len()
+        );
+        assert!(cam_from_world.rotation.angle_to(&pose.rotation) < 2e-3);
+        assert!((cam_from_world.camera_center() - pose.camera_center()).norm() < 0.02);
+        // Too few correspondences.
+        let out = estimate_pose(&camera, &pixels[..10], &points[..10], &options, &mut rng);
+        assert_eq!(
+            out,
+            PoseOutcome::TooFewCorrespondences {
+                found: 10,
+                needed: 30
+            }
+        );
+    }
+}

@@ -1,0 +1,104 @@
+//! `report.json`: what the mapper did, per image and per solve. Everything in
+//! it is deterministic except the `time_s` fields.
+use serde::Serialize;
+
+use super::bundle::SolveRecord;
+use super::initialize::InitSummary;
+use super::state::MapState;
+use crate::scene::ImageId;
+
+/// One image.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct ImageRecord {
+    pub image_id: u32,
+    pub name: String,
+    pub registered: bool,
+    /// 0 for the initial image, 1 for the second, ...
+    pub registration_index: Option<usize>,
+    /// Registration attempts (PnP runs), successful or not.
+    pub attempts: usize,
+    /// 2D-3D correspondences of the successful (or last) attempt.
+    pub num_correspondences: usize,
+    /// PnP inliers of the successful (or last) attempt.
+    pub pnp_inliers: usize,
+    /// Observations of 3D points in the final model.
+    pub num_observations: usize,
+    /// Mean reprojection error of those observations, pixels.
+    pub mean_reprojection_error_px: Option<f64>,
+}
+
+/// One stage of the run.
+#[derive(Clone, Debug, Serialize)]
+pub struct StageRecord {
+    pub name: String,
+    pub time_s: f64,
+}
+
+/// The whole report.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct MapReport {
+    pub seed: u64,
+    pub association: String,
+    pub num_images: usize,
+    pub num_registered: usize,
+    pub num_points: usize,
+    pub num_observations: usize,
+    pub mean_track_length: f64,
+    pub mean_reprojection_error_px: f64,
+    pub init: Option<InitSummary>,
+    pub images: Vec<ImageRecord>,
+    pub solves: Vec<SolveRecord>,
+    pub stages: Vec<StageRecord>,
+}
+
+impl MapReport {
+    pub fn record_mut(&mut self, image: ImageId) -> Option<&mut ImageRecord> {
+        self.images.iter_mut().find(|r| r.image_id == image.0)
+    }
+
+    /// Fills the final per-image and global numbers from the state.
+    pub fn finish(&mut self, state: &MapState) {
+        let mut total_err = 0.0;
+        let mut total_obs = 0usize;
+        for rec in &mut self.images {
+            let id = ImageId(rec.image_id);
+            let img = &state.images[&id];
+            rec.registered = img.is_registered();
+            rec.registration_index = state.registration_order.iter().position(|&i| i == id);
+            let mut sum = 0.0;
+            let mut n = 0usize;
+            if let Some(pose) = img.cam_from_world {
+                for (k, p) in img.point3d.iter().enumerate() {
+                    let Some(p) = p else { continue };
+                    if let Some(e2) = super::geometry::reprojection_error_sq(
+                        state.camera_of(id),
+                        &pose,
+                        &state.points[p].xyz,
+                        &img.keypoints[k],
+                    ) {
+                        sum += e2.sqrt();
+                        n += 1;
+                    }
+                }
+            }
+            rec.num_observations = n;
+            rec.mean_reprojection_error_px = (n > 0).then(|| sum / n as f64);
+            total_err += sum;
+            total_obs += n;
+        }
+        self.num_images = state.images.len();
+        self.num_registered = state.num_registered();
+        self.num_points = state.points.len();
+        self.num_observations = total_obs;
+        self.mean_track_length = if self.num_points > 0 {
+            total_obs as f64 / self.num_points as f64
+        } else {
+            0.0
+        };
+        self.mean_reprojection_error_px = if total_obs > 0 {
+            total_err / total_obs as f64
+        } else {
+            0.0
+        };
+    }
+}
