@@ -877,3 +877,100 @@ fn colmap_reads_every_model_we_write() {
         }
     }
 }
+
+/// Timing on a large model (500 images x 4000 keypoints, 600k points, 1.8M
+/// observations). Run with `cargo test --release --test tests model_io::large -- --ignored
+/// --nocapture`.
+#[test]
+#[ignore = "benchmark"]
+fn large_model_timing() {
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    let mut rec = Reconstruction::default();
+    rec.cameras.insert(
+        CameraId(1),
+        Camera {
+            id: CameraId(1),
+            model: CameraModel::OpenCv,
+            width: 4000,
+            height: 3000,
+            params: vec![3000.1, 3000.2, 2000.3, 1500.4, 0.01, -0.02, 0.001, 0.0002],
+        },
+    );
+    let (num_images, keypoints) = (500u32, 4000usize);
+    for i in 1..=num_images {
+        rec.images.insert(
+            ImageId(i),
+            Image {
+                id: ImageId(i),
+                name: format!("images/{i:06}.jpg"),
+                camera_id: CameraId(1),
+                cam_from_world: Some(Rigid3::new(
+                    UnitQuaternion::from_euler_angles(rng.gen(), rng.gen(), rng.gen()),
+                    Vector3::new(rng.gen(), rng.gen(), rng.gen()),
+                )),
+                points2d: (0..keypoints)
+                    .map(|_| Point2D {
+                        xy: Vector2::new(rng.gen_range(0.0..4000.0), rng.gen_range(0.0..3000.0)),
+                        point3d_id: None,
+                    })
+                    .collect(),
+            },
+        );
+    }
+    // Point k observes keypoint k % (keypoints * 0.9) of three consecutive images.
+    let per_image = keypoints * 9 / 10;
+    let mut next = 1u64;
+    for start in 0..(num_images - 2) {
+        for k in 0..per_image / 3 {
+            let idx = (3 * k + start as usize % 3) as u32;
+            let track: Vec<TrackElement> = (0..3)
+                .map(|d| TrackElement {
+                    image_id: ImageId(start + 1 + d),
+                    point2d_idx: idx,
+                })
+                .filter(|el| {
+                    rec.images[&el.image_id].points2d[idx as usize]
+                        .point3d_id
+                        .is_none()
+                })
+                .collect();
+            for el in &track {
+                rec.images.get_mut(&el.image_id).unwrap().points2d[idx as usize].point3d_id =
+                    Some(Point3DId(next));
+            }
+            rec.points3d.insert(
+                Point3DId(next),
+                Point3D {
+                    xyz: Vector3::new(rng.gen(), rng.gen(), rng.gen()),
+                    color: [rng.gen(), rng.gen(), rng.gen()],
+                    error: rng.gen(),
+                    track,
+                },
+            );
+            next += 1;
+        }
+    }
+    let observations: usize = rec.points3d.values().map(|p| p.track.len()).sum();
+    println!(
+        "{} images, {} keypoints, {} points, {observations} observations",
+        rec.images.len(),
+        rec.images.len() * keypoints,
+        rec.points3d.len()
+    );
+    let root = tempfile::tempdir().unwrap();
+    for format in [ModelFormat::Text, ModelFormat::Binary] {
+        let dir = root.path().join(format.extension());
+        let t = std::time::Instant::now();
+        write_model(&dir, &rec, format).unwrap();
+        let write_s = t.elapsed().as_secs_f64();
+        let t = std::time::Instant::now();
+        let back = read_model(&dir).unwrap();
+        let read_s = t.elapsed().as_secs_f64();
+        let bytes: usize = model_bytes(&dir, format).iter().map(Vec::len).sum();
+        println!(
+            "{format:?}: write {write_s:.2} s, read {read_s:.2} s, {:.1} MB",
+            bytes as f64 / 1e6
+        );
+        assert_eq!(back.points3d.len(), rec.points3d.len());
+    }
+}

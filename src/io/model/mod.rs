@@ -110,12 +110,10 @@ pub enum ModelError {
     /// The reconstruction cannot be written as a valid COLMAP model.
     #[error("cannot write a model to {}: {msg}", dir.display())]
     InvalidModel { dir: PathBuf, msg: String },
-    /// The output folder holds files that are not part of a COLMAP model.
-    #[error(
-        "refusing to replace {}: it contains {entry:?}, which is not a COLMAP model file",
-        dir.display()
-    )]
-    WouldClobber { dir: PathBuf, entry: String },
+    /// The output path is not a folder, or holds files that are not part of a
+    /// COLMAP model (it would be replaced as a whole).
+    #[error("refusing to replace {}: {reason}", dir.display())]
+    WouldClobber { dir: PathBuf, reason: String },
 }
 
 struct RecordPrefix(Option<u64>);
@@ -486,6 +484,19 @@ pub fn write_model(
         msg,
     })?;
     check_replaceable(dir)?;
+    if format == ModelFormat::Text {
+        let spaced = rec
+            .registered_images()
+            .filter(|im| im.name.contains(char::is_whitespace))
+            .count();
+        if spaced > 0 {
+            log::warn!(
+                "{}: {spaced} image names contain spaces; COLMAP 3.8's text reader cuts \
+                 them at the first space (its binary reader and ours keep them)",
+                dir.display()
+            );
+        }
+    }
     crate::io::atomic::write_dir_atomically(dir, |tmp| {
         let result = match format {
             ModelFormat::Text => text::write(tmp, rec),
@@ -530,7 +541,7 @@ fn check_replaceable(dir: &Path) -> Result<(), ModelError> {
     if !meta.is_dir() {
         return Err(ModelError::WouldClobber {
             dir: dir.to_path_buf(),
-            entry: "(it is not a folder)".to_string(),
+            reason: "it is not a folder (or is a symbolic link)".to_string(),
         });
     }
     let mut names = Vec::new();
@@ -543,7 +554,7 @@ fn check_replaceable(dir: &Path) -> Result<(), ModelError> {
         if !MODEL_FILE_NAMES.contains(&name.as_str()) {
             return Err(ModelError::WouldClobber {
                 dir: dir.to_path_buf(),
-                entry: name,
+                reason: format!("it contains {name:?}, which is not a COLMAP model file"),
             });
         }
     }
