@@ -23,7 +23,7 @@ const TRACK_ELEMENT_BYTES: u64 = 4 + 4;
 /// A little-endian reader that knows its byte offset and current record.
 struct BinReader {
     path: PathBuf,
-    reader: BufReader<File>,
+    reader: Box<dyn BufRead>,
     offset: u64,
     len: u64,
     record: Option<u64>,
@@ -37,13 +37,18 @@ impl BinReader {
         };
         let file = File::open(path).map_err(io_err)?;
         let len = file.metadata().map_err(io_err)?.len();
-        Ok(Self {
+        Ok(Self::new(path, Box::new(BufReader::new(file)), len))
+    }
+
+    /// Reads `len` bytes from `reader`, naming `path` in errors.
+    fn new(path: &Path, reader: Box<dyn BufRead>, len: u64) -> Self {
+        Self {
             path: path.to_path_buf(),
-            reader: BufReader::new(file),
+            reader,
             offset: 0,
             len,
             record: None,
-        })
+        }
     }
 
     fn error_at(&self, offset: u64, msg: impl Into<String>) -> ModelError {
@@ -155,9 +160,9 @@ impl BinReader {
 
 pub(super) fn read(dir: &Path) -> Result<ParsedModel, ModelError> {
     let paths = ModelFormat::Binary.paths(dir);
-    let cameras = read_cameras(&paths[0])?;
-    let images = read_images(&paths[1])?;
-    let points = read_points(&paths[2])?;
+    let cameras = read_cameras(BinReader::open(&paths[0])?)?;
+    let images = read_images(BinReader::open(&paths[1])?)?;
+    let points = read_points(BinReader::open(&paths[2])?)?;
     Ok(ParsedModel {
         paths,
         cameras,
@@ -166,8 +171,29 @@ pub(super) fn read(dir: &Path) -> Result<ParsedModel, ModelError> {
     })
 }
 
-fn read_cameras(path: &Path) -> Result<Vec<(Camera, Loc)>, ModelError> {
-    let mut r = BinReader::open(path)?;
+/// Parses the three files from memory (for tests), naming them as if in `dir`.
+#[cfg(test)]
+pub(super) fn read_bytes(dir: &Path, bytes: [&[u8]; 3]) -> Result<ParsedModel, ModelError> {
+    let paths = ModelFormat::Binary.paths(dir);
+    let reader = |i: usize| {
+        BinReader::new(
+            &paths[i],
+            Box::new(io::Cursor::new(bytes[i].to_vec())),
+            bytes[i].len() as u64,
+        )
+    };
+    let cameras = read_cameras(reader(0))?;
+    let images = read_images(reader(1))?;
+    let points = read_points(reader(2))?;
+    Ok(ParsedModel {
+        paths,
+        cameras,
+        images,
+        points,
+    })
+}
+
+fn read_cameras(mut r: BinReader) -> Result<Vec<(Camera, Loc)>, ModelError> {
     let n = r.count("cameras", MIN_CAMERA_BYTES)?;
     let mut cameras = Vec::with_capacity(n as usize);
     for index in 0..n {
@@ -205,8 +231,7 @@ fn read_cameras(path: &Path) -> Result<Vec<(Camera, Loc)>, ModelError> {
     Ok(cameras)
 }
 
-fn read_images(path: &Path) -> Result<Vec<ParsedImage>, ModelError> {
-    let mut r = BinReader::open(path)?;
+fn read_images(mut r: BinReader) -> Result<Vec<ParsedImage>, ModelError> {
     let n = r.count("images", MIN_IMAGE_BYTES)?;
     let mut images = Vec::with_capacity(n as usize);
     for index in 0..n {
@@ -254,8 +279,7 @@ fn read_images(path: &Path) -> Result<Vec<ParsedImage>, ModelError> {
     Ok(images)
 }
 
-fn read_points(path: &Path) -> Result<Vec<(Point3DId, Point3D, Loc)>, ModelError> {
-    let mut r = BinReader::open(path)?;
+fn read_points(mut r: BinReader) -> Result<Vec<(Point3DId, Point3D, Loc)>, ModelError> {
     let n = r.count("points", MIN_POINT_BYTES)?;
     let mut points = Vec::with_capacity(n as usize);
     for index in 0..n {
@@ -311,7 +335,7 @@ fn put_f64s(w: &mut impl Write, values: &[f64]) -> io::Result<()> {
         .try_for_each(|v| w.write_all(&v.to_le_bytes()))
 }
 
-fn write_cameras(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
+pub(super) fn write_cameras(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
     w.write_all(&(rec.cameras.len() as u64).to_le_bytes())?;
     for camera in rec.cameras.values() {
         w.write_all(&camera.id.0.to_le_bytes())?;
@@ -323,7 +347,7 @@ fn write_cameras(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
     Ok(())
 }
 
-fn write_images(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
+pub(super) fn write_images(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
     w.write_all(&(rec.num_registered_images() as u64).to_le_bytes())?;
     for image in rec.registered_images() {
         let Some(pose) = image.cam_from_world else {
@@ -345,7 +369,7 @@ fn write_images(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
     Ok(())
 }
 
-fn write_points(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
+pub(super) fn write_points(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
     w.write_all(&(rec.points3d.len() as u64).to_le_bytes())?;
     for (id, p) in &rec.points3d {
         w.write_all(&id.0.to_le_bytes())?;

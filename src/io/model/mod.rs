@@ -110,12 +110,10 @@ pub enum ModelError {
     /// The reconstruction cannot be written as a valid COLMAP model.
     #[error("cannot write a model to {}: {msg}", dir.display())]
     InvalidModel { dir: PathBuf, msg: String },
-    /// The output folder holds files that are not part of a COLMAP model.
-    #[error(
-        "refusing to replace {}: it contains {entry:?}, which is not a COLMAP model file",
-        dir.display()
-    )]
-    WouldClobber { dir: PathBuf, entry: String },
+    /// The output path is not a folder, or holds files that are not part of a
+    /// COLMAP model (it would be replaced as a whole).
+    #[error("refusing to replace {}: {reason}", dir.display())]
+    WouldClobber { dir: PathBuf, reason: String },
 }
 
 struct RecordPrefix(Option<u64>);
@@ -486,6 +484,19 @@ pub fn write_model(
         msg,
     })?;
     check_replaceable(dir)?;
+    if format == ModelFormat::Text {
+        let spaced = rec
+            .registered_images()
+            .filter(|im| im.name.contains(char::is_whitespace))
+            .count();
+        if spaced > 0 {
+            log::warn!(
+                "{}: {spaced} image names contain spaces; COLMAP 3.8's text reader cuts \
+                 them at the first space (its binary reader and ours keep them)",
+                dir.display()
+            );
+        }
+    }
     crate::io::atomic::write_dir_atomically(dir, |tmp| {
         let result = match format {
             ModelFormat::Text => text::write(tmp, rec),
@@ -530,7 +541,7 @@ fn check_replaceable(dir: &Path) -> Result<(), ModelError> {
     if !meta.is_dir() {
         return Err(ModelError::WouldClobber {
             dir: dir.to_path_buf(),
-            entry: "(it is not a folder)".to_string(),
+            reason: "it is not a folder (or is a symbolic link)".to_string(),
         });
     }
     let mut names = Vec::new();
@@ -543,7 +554,7 @@ fn check_replaceable(dir: &Path) -> Result<(), ModelError> {
         if !MODEL_FILE_NAMES.contains(&name.as_str()) {
             return Err(ModelError::WouldClobber {
                 dir: dir.to_path_buf(),
-                entry: name,
+                reason: format!("it contains {name:?}, which is not a COLMAP model file"),
             });
         }
     }
@@ -588,6 +599,106 @@ fn mean_track_length(rec: &Reconstruction) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rand::{Rng, SeedableRng};
+
+    const CAMERAS_TXT: &str =
+        "# c\n1 PINHOLE 100 80 50 51 50 40\n7 OPENCV 9 9 5 5 4 4 0.1 -0.2 1e-3 2e-4\n";
+    const IMAGES_TXT: &str = "# i\n\
+        3 1 0 0 0 0 0 0 1 a b.jpg\n1 2 7 -1 5 -1 4.5 6 8\n\
+        4 0 1 0 0 1 2 3 7 c.jpg\n9 9 7 3 3 8\n\
+        5 0 0 1 0 -1 -2 -3 7 d.jpg\n\n";
+    const POINTS_TXT: &str =
+        "# p\n7 1 2 3 255 0 10 0.5 3 0 4 0\n8 -1 -2 -3 1 2 3 0.25 3 2 4 1\n9 0 0 0 0 0 0 0\n";
+
+    fn encode(rec: &Reconstruction, format: ModelFormat) -> [Vec<u8>; 3] {
+        let mut files = [Vec::new(), Vec::new(), Vec::new()];
+        let result = match format {
+            ModelFormat::Text => text::write_cameras(&mut files[0], rec)
+                .and_then(|_| text::write_images(&mut files[1], rec))
+                .and_then(|_| text::write_points(&mut files[2], rec)),
+            ModelFormat::Binary => binary::write_cameras(&mut files[0], rec)
+                .and_then(|_| binary::write_images(&mut files[1], rec))
+                .and_then(|_| binary::write_points(&mut files[2], rec)),
+        };
+        result.expect("writing to memory cannot fail");
+        files
+    }
+
+    fn decode(files: [&[u8]; 3], format: ModelFormat) -> Result<Reconstruction, ModelError> {
+        let dir = Path::new("model");
+        match format {
+            ModelFormat::Text => text::read_bytes(dir, files)?.assemble(),
+            ModelFormat::Binary => binary::read_bytes(dir, files)?.assemble(),
+        }
+    }
+
+    /// Every truncation and thousands of random corruptions of every file, in both
+    /// formats: errors name a model file, nothing panics, and a truncated binary file
+    /// is always an error naming that file.
+    #[test]
+    fn fuzzed_files_give_errors_not_panics() {
+        let text_files = [CAMERAS_TXT, IMAGES_TXT, POINTS_TXT].map(str::as_bytes);
+        let rec = decode(text_files, ModelFormat::Text).unwrap();
+        assert_eq!(
+            (rec.cameras.len(), rec.images.len(), rec.points3d.len()),
+            (2, 3, 3)
+        );
+        assert_eq!(rec.images[&ImageId(3)].name, "a b.jpg");
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        for format in [ModelFormat::Text, ModelFormat::Binary] {
+            let files = encode(&rec, format);
+            let names = ModelFormat::paths(format, Path::new("model"))
+                .map(|p| p.file_name().unwrap().to_string_lossy().into_owned());
+            assert_eq!(
+                decode([&files[0], &files[1], &files[2]], format).unwrap(),
+                rec
+            );
+            let check = |which: usize, bytes: &[u8]| -> bool {
+                let mut inputs: [&[u8]; 3] = [&files[0], &files[1], &files[2]];
+                inputs[which] = bytes;
+                match decode(inputs, format) {
+                    Ok(_) => false,
+                    Err(e) => {
+                        let msg = e.to_string();
+                        let named = match format {
+                            ModelFormat::Binary => msg.contains(&names[which]),
+                            ModelFormat::Text => names.iter().any(|n| msg.contains(n)),
+                        };
+                        assert!(named, "{msg}");
+                        true
+                    }
+                }
+            };
+            for which in 0..3 {
+                let full = &files[which];
+                let mut errors = 0;
+                for len in 0..full.len() {
+                    errors += usize::from(check(which, &full[..len]));
+                }
+                if format == ModelFormat::Binary {
+                    assert_eq!(errors, full.len(), "{}", names[which]);
+                } else {
+                    assert!(errors > full.len() / 2, "{}", names[which]);
+                }
+                for _ in 0..3000 {
+                    let mut bytes = full.clone();
+                    for _ in 0..rng.gen_range(1..4) {
+                        let i = rng.gen_range(0..bytes.len());
+                        bytes[i] = if format == ModelFormat::Text && rng.gen_bool(0.7) {
+                            b" -#\n0123456789e.x"[rng.gen_range(0..17)]
+                        } else {
+                            rng.gen()
+                        };
+                    }
+                    check(which, &bytes);
+                }
+                for _ in 0..200 {
+                    let garbage: Vec<u8> = (0..rng.gen_range(0..300)).map(|_| rng.gen()).collect();
+                    check(which, &garbage);
+                }
+            }
+        }
+    }
 
     #[test]
     fn unit_quaternion_is_kept_bit_exact_and_others_normalised() {

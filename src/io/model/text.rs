@@ -35,7 +35,7 @@ impl fmt::Display for F {
 /// Reads lines one at a time, counting them (1-based).
 struct LineReader {
     path: PathBuf,
-    reader: BufReader<File>,
+    reader: Box<dyn BufRead>,
     line_no: usize,
     bytes: Vec<u8>,
     line: String,
@@ -47,13 +47,18 @@ impl LineReader {
             path: path.to_path_buf(),
             source,
         })?;
-        Ok(Self {
+        Ok(Self::new(path, Box::new(BufReader::new(file))))
+    }
+
+    /// Reads lines from `reader`, naming `path` in errors.
+    fn new(path: &Path, reader: Box<dyn BufRead>) -> Self {
+        Self {
             path: path.to_path_buf(),
-            reader: BufReader::new(file),
+            reader,
             line_no: 0,
             bytes: Vec::new(),
             line: String::new(),
-        })
+        }
     }
 
     fn error(&self, msg: impl Into<String>) -> ModelError {
@@ -167,9 +172,9 @@ impl<'a> Fields<'a> {
 
 pub(super) fn read(dir: &Path) -> Result<ParsedModel, ModelError> {
     let paths = ModelFormat::Text.paths(dir);
-    let cameras = read_cameras(&paths[0])?;
-    let images = read_images(&paths[1])?;
-    let points = read_points(&paths[2])?;
+    let cameras = read_cameras(LineReader::open(&paths[0])?)?;
+    let images = read_images(LineReader::open(&paths[1])?)?;
+    let points = read_points(LineReader::open(&paths[2])?)?;
     Ok(ParsedModel {
         paths,
         cameras,
@@ -178,8 +183,24 @@ pub(super) fn read(dir: &Path) -> Result<ParsedModel, ModelError> {
     })
 }
 
-fn read_cameras(path: &Path) -> Result<Vec<(Camera, Loc)>, ModelError> {
-    let mut lines = LineReader::open(path)?;
+/// Parses the three files from memory (for tests), naming them as if in `dir`.
+#[cfg(test)]
+pub(super) fn read_bytes(dir: &Path, bytes: [&[u8]; 3]) -> Result<ParsedModel, ModelError> {
+    let paths = ModelFormat::Text.paths(dir);
+    let reader =
+        |i: usize| LineReader::new(&paths[i], Box::new(io::Cursor::new(bytes[i].to_vec())));
+    let cameras = read_cameras(reader(0))?;
+    let images = read_images(reader(1))?;
+    let points = read_points(reader(2))?;
+    Ok(ParsedModel {
+        paths,
+        cameras,
+        images,
+        points,
+    })
+}
+
+fn read_cameras(mut lines: LineReader) -> Result<Vec<(Camera, Loc)>, ModelError> {
     let mut cameras = Vec::new();
     while lines.next_record()? {
         let parse = |line: &str| -> Result<Camera, String> {
@@ -205,8 +226,7 @@ fn read_cameras(path: &Path) -> Result<Vec<(Camera, Loc)>, ModelError> {
     Ok(cameras)
 }
 
-fn read_images(path: &Path) -> Result<Vec<ParsedImage>, ModelError> {
-    let mut lines = LineReader::open(path)?;
+fn read_images(mut lines: LineReader) -> Result<Vec<ParsedImage>, ModelError> {
     let mut images = Vec::new();
     while lines.next_record()? {
         let pose_loc = Loc::Line(lines.line_no);
@@ -274,8 +294,7 @@ fn read_images(path: &Path) -> Result<Vec<ParsedImage>, ModelError> {
     Ok(images)
 }
 
-fn read_points(path: &Path) -> Result<Vec<(Point3DId, Point3D, Loc)>, ModelError> {
-    let mut lines = LineReader::open(path)?;
+fn read_points(mut lines: LineReader) -> Result<Vec<(Point3DId, Point3D, Loc)>, ModelError> {
     let mut points = Vec::new();
     while lines.next_record()? {
         let parse = |line: &str| -> Result<(Point3DId, Point3D), String> {
@@ -337,7 +356,7 @@ pub(super) fn write_file(
     file.sync_all().map_err(io_err)
 }
 
-fn write_cameras(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
+pub(super) fn write_cameras(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
     writeln!(w, "# Camera list with one line of data per camera:")?;
     writeln!(w, "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]")?;
     writeln!(w, "# Number of cameras: {}", rec.cameras.len())?;
@@ -358,7 +377,7 @@ fn write_cameras(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
     Ok(())
 }
 
-fn write_images(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
+pub(super) fn write_images(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
     writeln!(w, "# Image list with two lines of data per image:")?;
     writeln!(
         w,
@@ -406,7 +425,7 @@ fn write_images(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
     Ok(())
 }
 
-fn write_points(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
+pub(super) fn write_points(w: &mut impl Write, rec: &Reconstruction) -> io::Result<()> {
     writeln!(w, "# 3D point list with one line of data per point:")?;
     writeln!(
         w,
