@@ -4,7 +4,11 @@
 //! stored, in a compressed sparse row layout: `cell_keys` (sorted) gives each
 //! occupied cell's integer coordinates, `cell_starts[c]..cell_starts[c + 1]` is
 //! its range in one `point_idxs` array (point indices sorted within a cell).
-//! A 20-million-point map costs 4 bytes a point plus 12 bytes an occupied cell.
+//! Each point also keeps its coordinates relative to its cell's corner,
+//! quantised to 16 bits an axis (cell size / 65535: 0.03 mm for 2 m cells), so
+//! that projection streams through memory in cell order instead of jumping
+//! around the cloud. A 20-million-point map costs 10 bytes a point plus 12
+//! bytes an occupied cell.
 //!
 //! Culling ([`FrustumGrid::cells_in_frustum`]) visits only the cells within the
 //! far distance of the camera centre (columns of cells found by binary search),
@@ -284,7 +288,13 @@ pub struct FrustumGrid {
     cell_starts: Vec<u32>,
     /// Point indices, grouped by cell, increasing within a cell.
     point_idxs: Vec<u32>,
+    /// Coordinates of the same points relative to their cell's lower corner,
+    /// in units of `cell_size_m / 65535`.
+    cell_local: Vec<[u16; 3]>,
 }
+
+/// Quantisation steps across a cell.
+const CELL_STEPS: f64 = 65535.0;
 
 fn pack(c: [i64; 3]) -> u64 {
     ((c[0] as u64) << (2 * AXIS_BITS)) | ((c[1] as u64) << AXIS_BITS) | (c[2] as u64)
@@ -362,15 +372,30 @@ impl FrustumGrid {
         pairs.par_sort_unstable();
         let mut cell_keys = Vec::new();
         let mut cell_starts = Vec::new();
-        let mut point_idxs = Vec::with_capacity(n);
-        for (k, &(key, idx)) in pairs.iter().enumerate() {
+        for (k, &(key, _)) in pairs.iter().enumerate() {
             if cell_keys.last() != Some(&key) {
                 cell_keys.push(key);
                 cell_starts.push(k as u32);
             }
-            point_idxs.push(idx);
         }
         cell_starts.push(n as u32);
+        let step = s / CELL_STEPS;
+        let (point_idxs, cell_local): (Vec<u32>, Vec<[u16; 3]>) = pairs
+            .par_iter()
+            .map(|&(key, idx)| {
+                let c = unpack(key);
+                let p = cloud.points[idx as usize];
+                let mut q = [0u16; 3];
+                for a in 0..3 {
+                    let lo = (c[a] + min_cell[a]) as f64 * s;
+                    let steps = (f64::from(p[a]) - lo) / step;
+                    // Non-negative by construction (up to rounding): `as`
+                    // saturates, +0.5 rounds.
+                    q[a] = (steps + 0.5).clamp(0.0, CELL_STEPS) as u16;
+                }
+                (idx, q)
+            })
+            .unzip();
         drop(pairs);
         cell_keys.shrink_to_fit();
         cell_starts.shrink_to_fit();
@@ -381,6 +406,7 @@ impl FrustumGrid {
             cell_keys,
             cell_starts,
             point_idxs,
+            cell_local,
         })
     }
 
@@ -401,12 +427,37 @@ impl FrustumGrid {
         self.cell_keys.capacity() * 8
             + self.cell_starts.capacity() * 4
             + self.point_idxs.capacity() * 4
+            + self.cell_local.capacity() * 6
     }
 
     /// Point indices of occupied cell `cell` (an index below [`num_cells`](Self::num_cells)).
     pub fn cell_points(&self, cell: u32) -> &[u32] {
         let c = cell as usize;
         &self.point_idxs[self.cell_starts[c] as usize..self.cell_starts[c + 1] as usize]
+    }
+
+    /// Point indices of occupied cell `cell` and their coordinates relative
+    /// to the cell's lower corner [`cell_corner_rel`](Self::cell_corner_rel),
+    /// in steps of [`cell_step_m`](Self::cell_step_m).
+    pub fn cell_points_local(&self, cell: u32) -> (&[u32], &[[u16; 3]]) {
+        let c = cell as usize;
+        let range = self.cell_starts[c] as usize..self.cell_starts[c + 1] as usize;
+        (&self.point_idxs[range.clone()], &self.cell_local[range])
+    }
+
+    /// Quantisation step of the cell-local coordinates (m).
+    pub fn cell_step_m(&self) -> f64 {
+        self.cell_size_m / CELL_STEPS
+    }
+
+    /// Lower corner of occupied cell `cell`, relative to the cloud's origin (m).
+    pub fn cell_corner_rel(&self, cell: u32) -> Vector3<f64> {
+        let c = unpack(self.cell_keys[cell as usize]);
+        Vector3::new(
+            (c[0] + self.min_cell[0]) as f64 * self.cell_size_m,
+            (c[1] + self.min_cell[1]) as f64 * self.cell_size_m,
+            (c[2] + self.min_cell[2]) as f64 * self.cell_size_m,
+        )
     }
 
     /// Box of occupied cell `cell`, relative to the cloud's origin (m).

@@ -333,18 +333,41 @@ impl<'a> Setup<'a> {
         tasks
     }
 
-    /// Projects one point; `None` when outside the depth range, not
-    /// projectable, or when its splat cannot reach the image.
+    /// Calls `f` for every point of the task's cells that the camera sees
+    /// (depth range, splat reaching the image), in cell then index order.
+    /// Points are read from the grid's cell-local coordinates (sequential
+    /// memory); their camera coordinates are `corner_cam + step_cam * q`.
+    #[inline]
+    fn for_each_projected(
+        &self,
+        grid: &FrustumGrid,
+        task: std::ops::Range<usize>,
+        options: &ProjectionOptions,
+        mut f: impl FnMut(ProjectedPoint),
+    ) {
+        let step_cam = self.rotation * grid.cell_step_m();
+        for &cell in &self.cells[task] {
+            let corner_cam = self.rotation * grid.cell_corner_rel(cell) + self.t_local;
+            let (idxs, locals) = grid.cell_points_local(cell);
+            for (&idx, q) in idxs.iter().zip(locals) {
+                let q = Vector3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2]));
+                let point_in_cam = corner_cam + step_cam * q;
+                if let Some(pp) = self.project_point(idx, &point_in_cam, options) {
+                    f(pp);
+                }
+            }
+        }
+    }
+
+    /// Projects one point given in the camera frame; `None` when outside the
+    /// depth range, not projectable, or when its splat cannot reach the image.
     #[inline]
     fn project_point(
         &self,
-        cloud: &PointCloud,
         idx: u32,
+        point_in_cam: &Vector3<f64>,
         options: &ProjectionOptions,
     ) -> Option<ProjectedPoint> {
-        let p = cloud.points[idx as usize];
-        let local = Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-        let point_in_cam = self.rotation * local + self.t_local;
         let depth_m = point_in_cam.z;
         if depth_m < options.min_depth_m || depth_m > options.max_depth_m {
             return None;
@@ -353,7 +376,7 @@ impl<'a> Setup<'a> {
         if range_sq > options.max_depth_m * options.max_depth_m {
             return None;
         }
-        let pixel = self.projector.project(&point_in_cam)?;
+        let pixel = self.projector.project(point_in_cam)?;
         let h = options.splat.half_size_px(depth_m, self.focal_px);
         if !(pixel.x + h >= 0.0
             && pixel.x - h <= self.width
@@ -434,10 +457,13 @@ impl QueryTiles {
     fn for_each_covered(&self, pixel: &Vector2<f64>, h: f64, mut f: impl FnMut(u32)) {
         let (x0, x1) = (pixel.x - h, pixel.x + h);
         let (y0, y1) = (pixel.y - h, pixel.y + h);
-        let tx0 = ((x0 / self.tile_px).floor() as i64).max(0);
-        let tx1 = ((x1 / self.tile_px).floor() as i64).min(self.tiles_x - 1);
-        let ty0 = ((y0 / self.tile_px).floor() as i64).max(0);
-        let ty1 = ((y1 / self.tile_px).floor() as i64).min(self.tiles_y - 1);
+        // Truncation, not floor (a libm call on baseline x86-64): it differs
+        // only below 0, where the clamp to tile 0 applies anyway; the exact
+        // test below decides.
+        let tx0 = ((x0 / self.tile_px) as i64).max(0);
+        let tx1 = ((x1 / self.tile_px) as i64).min(self.tiles_x - 1);
+        let ty0 = ((y0 / self.tile_px) as i64).max(0);
+        let ty1 = ((y1 / self.tile_px) as i64).min(self.tiles_y - 1);
         for ty in ty0..=ty1 {
             for tx in tx0..=tx1 {
                 let t = (ty * self.tiles_x + tx) as usize;
@@ -494,23 +520,18 @@ pub fn project_map_at_pixels(
         .fold(
             || vec![Best::NONE; n],
             |mut best, task| {
-                for &cell in &setup.cells[task.clone()] {
-                    for &idx in grid.cell_points(cell) {
-                        let Some(pp) = setup.project_point(cloud, idx, options) else {
-                            continue;
-                        };
-                        let cand = Best {
-                            range_m: pp.range_m,
-                            point_idx: idx,
-                        };
-                        tiles.for_each_covered(&pp.pixel, pp.half_size_px, |q| {
-                            let b = &mut best[q as usize];
-                            if cand.is_better_than(b) {
-                                *b = cand;
-                            }
-                        });
-                    }
-                }
+                setup.for_each_projected(grid, task.clone(), options, |pp| {
+                    let cand = Best {
+                        range_m: pp.range_m,
+                        point_idx: pp.point_idx,
+                    };
+                    tiles.for_each_covered(&pp.pixel, pp.half_size_px, |q| {
+                        let b = &mut best[q as usize];
+                        if cand.is_better_than(b) {
+                            *b = cand;
+                        }
+                    });
+                });
                 best
             },
         )
@@ -536,7 +557,8 @@ pub fn project_map_at_pixels(
             let point_in_map = cloud.point_in_map(i);
             let p = cloud.points[i];
             let local = Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-            let depth_m = (rotation * local + setup.t_local).z;
+            // Exact values (the z-buffer used the grid's quantised copy).
+            let point_in_cam = rotation * local + setup.t_local;
             let normal_in_map = cloud.normals.as_ref().map(|normals| {
                 let n = normals[i];
                 Vector3::new(f64::from(n[0]), f64::from(n[1]), f64::from(n[2]))
@@ -545,8 +567,8 @@ pub fn project_map_at_pixels(
                 point_idx: b.point_idx,
                 point_in_map,
                 normal_in_map,
-                range_m: b.range_m,
-                depth_m,
+                range_m: point_in_cam.norm(),
+                depth_m: point_in_cam.z,
             })
         })
         .collect())
@@ -568,13 +590,7 @@ pub fn project_visible_points(
         .par_iter()
         .map(|task| {
             let mut out = Vec::new();
-            for &cell in &setup.cells[task.clone()] {
-                for &idx in grid.cell_points(cell) {
-                    if let Some(pp) = setup.project_point(cloud, idx, options) {
-                        out.push(pp);
-                    }
-                }
-            }
+            setup.for_each_projected(grid, task.clone(), options, |pp| out.push(pp));
             out
         })
         .collect();

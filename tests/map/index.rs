@@ -160,7 +160,7 @@ fn oracle(cloud: &PointCloud, q: &Vector3<f64>) -> Vec<(f64, usize)> {
 /// Tolerance on distances (m): f32 storage of offsets up to ~100 m.
 const TOL_M: f64 = 1e-4;
 
-fn random_queries(cloud: &PointCloud, n: usize, seed: u64) -> Vec<Vector3<f64>> {
+pub fn random_queries(cloud: &PointCloud, n: usize, seed: u64) -> Vec<Vector3<f64>> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut lo = Vector3::repeat(f64::INFINITY);
     let mut hi = Vector3::repeat(f64::NEG_INFINITY);
@@ -343,4 +343,142 @@ fn ties_and_empty_results() {
     // Negative or NaN radius: nothing, no panic.
     assert!(index.nearest_within(&on, -1.0).is_none());
     assert!(index.within_radius(&on, f64::NAN).is_empty());
+}
+
+/// Peak resident memory of this process (MB), from /proc (Linux).
+pub fn peak_rss_mb() -> f64 {
+    proc_status_kb("VmHWM:") / 1024.0
+}
+
+pub fn rss_mb() -> f64 {
+    proc_status_kb("VmRSS:") / 1024.0
+}
+
+fn proc_status_kb(key: &str) -> f64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    status
+        .lines()
+        .find(|l| l.starts_with(key))
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|v| v.parse::<f64>().ok())
+        .unwrap_or(f64::NAN)
+}
+
+/// Resets the peak resident memory counter (Linux >= 4.0).
+pub fn reset_peak_rss() {
+    let _ = std::fs::write("/proc/self/clear_refs", "5");
+}
+
+/// Benchmark (not a timed test): nearest-neighbour queries a second on one
+/// core on a building-like map, load + index time and peak memory. Size from
+/// `COLMAP_LIDAR_BENCH_POINTS` (default 20 million). Run it in release mode
+/// through `scripts/bench_projection.sh`.
+#[test]
+#[ignore]
+fn bench_index() {
+    use colmap_lidar::map::grid::{FrustumGrid, GridOptions};
+    use colmap_lidar::map::io::{read_point_cloud, write_ply};
+    use std::time::Instant;
+
+    let n: usize = std::env::var("COLMAP_LIDAR_BENCH_POINTS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(20_000_000);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("building.ply");
+    {
+        let cloud = building_cloud(n, 0.005, 7);
+        write_ply(&path, &cloud).unwrap();
+    }
+    let size_mb = std::fs::metadata(&path).unwrap().len() as f64 / 1e6;
+    reset_peak_rss();
+    let rss0 = rss_mb();
+    let t = Instant::now();
+    let (cloud, _) = read_point_cloud(&path).unwrap();
+    let load_s = t.elapsed().as_secs_f64();
+    let rss_cloud = rss_mb();
+    let t = Instant::now();
+    let index = MapIndex::build(&cloud).unwrap();
+    let index_s = t.elapsed().as_secs_f64();
+    let rss_index = rss_mb();
+    let t = Instant::now();
+    let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+    let grid_s = t.elapsed().as_secs_f64();
+    let peak = peak_rss_mb();
+    println!(
+        "BENCH map: {} points (building-like, binary PLY with normals, {size_mb:.0} MB)",
+        cloud.len()
+    );
+    println!(
+        "BENCH load {load_s:.2} s + kd-tree {index_s:.2} s + grid {grid_s:.2} s = {:.2} s \
+         ({} threads)",
+        load_s + index_s + grid_s,
+        rayon::current_num_threads()
+    );
+    println!(
+        "BENCH memory: cloud {:.0} MB, kd-tree {:.0} MB, grid {:.0} MB ({} cells); \
+         peak RSS during load + index {:.0} MB (process baseline {rss0:.0} MB)",
+        rss_cloud - rss0,
+        rss_index - rss_cloud,
+        grid.memory_bytes() as f64 / 1e6,
+        grid.num_cells(),
+        peak
+    );
+
+    // Queries: half within 0.3 m of a map point, half anywhere in the box.
+    let queries = random_queries(&cloud, 2_000_000, 8);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    pool.install(|| {
+        for radius in [0.2, 1.0, 1.5] {
+            let t = Instant::now();
+            let found = queries
+                .iter()
+                .filter(|q| index.nearest_within(q, radius).is_some())
+                .count();
+            let s = t.elapsed().as_secs_f64();
+            println!(
+                "BENCH nearest_within(r = {radius} m): {:.2} M queries/s on one core \
+                 ({found} of {} found)",
+                queries.len() as f64 / s / 1e6,
+                queries.len()
+            );
+        }
+        for radius in [0.2, 1.0] {
+            let t = Instant::now();
+            let found = index
+                .nearest_within_batch(&queries, radius)
+                .iter()
+                .filter(|n| n.is_some())
+                .count();
+            let s = t.elapsed().as_secs_f64();
+            println!(
+                "BENCH nearest_within_batch(r = {radius} m): {:.2} M queries/s on one core \
+                 ({found} found; queries in z-order)",
+                queries.len() as f64 / s / 1e6
+            );
+        }
+        let t = Instant::now();
+        let sum: f64 = queries[..500_000]
+            .iter()
+            .map(|q| index.nearest(q).map_or(0.0, |n| n.dist_sq))
+            .sum();
+        let s = t.elapsed().as_secs_f64();
+        println!(
+            "BENCH nearest (unbounded): {:.2} M queries/s on one core (checksum {sum:.1})",
+            0.5 / s
+        );
+        let t = Instant::now();
+        let total: usize = queries[..200_000]
+            .iter()
+            .map(|q| index.k_nearest(q, 10).len())
+            .sum();
+        let s = t.elapsed().as_secs_f64();
+        println!(
+            "BENCH k_nearest(10): {:.2} M queries/s on one core ({total} results)",
+            0.2 / s
+        );
+    });
 }

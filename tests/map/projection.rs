@@ -519,3 +519,87 @@ fn bad_inputs_are_errors_not_panics() {
     assert!(project_map_at_pixels(&other, &grid, &cam, &pose, &q, &opts).is_err());
     let _ = UnitQuaternion::<f64>::identity();
 }
+
+/// Benchmark (not a timed test): one projection at ~8000 query pixels, 1 MP
+/// camera, ~2 million map points in view, inside a 20-million-point
+/// building-like map (`COLMAP_LIDAR_BENCH_POINTS`). Also the dense depth
+/// image. Run it in release mode through `scripts/bench_projection.sh`.
+#[test]
+#[ignore]
+fn bench_projection() {
+    use colmap_lidar::map::projection::project_visible_points;
+    use std::time::Instant;
+
+    let n: usize = std::env::var("COLMAP_LIDAR_BENCH_POINTS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(20_000_000);
+    let cloud = super::index::building_cloud(n, 0.005, 7);
+    let t = Instant::now();
+    let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+    println!(
+        "BENCH grid of {} points: {:.2} s",
+        cloud.len(),
+        t.elapsed().as_secs_f64()
+    );
+    // Inside the building, ground floor, looking along the long axis.
+    let pose = camera_pose(
+        utm_origin() + Vector3::new(1.0, 25.0, 1.5),
+        0.0,
+        0.05,
+        -0.35,
+    );
+    let (w, h) = (1152u32, 864u32);
+    let cams = [
+        camera(CameraModel::Pinhole, w, h, vec![800.0, 800.0, 576.0, 432.0]),
+        camera(
+            CameraModel::OpenCv,
+            w,
+            h,
+            vec![800.0, 800.0, 576.0, 432.0, -0.1, 0.02, 0.0005, -0.0005],
+        ),
+    ];
+    let options = ProjectionOptions::default();
+    let mut rng = ChaCha8Rng::seed_from_u64(51);
+    let queries: Vec<Vector2<f64>> = (0..8000)
+        .map(|_| Vector2::new(rng.gen_range(0.0..w as f64), rng.gen_range(0.0..h as f64)))
+        .collect();
+    for cam in &cams {
+        let visible = project_visible_points(&cloud, &grid, cam, &pose, &options)
+            .unwrap()
+            .len();
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let mut times = Vec::new();
+            let mut found = 0;
+            for _ in 0..7 {
+                let t = Instant::now();
+                let hits = pool.install(|| {
+                    project_map_at_pixels(&cloud, &grid, cam, &pose, &queries, &options).unwrap()
+                });
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+                found = hits.iter().filter(|h| h.is_some()).count();
+            }
+            times.sort_by(f64::total_cmp);
+            println!(
+                "BENCH projection {} {w}x{h}, {} queries, {visible} points in view: \
+                 median {:.1} ms, best {:.1} ms ({threads} threads; {found} queries hit)",
+                cam.model.name(),
+                queries.len(),
+                times[times.len() / 2],
+                times[0]
+            );
+        }
+        let t = Instant::now();
+        let depth = render_depth_image(&cloud, &grid, cam, &pose, &options).unwrap();
+        println!(
+            "BENCH dense depth image {}: {:.0} ms ({:.0}% filled)",
+            cam.model.name(),
+            t.elapsed().as_secs_f64() * 1e3,
+            100.0 * depth.num_filled() as f64 / depth.range_m.len() as f64
+        );
+    }
+}
