@@ -1,1 +1,2 @@
 //! One module per command of the `colmap-lidar` binary.
+pub mod synth;
