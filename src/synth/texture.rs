@@ -147,11 +147,11 @@ impl Texture {
     /// Probability that a blob-grid cell holds a blob.
     fn blob_density(&self) -> f32 {
         match self.material {
-            Material::Facade => 0.3,
-            Material::Ground => 0.45,
-            Material::Floor => 0.3,
-            Material::Ceiling => 0.25,
-            Material::Wall => 0.4,
+            Material::Facade => 0.45,
+            Material::Ground => 0.55,
+            Material::Floor => 0.4,
+            Material::Ceiling => 0.35,
+            Material::Wall => 0.5,
             Material::Object => 0.6,
         }
     }
@@ -304,7 +304,7 @@ impl Texture {
         let mut colour = self.base;
 
         // Large stains and fine grain: fBm, octaves from 2.5 m down to 1 cm.
-        let mut amp = 0.22;
+        let mut amp = 0.3;
         let mut size = 2.5f32;
         let mut grain = 0.0f32;
         for octave in 0..8u64 {
@@ -313,7 +313,7 @@ impl Texture {
                 break;
             }
             grain += amp * w * value_noise(self.seed ^ (octave * 7919 + 11), u / size, v / size);
-            amp *= 0.72;
+            amp *= 0.9;
             size *= 0.45;
         }
         colour = scale3(colour, (1.0 + grain).max(0.05));
