@@ -12,7 +12,7 @@ use nalgebra::Vector3;
 use super::options::AssociationOptions;
 use crate::map::index::MapIndex;
 use crate::map::PointCloud;
-use crate::solver::{PlaneConstraint, PlaneFamily};
+use crate::solver::{LossFunction, PlaneConstraint, PlaneFamily};
 
 /// Which solve the planes are for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
@@ -39,9 +39,9 @@ pub trait PlaneAssociator {
     fn name(&self) -> &'static str;
     /// Planes for some of `queries` (at most one per point), in query order.
     fn associate(&self, kind: SolveKind, queries: &[AssociationQuery]) -> Vec<PlaneConstraint>;
-    /// Huber scale for the plane residuals (pixel equivalents), if any.
-    fn loss_scale(&self) -> Option<f64> {
-        None
+    /// Robust loss per plane family this associator produces.
+    fn losses(&self) -> Vec<(PlaneFamily, LossFunction)> {
+        Vec::new()
     }
 }
 
@@ -58,9 +58,11 @@ impl PlaneAssociator for NoAssociation {
     }
 }
 
-/// The nearest map point within `r = max(max_radius - k * radius_drop,
-/// min_radius)` (k = global BAs the point took part in), kept when the point
-/// lies within `max_plane_distance_m` of that point's tangent plane. Ground
+/// Among the `num_neighbours` nearest map points within
+/// `r = max(max_radius - k * radius_drop, min_radius)` (k = global BAs the
+/// point took part in), the one whose tangent plane lies closest to the point;
+/// the plane offset is averaged over the neighbours on the same plane; kept
+/// when the point lies within `max_plane_distance_m` of that plane. Ground
 /// planes (normal near vertical) get `ground_weight`.
 pub struct NearestNeighbourAssociator<'a> {
     pub cloud: &'a PointCloud,
@@ -80,32 +82,64 @@ impl PlaneAssociator for NearestNeighbourAssociator<'_> {
         "nearest"
     }
 
-    fn loss_scale(&self) -> Option<f64> {
-        Some(self.options.loss_scale)
+    /// Huber with the scale `loss_scale_m` (metres) times the family's weight.
+    fn losses(&self) -> Vec<(PlaneFamily, LossFunction)> {
+        let o = &self.options;
+        let huber = |w: f64| LossFunction::Huber {
+            scale: (w * o.loss_scale_m).max(1e-6),
+        };
+        vec![
+            (PlaneFamily::Nearest, huber(o.weight)),
+            (PlaneFamily::Ground, huber(o.ground_weight)),
+        ]
     }
 
     fn associate(&self, _kind: SolveKind, queries: &[AssociationQuery]) -> Vec<PlaneConstraint> {
         let Some(normals) = self.cloud.normals.as_ref() else {
             return Vec::new();
         };
+        let normal_of = |i: usize| -> Option<Vector3<f64>> {
+            let n = normals[i];
+            Vector3::new(f64::from(n[0]), f64::from(n[1]), f64::from(n[2])).try_normalize(1e-9)
+        };
         let cos_ground = self.options.ground_max_tilt_deg.to_radians().cos();
+        let cos_same = self.options.same_plane_max_angle_deg.to_radians().cos();
         let mut planes = Vec::new();
         for q in queries {
             let radius = self.radius_m(q.num_global_ba);
-            let Some(nb) = self.index.nearest_within(&q.position_in_world, radius) else {
+            let x = q.position_in_world;
+            let neighbours = self
+                .index
+                .k_nearest_within(&x, self.options.num_neighbours, radius);
+            // The neighbour whose tangent plane lies closest to the point (at a
+            // corner the nearest point may belong to the other surface).
+            let mut best: Option<(f64, Vector3<f64>)> = None;
+            for nb in &neighbours {
+                let i = nb.point_idx as usize;
+                let Some(n) = normal_of(i) else { continue };
+                let d = n.dot(&(x - self.cloud.point_in_map(i))).abs();
+                if best.as_ref().is_none_or(|(bd, _)| d < *bd) {
+                    best = Some((d, n));
+                }
+            }
+            let Some((_, normal)) = best else { continue };
+            // Plane offset: the mean over the neighbours on the same plane
+            // (normals within `same_plane_max_angle_deg`), which averages the
+            // map's range noise.
+            let mut sum = 0.0;
+            let mut count = 0usize;
+            for nb in &neighbours {
+                let i = nb.point_idx as usize;
+                if normal_of(i).is_some_and(|n| n.dot(&normal) >= cos_same) {
+                    sum += normal.dot(&self.cloud.point_in_map(i));
+                    count += 1;
+                }
+            }
+            if count == 0 {
                 continue;
-            };
-            let i = nb.point_idx as usize;
-            let n = normals[i];
-            let normal = Vector3::new(f64::from(n[0]), f64::from(n[1]), f64::from(n[2]));
-            let Some(normal) = normal.try_normalize(1e-9) else {
-                continue;
-            };
-            let l = self.cloud.point_in_map(i);
-            let offset_m = normal.dot(&l);
-            if (normal.dot(&q.position_in_world) - offset_m).abs()
-                > self.options.max_plane_distance_m
-            {
+            }
+            let offset_m = sum / count as f64;
+            if (normal.dot(&x) - offset_m).abs() > self.options.max_plane_distance_m {
                 continue;
             }
             let ground = normal.z.abs() >= cos_ground;

@@ -12,7 +12,7 @@ use super::state::MapState;
 use crate::scene::{CameraId, ImageId, Point3DId};
 use crate::solver::{
     solve, BaCamera, BaObservation, BaPoint, BaPose, BundleAdjustmentProblem, ConstantParams,
-    LossFunction, PlaneFamily, SolverError, SolverOptions,
+    LossFunction, PlaneFamily, PosePrior, SolverError, SolverOptions,
 };
 
 /// What varies in one solve.
@@ -24,6 +24,19 @@ pub struct BundleConfig {
     pub fixed_images: BTreeSet<ImageId>,
     /// Refine the intrinsics of the cameras of the variable images.
     pub refine_intrinsics: bool,
+    /// Soft priors on poses (applied when the image's pose varies).
+    pub pose_priors: Vec<SoftPosePrior>,
+}
+
+/// A soft prior on one image's pose: residuals `position_weight * (C - C0)`
+/// (metres) and `rotation_weight * angle(R R0^T)` (radians), in pixel
+/// equivalents.
+#[derive(Clone, Debug)]
+pub struct SoftPosePrior {
+    pub image: ImageId,
+    pub cam_from_world: crate::scene::Rigid3,
+    pub position_weight: f64,
+    pub rotation_weight: f64,
 }
 
 /// One solve, as reported.
@@ -119,6 +132,22 @@ pub fn bundle_adjust(
             track_len: p.track.len(),
         });
     }
+    for prior in &config.pose_priors {
+        let Some(&pi) = pose_idx.get(&prior.image) else {
+            continue;
+        };
+        if problem.poses[pi as usize].constant {
+            continue;
+        }
+        let c = prior.cam_from_world.camera_center();
+        problem.pose_priors.push(PosePrior {
+            pose_idx: pi,
+            position_in_world: Some([c.x, c.y, c.z]),
+            cam_from_world_rotation: Some(prior.cam_from_world.quaternion_wxyz()),
+            position_weight: prior.position_weight,
+            rotation_weight: prior.rotation_weight,
+        });
+    }
     let num_variable_poses = problem.poses.iter().filter(|p| !p.constant).count();
     if problem.observations.is_empty() || num_variable_poses == 0 && point_list.is_empty() {
         return Ok(SolveRecord {
@@ -143,14 +172,14 @@ pub fn bundle_adjust(
         reprojection_loss: LossFunction::SoftL1 {
             scale: options.reprojection_loss_px,
         },
-        plane_loss: LossFunction::Huber {
-            scale: super_plane_loss(associator),
-        },
+        plane_loss: LossFunction::Trivial,
+        plane_family_losses: associator.losses(),
         max_iterations: match kind {
             SolveKind::Local => options.local_max_iterations,
             _ => options.global_max_iterations,
         },
         num_threads: options.num_threads,
+        function_tolerance: options.function_tolerance,
         ..Default::default()
     };
     let summary = solve(&mut problem, &solver_options)?;
@@ -199,10 +228,4 @@ pub fn bundle_adjust(
         usable: summary.usable,
         time_s: summary.time_s,
     })
-}
-
-/// Huber scale of plane residuals: the associator's own, 20 px-equivalents
-/// otherwise.
-fn super_plane_loss(associator: &dyn PlaneAssociator) -> f64 {
-    associator.loss_scale().unwrap_or(20.0)
 }

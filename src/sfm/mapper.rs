@@ -14,7 +14,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::associate::{NearestNeighbourAssociator, NoAssociation, PlaneAssociator, SolveKind};
-use super::bundle::{bundle_adjust, BundleConfig};
+use super::bundle::{bundle_adjust, BundleConfig, SoftPosePrior};
 use super::filter::{filter_observations, filter_small_angle_points};
 use super::initialize::{initialize, InitError};
 use super::options::{AssociationKind, MapperOptions, OptionsError};
@@ -191,12 +191,25 @@ pub fn run_mapper(
             BTreeSet::new()
         }
     };
+    let b = &options.bundle;
+    let initial_prior: Vec<SoftPosePrior> =
+        if lidar_gauge && b.initial_prior_position_m > 0.0 && b.initial_prior_rotation_deg > 0.0 {
+            vec![SoftPosePrior {
+                image: init_image,
+                cam_from_world: *init_cam_from_world,
+                position_weight: 1.0 / b.initial_prior_position_m,
+                rotation_weight: 1.0 / b.initial_prior_rotation_deg.to_radians(),
+            }]
+        } else {
+            Vec::new()
+        };
     let stats = triangulate_image(&mut state, second, &options.triangulate);
     log::debug!("second image: {stats:?}");
     let config = BundleConfig {
         variable_images: BTreeSet::from([init_image, second]),
         fixed_images: fixed_for(&state),
         refine_intrinsics: false,
+        pose_priors: initial_prior.clone(),
     };
     report.solves.push(bundle_adjust(
         &mut state,
@@ -288,6 +301,7 @@ pub fn run_mapper(
             variable_images: variable.clone(),
             fixed_images: fixed_for(&state),
             refine_intrinsics: false,
+            pose_priors: initial_prior.clone(),
         };
         report.solves.push(bundle_adjust(
             &mut state,
@@ -319,6 +333,7 @@ pub fn run_mapper(
                 &mut state,
                 SolveKind::Global,
                 &fixed,
+                &initial_prior,
                 associator,
                 options,
                 &mut report,
@@ -338,6 +353,7 @@ pub fn run_mapper(
             &mut state,
             SolveKind::Final,
             &fixed,
+            &initial_prior,
             associator,
             options,
             &mut report,
@@ -361,10 +377,12 @@ pub fn run_mapper(
 }
 
 /// Global BA over every registered image, then filtering and track completion.
+#[allow(clippy::too_many_arguments)]
 fn global_ba(
     state: &mut MapState,
     kind: SolveKind,
     fixed: &BTreeSet<ImageId>,
+    priors: &[SoftPosePrior],
     associator: &dyn PlaneAssociator,
     options: &MapperOptions,
     report: &mut MapReport,
@@ -373,6 +391,7 @@ fn global_ba(
         variable_images: state.registration_order.iter().copied().collect(),
         fixed_images: fixed.clone(),
         refine_intrinsics: options.bundle.refine_intrinsics && kind == SolveKind::Final,
+        pose_priors: priors.to_vec(),
     };
     let record = bundle_adjust(state, &config, kind, associator, &options.bundle)?;
     log::info!(

@@ -218,6 +218,8 @@ pub struct BundleOptions {
     pub global_every_images: usize,
     /// Also run a global BA when the model grew by this fraction. Default 0.1.
     pub global_growth_ratio: f64,
+    /// Stop a solve when the relative cost decrease falls below this. Default 1e-6.
+    pub function_tolerance: f64,
     /// Soft-L1 scale on reprojection residuals, pixels. Default 1.
     pub reprojection_loss_px: f64,
     /// Refine the intrinsics in global BA. Default false.
@@ -225,6 +227,14 @@ pub struct BundleOptions {
     /// The initial image stays fixed for this many registrations (when LiDAR
     /// constraints hold the gauge). Default 8.
     pub fix_initial_for: usize,
+    /// Once free, the initial image keeps a soft prior at its given pose
+    /// with this standard deviation of the position, metres (it only
+    /// matters along directions the map does not fix, e.g. a tilt of a scene
+    /// with little ground in view). 0 disables. Default 0 (the map alone
+    /// holds the gauge once the initial image is free).
+    pub initial_prior_position_m: f64,
+    /// Standard deviation of the prior's rotation, degrees. Default 0.
+    pub initial_prior_rotation_deg: f64,
     /// Threads of the Ceres solver. More than one may change the last bits
     /// between runs. Default 1 (byte-identical output).
     pub num_threads: usize,
@@ -238,9 +248,12 @@ impl Default for BundleOptions {
             global_max_iterations: 50,
             global_every_images: 5,
             global_growth_ratio: 0.1,
+            function_tolerance: 1e-6,
             reprojection_loss_px: 1.0,
             refine_intrinsics: false,
             fix_initial_for: 8,
+            initial_prior_position_m: 0.0,
+            initial_prior_rotation_deg: 0.0,
             num_threads: 1,
         }
     }
@@ -265,6 +278,15 @@ impl BundleOptions {
         )?;
         non_negative("bundle.global_growth_ratio", self.global_growth_ratio)?;
         positive("bundle.reprojection_loss_px", self.reprojection_loss_px)?;
+        positive("bundle.function_tolerance", self.function_tolerance)?;
+        non_negative(
+            "bundle.initial_prior_position_m",
+            self.initial_prior_position_m,
+        )?;
+        non_negative(
+            "bundle.initial_prior_rotation_deg",
+            self.initial_prior_rotation_deg,
+        )?;
         check(
             (1..=256).contains(&self.num_threads),
             "bundle.num_threads",
@@ -305,8 +327,14 @@ pub struct AssociationOptions {
     pub ground_weight: f64,
     /// Default 5.7.
     pub ground_max_tilt_deg: f64,
-    /// Huber scale on plane residuals, pixel equivalents. Default 20 (2 cm at weight 1000).
-    pub loss_scale: f64,
+    /// Huber scale on plane residuals, metres (times the weight in pixel
+    /// equivalents). Default 0.02.
+    pub loss_scale_m: f64,
+    /// Map points searched per association. Default 10.
+    pub num_neighbours: usize,
+    /// Neighbours whose normals are within this angle share the plane (its
+    /// offset is their mean), degrees. Default 15.
+    pub same_plane_max_angle_deg: f64,
 }
 
 impl Default for AssociationOptions {
@@ -320,7 +348,9 @@ impl Default for AssociationOptions {
             weight: 1000.0,
             ground_weight: 1000.0,
             ground_max_tilt_deg: 5.7,
-            loss_scale: 20.0,
+            loss_scale_m: 0.02,
+            num_neighbours: 10,
+            same_plane_max_angle_deg: 15.0,
         }
     }
 }
@@ -345,7 +375,17 @@ impl AssociationOptions {
             "association.ground_max_tilt_deg",
             "must be in [0, 90)",
         )?;
-        positive("association.loss_scale", self.loss_scale)
+        positive("association.loss_scale_m", self.loss_scale_m)?;
+        check(
+            (1..=256).contains(&self.num_neighbours),
+            "association.num_neighbours",
+            "must be in 1..=256",
+        )?;
+        check(
+            (0.0..=90.0).contains(&self.same_plane_max_angle_deg),
+            "association.same_plane_max_angle_deg",
+            "must be in [0, 90]",
+        )
     }
 }
 

@@ -5,4 +5,5 @@
 //!   determinism, bad inputs, track merging and filtering.
 //! * `colmap_e2e`: the synthetic scenes of the `synth` module with real
 //!   COLMAP databases (skipped loudly when colmap or the scenes are absent).
+mod colmap_e2e;
 mod toy;
