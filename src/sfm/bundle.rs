@@ -4,12 +4,13 @@
 //! points, solves, and writes poses, points and (optionally) intrinsics back.
 use std::collections::{BTreeMap, BTreeSet};
 
+use nalgebra::Vector3;
 use serde::Serialize;
 
 use super::associate::{AssociationQuery, PlaneAssociator, SolveKind};
 use super::options::BundleOptions;
 use super::state::MapState;
-use crate::scene::{CameraId, ImageId, Point3DId};
+use crate::scene::{CameraId, ImageId, Point3DId, Rigid3};
 use crate::solver::{
     solve, BaCamera, BaObservation, BaPoint, BaPose, BundleAdjustmentProblem, ConstantParams,
     LossFunction, PlaneFamily, PosePrior, SolverError, SolverOptions,
@@ -34,7 +35,7 @@ pub struct BundleConfig {
 #[derive(Clone, Debug)]
 pub struct SoftPosePrior {
     pub image: ImageId,
-    pub cam_from_world: crate::scene::Rigid3,
+    pub cam_from_world: Rigid3,
     pub position_weight: f64,
     pub rotation_weight: f64,
 }
@@ -89,12 +90,28 @@ pub fn bundle_adjust(
             }
         }
     }
+    // The problem is solved in a local frame `X_local = X_world - origin`
+    // (origin: the mean camera centre), so that georeferenced coordinates
+    // (10^5..10^6 m) do not wreck the conditioning.
+    let origin = if images_needed.is_empty() {
+        Vector3::zeros()
+    } else {
+        images_needed
+            .iter()
+            .map(|&i| state.pose(i).expect("registered").camera_center())
+            .sum::<Vector3<f64>>()
+            / images_needed.len() as f64
+    };
+    let to_local =
+        |pose: &Rigid3| Rigid3::new(pose.rotation, pose.translation + pose.rotation * origin);
+    let to_world =
+        |pose: &Rigid3| Rigid3::new(pose.rotation, pose.translation - pose.rotation * origin);
     for &image in &images_needed {
         let variable =
             config.variable_images.contains(&image) && !config.fixed_images.contains(&image);
         let pose = state.pose(image).expect("registered, checked above");
         pose_idx.insert(image, problem.poses.len() as u32);
-        problem.poses.push(BaPose::new(&pose, !variable));
+        problem.poses.push(BaPose::new(&to_local(&pose), !variable));
         let cam_id = state.images[&image].camera_id;
         if !camera_idx.contains_key(&cam_id) {
             camera_idx.insert(cam_id, problem.cameras.len() as u32);
@@ -111,7 +128,7 @@ pub fn bundle_adjust(
     for pid in &point_ids {
         let p = &state.points[pid];
         let idx = problem.points.len() as u32;
-        problem.points.push(BaPoint::new(&p.xyz, false));
+        problem.points.push(BaPoint::new(&(p.xyz - origin), false));
         point_list.push(*pid);
         for e in &p.track {
             let Some(&pi) = pose_idx.get(&e.image_id) else {
@@ -139,7 +156,7 @@ pub fn bundle_adjust(
         if problem.poses[pi as usize].constant {
             continue;
         }
-        let c = prior.cam_from_world.camera_center();
+        let c = prior.cam_from_world.camera_center() - origin;
         problem.pose_priors.push(PosePrior {
             pose_idx: pi,
             position_in_world: Some([c.x, c.y, c.z]),
@@ -167,6 +184,9 @@ pub fn bundle_adjust(
         });
     }
     problem.planes = associator.associate(kind, &queries);
+    for plane in &mut problem.planes {
+        plane.offset_m -= Vector3::from(plane.normal).dot(&origin);
+    }
     let anchored: BTreeSet<u32> = problem.planes.iter().map(|p| p.point_idx).collect();
     let solver_options = SolverOptions {
         reprojection_loss: LossFunction::SoftL1 {
@@ -186,13 +206,13 @@ pub fn bundle_adjust(
     if summary.usable {
         for (&image, &pi) in &pose_idx {
             if !problem.poses[pi as usize].constant {
-                let pose = problem.poses[pi as usize].rigid();
+                let pose = to_world(&problem.poses[pi as usize].rigid());
                 state.register(image, pose);
             }
         }
         for (i, pid) in point_list.iter().enumerate() {
             if let Some(p) = state.points.get_mut(pid) {
-                p.xyz = problem.points[i].position();
+                p.xyz = problem.points[i].position() + origin;
                 p.anchored = anchored.contains(&(i as u32));
                 if kind != SolveKind::Local {
                     p.num_global_ba += 1;

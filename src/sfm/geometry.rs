@@ -136,15 +136,16 @@ pub fn reprojection_error_sq(
     camera.project(&p).map(|q| (q - pixel).norm_squared())
 }
 
-/// `cam_from_world` perturbed by `delta = [omega; dt]`: rotation exp(omega)
-/// applied on the left, then translation `t + dt`.
+/// `cam_from_world` perturbed by `delta = [omega; dc]`: rotation exp(omega)
+/// applied on the left, camera centre moved by `dc` (world frame). Rotating
+/// about the camera centre, not the world origin, keeps the problem well
+/// conditioned for georeferenced coordinates (10^6 m).
 fn perturb(pose: &Rigid3, delta: &Vector6<f64>) -> Rigid3 {
     let omega = Vector3::new(delta[0], delta[1], delta[2]);
     let dq = UnitQuaternion::from_scaled_axis(omega);
-    Rigid3::new(
-        dq * pose.rotation,
-        dq * pose.translation + Vector3::new(delta[3], delta[4], delta[5]),
-    )
+    let rotation = dq * pose.rotation;
+    let centre = pose.camera_center() + Vector3::new(delta[3], delta[4], delta[5]);
+    Rigid3::new(rotation, -(rotation * centre))
 }
 
 /// Refines `cam_from_world` by Levenberg-Marquardt on the reprojection errors
@@ -265,10 +266,13 @@ pub fn triangulate_dlt(views: &[(Rigid3, Vector2<f64>)]) -> Option<Vector3<f64>>
     if views.len() < 2 {
         return None;
     }
+    // Solve in a frame centred on the first camera: with georeferenced
+    // coordinates the world-frame system is hopelessly ill-conditioned.
+    let origin = views[0].0.camera_center();
     let mut ata = Matrix4::<f64>::zeros();
     for (pose, x) in views {
         let r = pose.rotation_matrix();
-        let t = pose.translation;
+        let t = pose.translation + r * origin;
         let row = |k: usize| nalgebra::RowVector4::new(r[(k, 0)], r[(k, 1)], r[(k, 2)], t[k]);
         for row_vec in [row(2) * x.x - row(0), row(2) * x.y - row(1)] {
             let n = row_vec.norm();
@@ -291,7 +295,7 @@ pub fn triangulate_dlt(views: &[(Rigid3, Vector2<f64>)]) -> Option<Vector3<f64>>
     if h[3].abs() < 1e-12 {
         return None;
     }
-    let p = Vector3::new(h[0] / h[3], h[1] / h[3], h[2] / h[3]);
+    let p = Vector3::new(h[0] / h[3], h[1] / h[3], h[2] / h[3]) + origin;
     p.iter().all(|v| v.is_finite()).then_some(p)
 }
 
@@ -445,6 +449,48 @@ mod tests {
             let y = triangulate_dlt(&views).unwrap();
             assert!((y - x).norm() < 1e-8, "{y} vs {x}");
         }
+    }
+
+    #[test]
+    fn dlt_and_refinement_with_georeferenced_coordinates() {
+        let mut rng = ChaCha8Rng::seed_from_u64(8);
+        let offset = Vector3::new(512_000.0, 5_400_000.0, 230.0);
+        let cam = camera();
+        for _ in 0..20 {
+            let poses: Vec<Rigid3> = (0..3)
+                .map(|_| {
+                    let p = random_pose(&mut rng);
+                    // Same camera, world shifted by `offset`.
+                    Rigid3::new(p.rotation, p.translation - p.rotation * offset)
+                })
+                .collect();
+            let x = offset
+                + Vector3::new(
+                    rng.gen_range(-1.0..1.0),
+                    rng.gen_range(-1.0..1.0),
+                    rng.gen_range(-1.0..1.0),
+                );
+            let views: Vec<(Rigid3, Vector2<f64>)> = poses
+                .iter()
+                .map(|p| {
+                    let c = p.transform_point(&x);
+                    (*p, Vector2::new(c.x / c.z, c.y / c.z))
+                })
+                .collect();
+            let y = triangulate_dlt(&views).unwrap();
+            assert!((y - x).norm() < 1e-6, "{}", (y - x).norm());
+        }
+        let pose = random_pose(&mut rng);
+        let pose = Rigid3::new(pose.rotation, pose.translation - pose.rotation * offset);
+        let points: Vec<Vector3<f64>> = (0..50).map(|_| point_in_front(&mut rng, &pose)).collect();
+        let pixels: Vec<Vector2<f64>> = points
+            .iter()
+            .map(|p| cam.project(&pose.transform_point(p)).unwrap())
+            .collect();
+        let start = perturb(&pose, &Vector6::new(0.02, -0.01, 0.015, 0.05, -0.03, 0.02));
+        let refined = refine_pose(&cam, &start, &pixels, &points, 2.0, 50);
+        assert!(refined.rotation.angle_to(&pose.rotation) < 1e-7);
+        assert!((refined.camera_center() - pose.camera_center()).norm() < 1e-6);
     }
 
     #[test]

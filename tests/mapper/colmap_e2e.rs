@@ -195,6 +195,17 @@ fn numbers() {
             |a| a.no_lidar_constraints = true,
         );
         print_run(&format!("{} (no LiDAR terms)", kind.name()), &r2);
+        std::env::set_var("MAPPER_PERTURBED", "1");
+        let r3 = map_scene(
+            &scene,
+            &tmp.path().join(format!("{}-perturbed", kind.name())),
+            |_| {},
+        );
+        std::env::remove_var("MAPPER_PERTURBED");
+        print_run(
+            &format!("{} (initial pose 0.3 m, 3 deg off)", kind.name()),
+            &r3,
+        );
     }
 }
 

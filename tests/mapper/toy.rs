@@ -388,3 +388,194 @@ fn toy_bad_inputs_fail_clearly() {
     assert!(format!("{err:#}").contains("six numbers"), "{err:#}");
     assert!(!out.exists());
 }
+
+mod units {
+    //! Track continuation, merging and filtering on a small exact scene.
+    use super::*;
+    use colmap_lidar::scene::TrackElement;
+    use colmap_lidar::sfm::filter::{filter_observations, filter_small_angle_points};
+    use colmap_lidar::sfm::options::TriangulateOptions;
+    use colmap_lidar::sfm::register::next_best_images;
+    use colmap_lidar::sfm::state::MapState;
+    use colmap_lidar::sfm::triangulate::{triangulate_image, try_merge};
+
+    fn e(image: u32, k: u32) -> TrackElement {
+        TrackElement {
+            image_id: ImageId(image),
+            point2d_idx: k,
+        }
+    }
+
+    /// The toy scene with its first three images registered at their true poses.
+    fn three_registered() -> (Toy, MapState) {
+        let scene = toy(6, 0.0, 0.0, 9);
+        let mut state = MapState::new(&scene.db, 4);
+        for i in 1..=3 {
+            state.register(ImageId(i), scene.gt[&ImageId(i)]);
+        }
+        (scene, state)
+    }
+
+    #[test]
+    fn triangulation_creates_exact_points_and_continues_tracks() {
+        let (scene, mut state) = three_registered();
+        let options = TriangulateOptions::default();
+        let stats = triangulate_image(&mut state, ImageId(2), &options);
+        assert!(stats.created > 100, "{stats:?}");
+        // Exact keypoints: every point lies on a room plane, and reprojects exactly.
+        for id in state.points.keys().copied().collect::<Vec<_>>() {
+            assert!(state.point_error_px(id).unwrap() < 1e-6);
+            assert!(state.points[&id].track.len() >= 2);
+        }
+        // Registering image 4 and triangulating it continues existing tracks.
+        let before: usize = state.points.values().map(|p| p.track.len()).sum();
+        state.register(ImageId(4), scene.gt[&ImageId(4)]);
+        let stats4 = triangulate_image(&mut state, ImageId(4), &options);
+        let after: usize = state.points.values().map(|p| p.track.len()).sum();
+        assert!(stats4.continued > 50, "{stats4:?}");
+        assert!(after > before);
+        // Every keypoint/point link is consistent both ways.
+        for (id, p) in &state.points {
+            for t in &p.track {
+                assert_eq!(state.point_of(*t), Some(*id));
+            }
+        }
+    }
+
+    #[test]
+    fn merging_joins_split_tracks_and_refuses_bad_merges() {
+        let (_scene, mut state) = three_registered();
+        // A keypoint seen in images 1, 2 and 3: find one through the graph.
+        let (k1, k2, k3) = (0..state.images[&ImageId(1)].keypoints.len() as u32)
+            .find_map(|k| {
+                let c = state.graph.correspondences(ImageId(1), k);
+                let a = c.iter().find(|t| t.image_id == ImageId(2))?;
+                let b = c.iter().find(|t| t.image_id == ImageId(3))?;
+                Some((k, a.point2d_idx, b.point2d_idx))
+            })
+            .expect("a track over three images");
+        let options = TriangulateOptions::default();
+        let views_a = [e(1, k1), e(2, k2)];
+        let (xa, _) =
+            colmap_lidar::sfm::triangulate::triangulate_views(&state, &views_a, &options).unwrap();
+        // Split: one point on (1, 2), another on (3).
+        let a = state.add_point(xa, views_a.to_vec());
+        // 1 m away: the merged position would not fit the observations.
+        let far = state.add_point(xa + Vector3::new(1.0, 1.0, 0.0), vec![e(3, k3)]);
+        assert!(!try_merge(&mut state, a, far, &options));
+        assert!(state.points.contains_key(&far));
+        state.delete_point(far);
+        // 1 mm away: merged into one track of three.
+        let b = state.add_point(xa + Vector3::new(0.001, 0.0, 0.0), vec![e(3, k3)]);
+        assert!(try_merge(&mut state, a, b, &options));
+        assert!(!state.points.contains_key(&b));
+        assert_eq!(state.points[&a].track, vec![e(1, k1), e(2, k2), e(3, k3)]);
+        assert_eq!(state.point_of(e(3, k3)), Some(a));
+    }
+
+    #[test]
+    fn filters_remove_what_they_report() {
+        let (_scene, mut state) = three_registered();
+        let options = TriangulateOptions::default();
+        triangulate_image(&mut state, ImageId(2), &options);
+        let n_points = state.points.len();
+        let n_obs: usize = state.points.values().map(|p| p.track.len()).sum();
+        // Exact data: nothing to remove.
+        assert_eq!(filter_observations(&mut state, None, 1.0), 0);
+        // Move one point 0.5 m: all its observations go, and the point with them.
+        let (&id, p) = state.points.iter().next().unwrap();
+        let len = p.track.len();
+        state.points.get_mut(&id).unwrap().xyz += Vector3::new(0.0, 0.0, 0.5);
+        let removed = filter_observations(&mut state, None, 1.0);
+        assert_eq!(removed, len);
+        assert!(!state.points.contains_key(&id));
+        assert_eq!(state.points.len(), n_points - 1);
+        let n_obs_after: usize = state.points.values().map(|p| p.track.len()).sum();
+        assert_eq!(n_obs_after, n_obs - len);
+        // An absurd angle threshold removes every point that is not anchored.
+        let removed = filter_small_angle_points(&mut state, 179.0);
+        assert_eq!(removed, n_points - 1);
+        assert!(state.points.is_empty());
+        // Next-best view: image 4 sees no point now; with points back it ranks first among the unregistered.
+        assert!(next_best_images(&state, &Default::default(), &Default::default()).is_empty());
+        triangulate_image(&mut state, ImageId(2), &options);
+        let ranked = next_best_images(&state, &Default::default(), &Default::default());
+        assert_eq!(ranked.first(), Some(&ImageId(4)), "{ranked:?}");
+    }
+}
+
+/// Prints the toy room's accuracy under a few option variants (debugging aid).
+#[test]
+#[ignore]
+fn toy_room_option_sweep() {
+    let noise: f64 = std::env::var("TOY_NOISE")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0.3);
+    let wrong: f64 = std::env::var("TOY_WRONG")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0.03);
+    let scene = toy(14, noise, wrong, 1);
+    let init = scene.init_pose.to_cam_from_world();
+    let variants: Vec<(&str, Box<dyn Fn(&mut MapperOptions)>)> = vec![
+        ("default", Box::new(|_| {})),
+        (
+            "initial fixed",
+            Box::new(|o| o.bundle.fix_initial_for = 1000),
+        ),
+        (
+            "gate 5 cm",
+            Box::new(|o| o.association.max_plane_distance_m = 0.05),
+        ),
+        (
+            "radius 0.3 m",
+            Box::new(|o| o.association.max_radius_m = 0.3),
+        ),
+        (
+            "weight 100",
+            Box::new(|o| {
+                o.association.weight = 100.0;
+                o.association.ground_weight = 100.0
+            }),
+        ),
+        (
+            "no lidar",
+            Box::new(|o| o.association.kind = AssociationKind::None),
+        ),
+        (
+            "tolerance 1e-12",
+            Box::new(|o| {
+                o.bundle.function_tolerance = 1e-12;
+                o.bundle.global_max_iterations = 500;
+                o.bundle.local_max_iterations = 500;
+            }),
+        ),
+        (
+            "no initial prior, fixed 3",
+            Box::new(|o| o.bundle.fix_initial_for = 3),
+        ),
+    ];
+    for (name, f) in variants {
+        let mut options = MapperOptions::default();
+        f(&mut options);
+        let out = run_mapper(
+            &scene.db,
+            &scene.cloud,
+            ImageId(1),
+            &init,
+            &options,
+            &mut |_, _| {},
+        )
+        .unwrap();
+        let err = max_centre_error(&out.reconstruction, &scene.gt);
+        eprintln!(
+            "{name}: {}/{} registered, {} points, reprojection {:.3} px, max centre error {:.4} m",
+            out.report.num_registered,
+            out.report.num_images,
+            out.report.num_points,
+            out.report.mean_reprojection_error_px,
+            err
+        );
+    }
+}

@@ -1,0 +1,63 @@
+#!/usr/bin/env bash
+# Times `colmap-lidar map` and `colmap mapper` on the same database in the same
+# run and prints the ratio. With a scene folder written by `colmap-lidar synth`
+# (database.db, lidar.ply, init_pose.txt, images/, gt/), also evaluates both
+# against the ground truth when `colmap-lidar evaluate` is available.
+#
+# usage: scripts/bench_map_vs_colmap.sh SCENE_DIR [OUT_DIR]
+#   SCENE_DIR holds database.db (scripts/make_database.sh), lidar.ply,
+#   init_pose.txt and images/.
+# env:   COLMAP (default colmap), COLMAP_LIDAR (default: colmap-lidar on PATH,
+#        else target/release/colmap-lidar), NUM_THREADS for colmap mapper
+#        (default 2), INIT_IMAGE (default frame_0000.jpg), POSE (exact|perturbed,
+#        default exact), MAP_ARGS (extra arguments for colmap-lidar map).
+set -euo pipefail
+scene=${1:?usage: bench_map_vs_colmap.sh SCENE_DIR [OUT_DIR]}
+out=${2:-$(mktemp -d)}
+colmap=${COLMAP:-colmap}
+here=$(cd "$(dirname "$0")/.." && pwd)
+tool=${COLMAP_LIDAR:-$(command -v colmap-lidar || echo "$here/target/release/colmap-lidar")}
+command -v "$colmap" >/dev/null || { echo "error: '$colmap' not found" >&2; exit 2; }
+[ -x "$tool" ] || { echo "error: colmap-lidar not found at $tool (cargo build --release, or set COLMAP_LIDAR)" >&2; exit 2; }
+db=$scene/database.db
+[ -f "$db" ] || { echo "error: no database at $db (run scripts/make_database.sh $scene)" >&2; exit 2; }
+pose_key=${POSE:-exact}
+pose=$(sed -n "s/^$pose_key: *//p" "$scene/init_pose.txt")
+[ -n "$pose" ] || { echo "error: no '$pose_key:' line in $scene/init_pose.txt" >&2; exit 2; }
+mkdir -p "$out"
+
+now() { date +%s.%N; }
+
+echo "== colmap-lidar map ($scene)"
+t0=$(now)
+# shellcheck disable=SC2086
+"$tool" map --database "$db" --lidar "$scene/lidar.ply" --output "$out/map" \
+  --init-image "${INIT_IMAGE:-frame_0000.jpg}" --init-pose "$pose" ${MAP_ARGS:-} 2>"$out/map.log"
+t1=$(now)
+ours=$(echo "$t1 - $t0" | bc -l)
+
+echo "== colmap mapper"
+rm -rf "$out/colmap" && mkdir -p "$out/colmap"
+t0=$(now)
+if ! "$colmap" mapper --database_path "$db" --image_path "$scene/images" --output_path "$out/colmap" \
+    --Mapper.num_threads "${NUM_THREADS:-2}" >"$out/colmap.log" 2>&1; then
+  echo "error: colmap mapper failed; last lines:" >&2
+  tail -n 25 "$out/colmap.log" >&2
+  exit 1
+fi
+t1=$(now)
+theirs=$(echo "$t1 - $t0" | bc -l)
+
+printf 'colmap-lidar map: %.1f s\ncolmap mapper:    %.1f s\nratio (ours / colmap): %.2f\n' \
+  "$ours" "$theirs" "$(echo "$ours / $theirs" | bc -l)"
+
+if [ -d "$scene/gt" ] && "$tool" evaluate --help >/dev/null 2>&1; then
+  echo "== evaluation of colmap-lidar map (no alignment)"
+  "$tool" evaluate --model "$out/map" --reference "$scene/gt" --align none || true
+  for m in "$out"/colmap/*/; do
+    [ -f "$m/images.bin" ] || continue
+    echo "== evaluation of colmap mapper $m (Sim3 alignment)"
+    "$tool" evaluate --model "$m" --reference "$scene/gt" --align sim3 || true
+  done
+fi
+echo "outputs in $out"
