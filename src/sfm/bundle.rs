@@ -113,8 +113,8 @@ pub fn bundle_adjust(
         pose_idx.insert(image, problem.poses.len() as u32);
         problem.poses.push(BaPose::new(&to_local(&pose), !variable));
         let cam_id = state.images[&image].camera_id;
-        if !camera_idx.contains_key(&cam_id) {
-            camera_idx.insert(cam_id, problem.cameras.len() as u32);
+        if let std::collections::btree_map::Entry::Vacant(slot) = camera_idx.entry(cam_id) {
+            slot.insert(problem.cameras.len() as u32);
             let constant = if config.refine_intrinsics {
                 ConstantParams::None
             } else {

@@ -103,7 +103,7 @@ pub fn p3p(bearings: &[Vector3<f64>; 3], points_in_world: &[Vector3<f64>; 3]) ->
             continue;
         }
         let s1_sq = c2 / (1.0 + u * u - 2.0 * u * cos_g);
-        if !(s1_sq > 0.0) {
+        if s1_sq.is_nan() || s1_sq <= 0.0 {
             continue;
         }
         let s1 = s1_sq.sqrt();

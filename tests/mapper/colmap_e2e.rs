@@ -189,6 +189,31 @@ fn numbers() {
             |_| {},
         );
         print_run(kind.name(), &r);
+        // `colmap mapper` on the same database, in the same run.
+        let sparse = tmp.path().join(format!("{}-colmap", kind.name()));
+        std::fs::create_dir_all(&sparse).unwrap();
+        let t = std::time::Instant::now();
+        let status = std::process::Command::new("colmap")
+            .args(["mapper", "--database_path"])
+            .arg(scene.join("database.db"))
+            .arg("--image_path")
+            .arg(scene.join("images"))
+            .arg("--output_path")
+            .arg(&sparse)
+            .args(["--Mapper.num_threads", "2"])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .unwrap();
+        let colmap_s = t.elapsed().as_secs_f64();
+        assert!(status.success());
+        eprintln!(
+            "{}: colmap-lidar map {:.1} s, colmap mapper {:.1} s, ratio {:.2}",
+            kind.name(),
+            r.seconds,
+            colmap_s,
+            r.seconds / colmap_s
+        );
         let r2 = map_scene(
             &scene,
             &tmp.path().join(format!("{}-nolidar", kind.name())),

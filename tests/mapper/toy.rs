@@ -518,7 +518,8 @@ fn toy_room_option_sweep() {
         .unwrap_or(0.03);
     let scene = toy(14, noise, wrong, 1);
     let init = scene.init_pose.to_cam_from_world();
-    let variants: Vec<(&str, Box<dyn Fn(&mut MapperOptions)>)> = vec![
+    type Variant = (&'static str, Box<dyn Fn(&mut MapperOptions)>);
+    let variants: Vec<Variant> = vec![
         ("default", Box::new(|_| {})),
         (
             "initial fixed",
@@ -578,4 +579,41 @@ fn toy_room_option_sweep() {
             err
         );
     }
+}
+
+#[test]
+fn options_file_and_command_line_merge() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("map.toml");
+    std::fs::write(
+        &file,
+        "database = \"a.db\"\nlidar = \"m.ply\"\noutput = \"out\"\ninit_image = 3\n\
+         init_pose = \"1,2,3,0,0,90\"\noutput_type = \"binary\"\n\
+         [mapper]\nseed = 5\n[mapper.register]\nmax_error_px = 3.0\n",
+    )
+    .unwrap();
+    let args = MapArgs {
+        options: Some(file.clone()),
+        output: Some(PathBuf::from("cli-out")),
+        seed: Some(9),
+        ..Default::default()
+    };
+    let c = args.config().unwrap();
+    assert_eq!(c.database, PathBuf::from("a.db"));
+    assert_eq!(c.output, PathBuf::from("cli-out"));
+    assert_eq!(c.init_image.as_deref(), Some("3"));
+    assert_eq!(c.options.seed, 9);
+    assert_eq!(c.options.register.max_error_px, 3.0);
+    assert_eq!(c.format, colmap_lidar::io::model::ModelFormat::Binary);
+    assert_eq!(c.init_pose.unwrap().yaw_deg, 90.0);
+    // Unknown keys and bad values are errors naming the problem.
+    std::fs::write(&file, "[mapper.register]\nmax_eror_px = 3.0\n").unwrap();
+    let err = format!("{:#}", args.config().unwrap_err());
+    assert!(err.contains("max_eror_px"), "{err}");
+    std::fs::write(&file, "database = \"a.db\"\nlidar = \"m.ply\"\n[mapper.filter]\nmax_reprojection_error_px = -1.0\n").unwrap();
+    let err = format!("{:#}", args.config().unwrap_err());
+    assert!(err.contains("filter.max_reprojection_error_px"), "{err}");
+    // Missing required paths.
+    let err = format!("{:#}", MapArgs::default().config().unwrap_err());
+    assert!(err.contains("--database"), "{err}");
 }
