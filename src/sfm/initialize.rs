@@ -110,6 +110,7 @@ pub fn lidar_points_of_image(
     let hits = project_map_at_pixels(cloud, grid, camera, cam_from_world, keypoints, &projection)?;
     let world_from_cam = cam_from_world.inverse();
     let centre = cam_from_world.camera_center();
+    let focal_px = camera.mean_focal_length();
     let min_cos = options.min_ray_plane_angle_deg.to_radians().sin();
     let mut out = BTreeMap::new();
     let mut num_hits = 0;
@@ -127,7 +128,12 @@ pub fn lidar_points_of_image(
         let Some(x) = intersect_ray_plane(&centre, &dir, &normal, offset, min_cos) else {
             continue;
         };
-        if (x - hit.point_in_map).norm() > options.max_plane_extrapolation_m {
+        // A feature inside the LiDAR point's splat lies within the splat's
+        // half-diagonal of the point (in the plane); farther means the ray
+        // hit another surface (depth edges): its plane is the wrong one.
+        let splat_m = projection.splat.half_size_px(hit.depth_m, focal_px) * hit.depth_m / focal_px
+            * std::f64::consts::SQRT_2;
+        if (x - hit.point_in_map).norm() > splat_m.min(options.max_plane_extrapolation_m) {
             continue;
         }
         out.insert(k as u32, x);

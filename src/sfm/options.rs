@@ -50,7 +50,8 @@ pub struct InitOptions {
     /// Rays closer than this angle to the tangent plane are rejected, degrees. Default 10.
     pub min_ray_plane_angle_deg: f64,
     /// The ray-plane intersection may lie at most this far from the LiDAR
-    /// point whose plane it uses, metres. Default 0.5.
+    /// point whose plane it uses, metres (and never farther than the half
+    /// diagonal of that point's splat). Default 0.5.
     pub max_plane_extrapolation_m: f64,
     /// Fewest LiDAR-supported features the initial image needs. Default 30.
     pub min_lidar_features: usize,

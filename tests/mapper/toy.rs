@@ -545,6 +545,18 @@ fn toy_room_option_sweep() {
             Box::new(|o| o.association.kind = AssociationKind::None),
         ),
         (
+            "init gate 0.05 m",
+            Box::new(|o| o.init.max_plane_extrapolation_m = 0.05),
+        ),
+        (
+            "w1000, Huber 0.2 m",
+            Box::new(|o| o.association.loss_scale_m = 0.2),
+        ),
+        (
+            "w1000, Huber 2 mm",
+            Box::new(|o| o.association.loss_scale_m = 0.002),
+        ),
+        (
             "tolerance 1e-12",
             Box::new(|o| {
                 o.bundle.function_tolerance = 1e-12;
