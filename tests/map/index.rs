@@ -1,0 +1,1 @@
+//! Integration tests: the map's spatial index (filled on the `mapproj` branch).

@@ -1,0 +1,1 @@
+//! Integration tests: map projection into cameras (filled on the `mapproj` branch).
