@@ -1,2 +1,3 @@
 //! One module per command of the `colmap-lidar` binary.
+pub mod bench_map;
 pub mod prepare_map;
