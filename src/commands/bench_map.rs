@@ -40,10 +40,13 @@ pub enum BenchMapAction {
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
-    /// Reads a cloud and reports the time.
+    /// Reads a cloud (and builds the map index) and reports the times.
     Load {
         #[arg(long)]
         input: PathBuf,
+        /// Also build the nearest-neighbour index ([`crate::map::index::MapIndex`]).
+        #[arg(long)]
+        index: bool,
     },
 }
 
@@ -172,17 +175,36 @@ pub fn run(args: &BenchMapArgs) -> anyhow::Result<()> {
                 start.elapsed().as_secs_f64() - generated
             );
         }
-        BenchMapAction::Load { input } => {
+        BenchMapAction::Load { input, index } => {
             let start = Instant::now();
             let (cloud, report) = read_point_cloud(input)?;
+            let loaded = start.elapsed().as_secs_f64();
             println!(
-                "loaded {} points ({}, {} dropped) from {} in {:.2} s",
+                "loaded {} points ({}, {} dropped) from {} in {loaded:.2} s",
                 cloud.len(),
                 report.format,
                 report.dropped_non_finite,
                 input.display(),
-                start.elapsed().as_secs_f64()
             );
+            if *index {
+                let start = Instant::now();
+                let map_index = crate::map::index::MapIndex::build(&cloud)?;
+                let built = start.elapsed().as_secs_f64();
+                // A few queries, checked against the cloud, so the index is used.
+                let mut found = 0;
+                for i in (0..cloud.len()).step_by((cloud.len() / 1000).max(1)) {
+                    let p = cloud.point_in_map(i);
+                    if let Some(n) = map_index.nearest_within(&p, 0.01) {
+                        found += usize::from(n.dist_sq < 1e-6);
+                    }
+                }
+                println!(
+                    "built the index of {} points in {built:.2} s ({found} self-queries found); \
+                     load + index {:.2} s",
+                    map_index.len(),
+                    loaded + built
+                );
+            }
         }
     }
     Ok(())

@@ -801,3 +801,33 @@ fn las_and_laz_written_by_the_las_crate_read_back() {
         }
     }
 }
+
+#[test]
+fn a_far_first_point_is_reported_through_the_largest_offset() {
+    let dir = tempfile::tempdir().unwrap();
+    let props = [("double", "x"), ("double", "y"), ("double", "z")];
+    // A junk first point at zero picks a zero origin for a UTM cloud.
+    let rows = vec![vec![0.0, 0.0, 0.0], vec![512_345.5, 5_412_345.25, 200.0]];
+    let path = write(
+        dir.path(),
+        "junk_first.ply",
+        &ply_bytes(Enc::Le, &props, &rows, None),
+    );
+    let (cloud, report) = read_point_cloud(&path).unwrap();
+    assert_eq!(cloud.origin, Vector3::zeros());
+    assert_eq!(report.max_offset_m, 5_412_345.25);
+    assert!(report.max_offset_m > colmap_lidar::map::io::PRECISION_WARNING_OFFSET_M);
+    // The usual case stays well below it.
+    let rows = vec![
+        vec![512_345.5, 5_412_345.25, 200.0],
+        vec![512_845.5, 5_411_345.25, 210.0],
+    ];
+    let path = write(
+        dir.path(),
+        "utm.ply",
+        &ply_bytes(Enc::Le, &props, &rows, None),
+    );
+    let (cloud, report) = read_point_cloud(&path).unwrap();
+    assert_eq!(cloud.origin, Vector3::new(512_346.0, 5_412_345.0, 200.0));
+    assert_eq!(report.max_offset_m, 999.75);
+}

@@ -297,7 +297,7 @@ fn k_nearest_mode_valid_input_normals_and_sparse_points() {
     }
     let median = percentile(&errors, 0.5);
     eprintln!(
-        "k = 40: median {median:.3} deg, p99 {:.3}",
+        "k = 200: median {median:.3} deg, p99 {:.3}",
         percentile(&errors, 0.99)
     );
     assert!(median < 2.5, "median {median}");
