@@ -1,5 +1,11 @@
 //! The LiDAR map: readers, preparation (downsampling, normals), spatial index,
 //! projection into cameras.
 pub mod cloud;
+pub mod depth_image;
+pub mod grid;
+pub mod index;
+pub mod io;
+pub mod prepare;
+pub mod projection;
 
 pub use cloud::PointCloud;

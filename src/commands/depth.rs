@@ -1,0 +1,118 @@
+//! `colmap-lidar depth`: the map seen from one image of a COLMAP model, as a
+//! colour-mapped depth PNG with the image's features drawn on top (green: the
+//! feature sees a LiDAR point, red: it does not). The paper's depth figure: a
+//! quick look at whether a pose and the map agree.
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use nalgebra::Vector2;
+
+use crate::io::model::read_model;
+use crate::map::depth_image::{colourise, render_depth_image, write_png};
+use crate::map::grid::{FrustumGrid, GridOptions};
+use crate::map::io::read_point_cloud;
+use crate::map::projection::{project_map_at_pixels, ProjectionOptions};
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct DepthArgs {
+    /// LiDAR map: .ply, .pcd, .las or .laz.
+    #[arg(long, alias = "lidar_path")]
+    pub lidar: PathBuf,
+    /// COLMAP model folder (text or binary) holding the image and its pose.
+    #[arg(long, alias = "input_path")]
+    pub model: PathBuf,
+    /// Name of the image in the model (as in images.txt).
+    #[arg(long, alias = "image_name")]
+    pub image: String,
+    /// Output PNG.
+    #[arg(long, alias = "output_path")]
+    pub output: PathBuf,
+    /// Points closer than this along the optical axis are ignored, metres.
+    #[arg(long = "min-depth", alias = "min_depth", default_value_t = 0.5)]
+    pub min_depth: f64,
+    /// Points deeper than this are ignored, metres; also the far end of the
+    /// colour scale.
+    #[arg(long = "max-depth", alias = "max_depth", default_value_t = 40.0)]
+    pub max_depth: f64,
+}
+
+impl DepthArgs {
+    /// The projection options (validated).
+    pub fn options(&self) -> anyhow::Result<ProjectionOptions> {
+        let options = ProjectionOptions {
+            min_depth_m: self.min_depth,
+            max_depth_m: self.max_depth,
+            ..Default::default()
+        };
+        options.validate()?;
+        Ok(options)
+    }
+}
+
+pub fn run(args: &DepthArgs) -> anyhow::Result<()> {
+    let options = args.options()?;
+    let start = Instant::now();
+    let model = read_model(&args.model)
+        .with_context(|| format!("reading the COLMAP model {}", args.model.display()))?;
+    let image = model.image_by_name(&args.image).with_context(|| {
+        format!(
+            "no image named `{}` in the model {}",
+            args.image,
+            args.model.display()
+        )
+    })?;
+    let cam_from_world = image.cam_from_world.with_context(|| {
+        format!(
+            "image `{}` is not registered in {} (no pose)",
+            args.image,
+            args.model.display()
+        )
+    })?;
+    let camera = model.cameras.get(&image.camera_id).with_context(|| {
+        format!(
+            "image `{}` refers to camera {}, missing from {}",
+            args.image,
+            image.camera_id,
+            args.model.display()
+        )
+    })?;
+    let (cloud, _report) = read_point_cloud(&args.lidar)
+        .with_context(|| format!("reading the LiDAR map {}", args.lidar.display()))?;
+    log::info!(
+        "read {} map points and the model ({:.1} s)",
+        cloud.len(),
+        start.elapsed().as_secs_f64()
+    );
+    let t = Instant::now();
+    let grid = FrustumGrid::build(&cloud, &GridOptions::default())
+        .with_context(|| format!("indexing the LiDAR map {}", args.lidar.display()))?;
+    log::info!(
+        "grid: {} cells ({:.1} s)",
+        grid.num_cells(),
+        t.elapsed().as_secs_f64()
+    );
+    let t = Instant::now();
+    let query_pixels: Vec<Vector2<f64>> = image.points2d.iter().map(|p| p.xy).collect();
+    let hits = project_map_at_pixels(
+        &cloud,
+        &grid,
+        camera,
+        &cam_from_world,
+        &query_pixels,
+        &options,
+    )?;
+    let hit: Vec<bool> = hits.iter().map(|h| h.is_some()).collect();
+    let depth = render_depth_image(&cloud, &grid, camera, &cam_from_world, &options)?;
+    log::info!(
+        "{} of {} features see a LiDAR point; {:.1}% of the pixels see the map ({:.2} s)",
+        hit.iter().filter(|&&h| h).count(),
+        hit.len(),
+        100.0 * depth.num_filled() as f64 / (depth.range_m.len().max(1)) as f64,
+        t.elapsed().as_secs_f64()
+    );
+    let img = colourise(&depth, options.max_depth_m, &query_pixels, &hit);
+    write_png(&img, &args.output)?;
+    log::info!("wrote {}", args.output.display());
+    Ok(())
+}

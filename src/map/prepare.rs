@@ -1,0 +1,892 @@
+//! Map preparation: voxel downsampling, and normal estimation by PCA over each
+//! point's neighbours, with a planarity score and a consistent orientation.
+//!
+//! Both use a sorted cell grid (points sorted by a packed integer cell key;
+//! no hashing), which is exact, deterministic and fast on building-like maps
+//! whose walls are parallel to the axes (where kd-trees slow down, see
+//! `docs/toolchain-facts.md`).
+//!
+//! **Normals.** For a point `q` with neighbours `p_j` (all points within
+//! `radius_m`, or the `k` nearest within `radius_m`), the covariance
+//! `C = 1/n sum (p_j - m)(p_j - m)^T` (m = mean) has eigenvalues
+//! `l1 >= l2 >= l3 >= 0`. The normal is the eigenvector of `l3`; the
+//! planarity is `(l2 - l3) / l1` in [0, 1] (1 for a flat, isotropic patch;
+//! 0 for a line or an isotropic blob), after Weinmann et al.'s
+//! dimensionality features. Eigenvalues come in closed form (trigonometric
+//! solution of the characteristic cubic), the eigenvector from cross products
+//! of the rows of `C - l3 I`.
+//!
+//! **Orientation** ([`NormalOrientation`]): towards a known sensor position;
+//! or, by default, near-vertical normals (within 30 degrees of the z axis)
+//! point up (+z: ground and floors face up, ceilings too), and the others
+//! point horizontally towards the vertical axis through the centre of the
+//! map's bounding box (indoors: into the rooms; along a street: towards the
+//! street).
+use nalgebra::Vector3;
+use rayon::prelude::*;
+
+use crate::map::PointCloud;
+
+/// Errors of the preparation stage.
+#[derive(Debug, thiserror::Error)]
+pub enum PrepareError {
+    #[error("invalid option: {0}")]
+    InvalidOption(String),
+    #[error(
+        "the map spans too many cells of {cell_m} m ({bits} bits needed, 64 available); \
+         use a larger cell or split the map"
+    )]
+    GridTooLarge { cell_m: f64, bits: u32 },
+    #[error("the map has {0} points; at most 4294967295 are supported")]
+    TooManyPoints(usize),
+}
+
+/// How estimated normals are oriented (their sign).
+#[derive(Clone, Debug, PartialEq)]
+pub enum NormalOrientation {
+    /// Towards this position in the map frame (metres), e.g. the sensor.
+    TowardsViewpoint(Vector3<f64>),
+    /// Near-vertical normals up (+z); the others horizontally towards the
+    /// vertical axis through the bounding-box centre.
+    UpThenTowardsCentre,
+}
+
+/// Options of [`estimate_normals`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct NormalOptions {
+    /// Neighbourhood radius (metres). Default 0.15.
+    pub radius_m: f64,
+    /// When set, use the `k` nearest neighbours within `radius_m` (the point
+    /// itself included) instead of all of them. Default `None`.
+    pub k_nearest: Option<usize>,
+    /// Fewest neighbours (the point included) for an estimate; points with
+    /// fewer get no normal. Default 6.
+    pub min_neighbours: usize,
+    /// In radius mode, dense neighbourhoods are subsampled (a regular stride
+    /// through the candidates) to about this many neighbours, which bounds
+    /// the cost on very dense clouds. Default 512.
+    pub max_neighbours: usize,
+    /// Default [`NormalOrientation::UpThenTowardsCentre`].
+    pub orientation: NormalOrientation,
+    /// Re-estimate every normal, also the valid ones read from the file.
+    /// Default false (valid input normals are kept; the planarity is computed
+    /// for every point).
+    pub recompute_all: bool,
+}
+
+impl Default for NormalOptions {
+    fn default() -> Self {
+        NormalOptions {
+            radius_m: 0.15,
+            k_nearest: None,
+            min_neighbours: 6,
+            max_neighbours: 512,
+            orientation: NormalOrientation::UpThenTowardsCentre,
+            recompute_all: false,
+        }
+    }
+}
+
+impl NormalOptions {
+    pub fn validate(&self) -> Result<(), PrepareError> {
+        if !(self.radius_m.is_finite() && self.radius_m > 0.0) {
+            return Err(PrepareError::InvalidOption(format!(
+                "normal radius must be a positive number of metres, got {}",
+                self.radius_m
+            )));
+        }
+        if self.min_neighbours < 3 {
+            return Err(PrepareError::InvalidOption(
+                "at least 3 neighbours are needed to fit a plane".into(),
+            ));
+        }
+        if let Some(k) = self.k_nearest {
+            if k < self.min_neighbours {
+                return Err(PrepareError::InvalidOption(format!(
+                    "k ({k}) is below the minimum neighbour count ({})",
+                    self.min_neighbours
+                )));
+            }
+        }
+        if self.max_neighbours < self.min_neighbours {
+            return Err(PrepareError::InvalidOption(
+                "max_neighbours is below min_neighbours".into(),
+            ));
+        }
+        if let NormalOrientation::TowardsViewpoint(v) = &self.orientation {
+            if !v.iter().all(|c| c.is_finite()) {
+                return Err(PrepareError::InvalidOption(
+                    "viewpoint is not finite".into(),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What [`estimate_normals`] did.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct NormalReport {
+    /// Valid normals from the input that were kept.
+    pub kept: usize,
+    /// Normals estimated by PCA.
+    pub estimated: usize,
+    /// Points left without a normal (too few neighbours, or a degenerate
+    /// neighbourhood); their normal is `[0, 0, 0]`, planarity 0.
+    pub failed: usize,
+}
+
+/// Options of [`prepare`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct PrepareOptions {
+    /// Voxel size (metres) for downsampling; 0 disables it. Default 0.03.
+    pub voxel_size_m: f64,
+    pub normals: NormalOptions,
+    /// Drop points left without a normal. Default true.
+    pub drop_without_normal: bool,
+}
+
+impl Default for PrepareOptions {
+    fn default() -> Self {
+        PrepareOptions {
+            voxel_size_m: 0.03,
+            normals: NormalOptions::default(),
+            drop_without_normal: true,
+        }
+    }
+}
+
+impl PrepareOptions {
+    pub fn validate(&self) -> Result<(), PrepareError> {
+        if !(self.voxel_size_m.is_finite() && self.voxel_size_m >= 0.0) {
+            return Err(PrepareError::InvalidOption(format!(
+                "voxel size must be a non-negative number of metres, got {}",
+                self.voxel_size_m
+            )));
+        }
+        self.normals.validate()
+    }
+}
+
+/// What [`prepare`] did.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct PrepareReport {
+    pub input_points: usize,
+    pub after_voxel: usize,
+    pub normals: NormalReport,
+    pub dropped_without_normal: usize,
+    pub output_points: usize,
+}
+
+/// Downsamples, estimates normals where needed, and drops points left
+/// without a normal (when asked).
+pub fn prepare(
+    cloud: PointCloud,
+    options: &PrepareOptions,
+) -> Result<(PointCloud, PrepareReport), PrepareError> {
+    options.validate()?;
+    let mut report = PrepareReport {
+        input_points: cloud.len(),
+        ..Default::default()
+    };
+    let mut cloud = if options.voxel_size_m > 0.0 {
+        voxel_downsample(&cloud, options.voxel_size_m)?
+    } else {
+        cloud
+    };
+    report.after_voxel = cloud.len();
+    report.normals = estimate_normals(&mut cloud, &options.normals)?;
+    if options.drop_without_normal && report.normals.failed > 0 {
+        let before = cloud.len();
+        retain_with_normal(&mut cloud);
+        report.dropped_without_normal = before - cloud.len();
+    }
+    report.output_points = cloud.len();
+    Ok((cloud, report))
+}
+
+fn normal_is_set(n: &[f32; 3]) -> bool {
+    n[0] != 0.0 || n[1] != 0.0 || n[2] != 0.0
+}
+
+/// Keeps only the points with a non-zero normal (all points when the cloud
+/// has no normals at all: nothing to judge by).
+fn retain_with_normal(cloud: &mut PointCloud) {
+    let Some(normals) = cloud.normals.take() else {
+        return;
+    };
+    let keep: Vec<bool> = normals.iter().map(normal_is_set).collect();
+    let mut i = 0;
+    cloud.points.retain(|_| {
+        i += 1;
+        keep[i - 1]
+    });
+    if let Some(planarity) = &mut cloud.planarity {
+        let mut i = 0;
+        planarity.retain(|_| {
+            i += 1;
+            keep[i - 1]
+        });
+    }
+    cloud.normals = Some(normals.into_iter().filter(normal_is_set).collect());
+}
+
+/// Points sorted into cubic cells of side `cell_m`, aligned on the map frame
+/// (multiples of `cell_m` from the map's zero, not from the local origin).
+struct CellGrid {
+    /// Sorted distinct cell keys.
+    keys: Vec<u64>,
+    /// `order[starts[c]..starts[c + 1]]` are the points of cell `c`.
+    starts: Vec<u32>,
+    /// Point indices sorted by (cell key, index).
+    order: Vec<u32>,
+    /// Bit position of the x, y, z cell coordinates in a key.
+    shifts: [u32; 3],
+}
+
+impl CellGrid {
+    fn new(cloud: &PointCloud, cell_m: f64) -> Result<CellGrid, PrepareError> {
+        if cloud.len() > u32::MAX as usize {
+            return Err(PrepareError::TooManyPoints(cloud.len()));
+        }
+        let origin = cloud.origin;
+        let cell_of = move |p: &[f32; 3]| -> [i64; 3] {
+            [
+                ((origin.x + f64::from(p[0])) / cell_m).floor() as i64,
+                ((origin.y + f64::from(p[1])) / cell_m).floor() as i64,
+                ((origin.z + f64::from(p[2])) / cell_m).floor() as i64,
+            ]
+        };
+        let (lo, hi) = cloud
+            .points
+            .par_iter()
+            .fold(
+                || ([i64::MAX; 3], [i64::MIN; 3]),
+                |(mut lo, mut hi), p| {
+                    let c = cell_of(p);
+                    for a in 0..3 {
+                        lo[a] = lo[a].min(c[a]);
+                        hi[a] = hi[a].max(c[a]);
+                    }
+                    (lo, hi)
+                },
+            )
+            .reduce(
+                || ([i64::MAX; 3], [i64::MIN; 3]),
+                |(l1, h1), (l2, h2)| {
+                    (
+                        [l1[0].min(l2[0]), l1[1].min(l2[1]), l1[2].min(l2[2])],
+                        [h1[0].max(h2[0]), h1[1].max(h2[1]), h1[2].max(h2[2])],
+                    )
+                },
+            );
+        // One spare cell on each side so that neighbour keys never wrap.
+        let mut bits = [1u32; 3];
+        for a in 0..3 {
+            if cloud.is_empty() {
+                break;
+            }
+            let span = (hi[a] - lo[a]) as u64 + 3;
+            bits[a] = 64 - span.leading_zeros();
+        }
+        let total: u32 = bits.iter().sum();
+        if total > 64 {
+            return Err(PrepareError::GridTooLarge {
+                cell_m,
+                bits: total,
+            });
+        }
+        let shifts = [bits[2] + bits[1], bits[2], 0];
+        let mut pairs: Vec<(u64, u32)> = cloud
+            .points
+            .par_iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let c = cell_of(p);
+                let mut key = 0u64;
+                for a in 0..3 {
+                    key |= ((c[a] - lo[a] + 1) as u64) << shifts[a];
+                }
+                (key, i as u32)
+            })
+            .collect();
+        pairs.par_sort_unstable();
+        let mut keys = Vec::new();
+        let mut starts = Vec::new();
+        for (slot, &(key, _)) in pairs.iter().enumerate() {
+            if keys.last() != Some(&key) {
+                keys.push(key);
+                starts.push(slot as u32);
+            }
+        }
+        starts.push(pairs.len() as u32);
+        let order = pairs.into_iter().map(|(_, i)| i).collect();
+        Ok(CellGrid {
+            keys,
+            starts,
+            order,
+            shifts,
+        })
+    }
+
+    /// Positions in `order` of the points of cell `c`.
+    fn cell_range(&self, c: usize) -> std::ops::Range<usize> {
+        self.starts[c] as usize..self.starts[c + 1] as usize
+    }
+
+    fn cell_points(&self, c: usize) -> &[u32] {
+        &self.order[self.cell_range(c)]
+    }
+
+    /// Index of the cell with `key`, if occupied.
+    fn find(&self, key: u64) -> Option<usize> {
+        self.keys.binary_search(&key).ok()
+    }
+
+    /// The key of the cell offset by `d` (each in -1..=1) from `key`.
+    fn neighbour_key(&self, key: u64, d: [i64; 3]) -> u64 {
+        let mut k = key;
+        for a in 0..3 {
+            k = k.wrapping_add((d[a] << self.shifts[a]) as u64);
+        }
+        k
+    }
+}
+
+/// Centroid per voxel of side `voxel_size_m` (aligned on multiples of the
+/// size in the map frame). Normals, when present, are averaged over the
+/// voxel's valid normals and renormalised (zero when none is valid or they
+/// cancel); planarity is averaged. Output order: sorted voxel keys (x major),
+/// deterministic.
+pub fn voxel_downsample(cloud: &PointCloud, voxel_size_m: f64) -> Result<PointCloud, PrepareError> {
+    if !(voxel_size_m.is_finite() && voxel_size_m > 0.0) {
+        return Err(PrepareError::InvalidOption(format!(
+            "voxel size must be a positive number of metres, got {voxel_size_m}"
+        )));
+    }
+    let grid = CellGrid::new(cloud, voxel_size_m)?;
+    let merged: Vec<([f32; 3], [f32; 3], f32)> = (0..grid.keys.len())
+        .into_par_iter()
+        .map(|c| {
+            let members = grid.cell_points(c);
+            let mut sum = [0.0f64; 3];
+            let mut nsum = [0.0f64; 3];
+            let mut psum = 0.0f64;
+            for &i in members {
+                let p = cloud.points[i as usize];
+                for a in 0..3 {
+                    sum[a] += f64::from(p[a]);
+                }
+                if let Some(normals) = &cloud.normals {
+                    let n = normals[i as usize];
+                    for a in 0..3 {
+                        nsum[a] += f64::from(n[a]);
+                    }
+                }
+                if let Some(planarity) = &cloud.planarity {
+                    psum += f64::from(planarity[i as usize]);
+                }
+            }
+            let count = members.len() as f64;
+            let centroid = [
+                (sum[0] / count) as f32,
+                (sum[1] / count) as f32,
+                (sum[2] / count) as f32,
+            ];
+            let len = (nsum[0] * nsum[0] + nsum[1] * nsum[1] + nsum[2] * nsum[2]).sqrt();
+            let normal = if len > 1e-6 * count {
+                [
+                    (nsum[0] / len) as f32,
+                    (nsum[1] / len) as f32,
+                    (nsum[2] / len) as f32,
+                ]
+            } else {
+                [0.0; 3]
+            };
+            (centroid, normal, (psum / count) as f32)
+        })
+        .collect();
+    Ok(PointCloud {
+        origin: cloud.origin,
+        points: merged.iter().map(|m| m.0).collect(),
+        normals: cloud
+            .normals
+            .as_ref()
+            .map(|_| merged.iter().map(|m| m.1).collect()),
+        planarity: cloud
+            .planarity
+            .as_ref()
+            .map(|_| merged.iter().map(|m| m.2).collect()),
+    })
+}
+
+/// Eigen-decomposition of a symmetric 3x3 matrix for plane fitting: returns
+/// the eigenvalues in decreasing order and the unit eigenvector of the
+/// smallest one, or `None` when the matrix is a multiple of the identity
+/// (including zero: no preferred direction).
+pub fn smallest_eigenvector(a: &[[f64; 3]; 3]) -> Option<([f64; 3], [f64; 3])> {
+    let p1 = a[0][1] * a[0][1] + a[0][2] * a[0][2] + a[1][2] * a[1][2];
+    let q = (a[0][0] + a[1][1] + a[2][2]) / 3.0;
+    let d = [a[0][0] - q, a[1][1] - q, a[2][2] - q];
+    let p2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] + 2.0 * p1;
+    let scale = a.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
+    if !(p2 > (1e-14 * scale) * (1e-14 * scale)) || !p2.is_finite() {
+        return None;
+    }
+    let p = (p2 / 6.0).sqrt();
+    // B = (A - q I) / p; r = det(B) / 2.
+    let b = [
+        [d[0] / p, a[0][1] / p, a[0][2] / p],
+        [a[1][0] / p, d[1] / p, a[1][2] / p],
+        [a[2][0] / p, a[2][1] / p, d[2] / p],
+    ];
+    let det = b[0][0] * (b[1][1] * b[2][2] - b[1][2] * b[2][1])
+        - b[0][1] * (b[1][0] * b[2][2] - b[1][2] * b[2][0])
+        + b[0][2] * (b[1][0] * b[2][1] - b[1][1] * b[2][0]);
+    let r = (det / 2.0).clamp(-1.0, 1.0);
+    let phi = r.acos() / 3.0;
+    let l1 = q + 2.0 * p * phi.cos();
+    let l3 = q + 2.0 * p * (phi + 2.0 * std::f64::consts::FRAC_PI_3).cos();
+    let l2 = 3.0 * q - l1 - l3;
+    let rows = [
+        [a[0][0] - l3, a[0][1], a[0][2]],
+        [a[1][0], a[1][1] - l3, a[1][2]],
+        [a[2][0], a[2][1], a[2][2] - l3],
+    ];
+    let cross = |u: &[f64; 3], v: &[f64; 3]| {
+        [
+            u[1] * v[2] - u[2] * v[1],
+            u[2] * v[0] - u[0] * v[2],
+            u[0] * v[1] - u[1] * v[0],
+        ]
+    };
+    let norm_sq = |u: &[f64; 3]| u[0] * u[0] + u[1] * u[1] + u[2] * u[2];
+    let candidates = [
+        cross(&rows[0], &rows[1]),
+        cross(&rows[0], &rows[2]),
+        cross(&rows[1], &rows[2]),
+    ];
+    let mut best = candidates[0];
+    for c in &candidates[1..] {
+        if norm_sq(c) > norm_sq(&best) {
+            best = *c;
+        }
+    }
+    let row_scale = rows.iter().map(norm_sq).fold(0.0f64, f64::max);
+    let v = if norm_sq(&best) > 1e-20 * row_scale * row_scale {
+        best
+    } else {
+        // l2 == l3 (a line): any direction orthogonal to the dominant row.
+        let mut r = rows[0];
+        for row in &rows[1..] {
+            if norm_sq(row) > norm_sq(&r) {
+                r = *row;
+            }
+        }
+        let axis = if r[0].abs() < 0.9 * norm_sq(&r).sqrt() {
+            [1.0, 0.0, 0.0]
+        } else {
+            [0.0, 1.0, 0.0]
+        };
+        cross(&r, &axis)
+    };
+    let len = norm_sq(&v).sqrt();
+    if !(len > 0.0) {
+        return None;
+    }
+    Some(([l1, l2, l3], [v[0] / len, v[1] / len, v[2] / len]))
+}
+
+/// Normal and planarity of a neighbourhood given as offsets from the query
+/// point (metres): sums `s1 = sum d`, `s2 = sum d d^T`, count `n`.
+fn fit_plane(n: usize, s1: &[f64; 3], s2: &[[f64; 3]; 3]) -> Option<([f64; 3], f32)> {
+    let inv = 1.0 / n as f64;
+    let m = [s1[0] * inv, s1[1] * inv, s1[2] * inv];
+    let mut cov = [[0.0; 3]; 3];
+    for r in 0..3 {
+        for c in 0..3 {
+            cov[r][c] = s2[r][c] * inv - m[r] * m[c];
+        }
+    }
+    let (l, normal) = smallest_eigenvector(&cov)?;
+    let planarity = if l[0] > 0.0 {
+        ((l[1] - l[2].max(0.0)) / l[0]).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    Some((normal, planarity as f32))
+}
+
+/// Lanes of the neighbour accumulation (the compiler vectorises them).
+const LANES: usize = 8;
+
+/// Neighbour candidates of one cell, structure of arrays in blocks of
+/// [`LANES`], the last block padded with far-away points.
+#[derive(Default)]
+struct Candidates {
+    x: Vec<[f32; LANES]>,
+    y: Vec<[f32; LANES]>,
+    z: Vec<[f32; LANES]>,
+    len: usize,
+}
+
+impl Candidates {
+    /// Far enough never to be a neighbour, small enough that `0 * d` is 0.
+    const FAR_M: f32 = 1.0e9;
+
+    /// Every `stride`-th point of the concatenation of `slices`.
+    fn fill<'a>(&mut self, slices: impl Iterator<Item = &'a [[f32; 3]]>, stride: usize) {
+        self.x.clear();
+        self.y.clear();
+        self.z.clear();
+        self.len = 0;
+        // Position in the concatenation of the next point to take.
+        let mut skip = 0usize;
+        for slice in slices {
+            let mut k = skip;
+            while k < slice.len() {
+                let p = slice[k];
+                let (b, l) = (self.len / LANES, self.len % LANES);
+                if l == 0 {
+                    self.x.push([Self::FAR_M; LANES]);
+                    self.y.push([Self::FAR_M; LANES]);
+                    self.z.push([Self::FAR_M; LANES]);
+                }
+                self.x[b][l] = p[0];
+                self.y[b][l] = p[1];
+                self.z[b][l] = p[2];
+                self.len += 1;
+                k += stride;
+            }
+            skip = k - slice.len();
+        }
+    }
+
+    fn offset(&self, j: usize, q: [f32; 3]) -> [f32; 3] {
+        let (b, l) = (j / LANES, j % LANES);
+        [
+            self.x[b][l] - q[0],
+            self.y[b][l] - q[1],
+            self.z[b][l] - q[2],
+        ]
+    }
+
+    /// Count, first and second moments of the offsets `p - q` of the
+    /// candidates within `sqrt(radius_sq)` of `q`. Accumulated in f32 per
+    /// lane (offsets are below the radius, so sums of a few hundred squares
+    /// lose nothing that matters), lanes summed in f64 in a fixed order.
+    fn radius_moments(&self, q: [f32; 3], radius_sq: f32) -> (usize, [f64; 3], [[f64; 3]; 3]) {
+        let mut n = [0.0f32; LANES];
+        let (mut sx, mut sy, mut sz) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
+        let (mut sxx, mut sxy, mut sxz) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
+        let (mut syy, mut syz, mut szz) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
+        for ((xb, yb), zb) in self.x.iter().zip(&self.y).zip(&self.z) {
+            for l in 0..LANES {
+                let dx = xb[l] - q[0];
+                let dy = yb[l] - q[1];
+                let dz = zb[l] - q[2];
+                let w = if dx * dx + dy * dy + dz * dz <= radius_sq {
+                    1.0f32
+                } else {
+                    0.0
+                };
+                let (wx, wy, wz) = (w * dx, w * dy, w * dz);
+                n[l] += w;
+                sx[l] += wx;
+                sy[l] += wy;
+                sz[l] += wz;
+                sxx[l] += wx * dx;
+                sxy[l] += wx * dy;
+                sxz[l] += wx * dz;
+                syy[l] += wy * dy;
+                syz[l] += wy * dz;
+                szz[l] += wz * dz;
+            }
+        }
+        let total = |a: &[f32; LANES]| a.iter().map(|v| f64::from(*v)).sum::<f64>();
+        let (xx, xy, xz) = (total(&sxx), total(&sxy), total(&sxz));
+        let (yy, yz, zz) = (total(&syy), total(&syz), total(&szz));
+        (
+            total(&n).round() as usize,
+            [total(&sx), total(&sy), total(&sz)],
+            [[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]],
+        )
+    }
+}
+
+/// Cosine of the largest angle from the z axis at which a normal counts as
+/// vertical for orientation (30 degrees).
+const VERTICAL_COS: f64 = 0.866_025_403_784_438_6;
+
+/// Estimates normals (and a planarity score for every point) by PCA, see the
+/// module documentation. Valid input normals are kept unless
+/// `recompute_all`; missing or zero ones (the readers store invalid normals
+/// as zero) are estimated. The cloud keeps its point order.
+pub fn estimate_normals(
+    cloud: &mut PointCloud,
+    options: &NormalOptions,
+) -> Result<NormalReport, PrepareError> {
+    options.validate()?;
+    let n = cloud.len();
+    if n == 0 {
+        cloud.normals.get_or_insert_with(Vec::new);
+        cloud.planarity.get_or_insert_with(Vec::new);
+        return Ok(NormalReport::default());
+    }
+    let grid = CellGrid::new(cloud, options.radius_m)?;
+    // Viewpoint in local (offset) coordinates.
+    let viewpoint = match &options.orientation {
+        NormalOrientation::TowardsViewpoint(v) => v - cloud.origin,
+        NormalOrientation::UpThenTowardsCentre => {
+            let (lo, hi) = cloud
+                .points
+                .par_iter()
+                .fold(
+                    || ([f32::MAX; 3], [f32::MIN; 3]),
+                    |(mut lo, mut hi), p| {
+                        for a in 0..3 {
+                            lo[a] = lo[a].min(p[a]);
+                            hi[a] = hi[a].max(p[a]);
+                        }
+                        (lo, hi)
+                    },
+                )
+                .reduce(
+                    || ([f32::MAX; 3], [f32::MIN; 3]),
+                    |(l1, h1), (l2, h2)| {
+                        (
+                            [l1[0].min(l2[0]), l1[1].min(l2[1]), l1[2].min(l2[2])],
+                            [h1[0].max(h2[0]), h1[1].max(h2[1]), h1[2].max(h2[2])],
+                        )
+                    },
+                );
+            Vector3::new(
+                0.5 * (f64::from(lo[0]) + f64::from(hi[0])),
+                0.5 * (f64::from(lo[1]) + f64::from(hi[1])),
+                0.5 * (f64::from(lo[2]) + f64::from(hi[2])),
+            )
+        }
+    };
+    let up_first = matches!(options.orientation, NormalOrientation::UpThenTowardsCentre);
+    let radius_sq = (options.radius_m * options.radius_m) as f32;
+    // The points in grid order: each cell's points are contiguous, so the
+    // neighbour gathers below read memory sequentially.
+    let sorted_points: Vec<[f32; 3]> = grid
+        .order
+        .par_iter()
+        .map(|&i| cloud.points[i as usize])
+        .collect();
+
+    // Results in grid order: (normal, planarity); planarity < 0 = failed.
+    let mut results = vec![([0.0f32; 3], -1.0f32); n];
+    let mut slices: Vec<&mut [([f32; 3], f32)]> = Vec::with_capacity(grid.keys.len());
+    let mut rest: &mut [([f32; 3], f32)] = &mut results;
+    for c in 0..grid.keys.len() {
+        let len = (grid.starts[c + 1] - grid.starts[c]) as usize;
+        let (head, tail) = rest.split_at_mut(len);
+        slices.push(head);
+        rest = tail;
+    }
+    slices.into_par_iter().enumerate().for_each_init(
+        || (Candidates::default(), Vec::<(f32, u32)>::new()),
+        |(candidates, nearest), (c, out)| {
+            // Neighbour cells' points; in radius mode, a regular subsample
+            // when there are many more than `max_neighbours`.
+            let key = grid.keys[c];
+            let mut cells = [usize::MAX; 27];
+            let mut total = 0usize;
+            let mut slot = 0;
+            for dx in -1..=1 {
+                for dy in -1..=1 {
+                    for dz in -1..=1 {
+                        if let Some(nc) = grid.find(grid.neighbour_key(key, [dx, dy, dz])) {
+                            cells[slot] = nc;
+                            total += grid.cell_range(nc).len();
+                        }
+                        slot += 1;
+                    }
+                }
+            }
+            let stride = match options.k_nearest {
+                Some(_) => 1,
+                None => total.div_ceil(3 * options.max_neighbours).max(1),
+            };
+            candidates.fill(
+                cells
+                    .iter()
+                    .filter(|&&nc| nc != usize::MAX)
+                    .map(|&nc| &sorted_points[grid.cell_range(nc)]),
+                stride,
+            );
+            for (&q, slot) in sorted_points[grid.cell_range(c)].iter().zip(out.iter_mut()) {
+                let (count, s1, s2) = match options.k_nearest {
+                    None => candidates.radius_moments(q, radius_sq),
+                    Some(k) => {
+                        let mut count = 0usize;
+                        let mut s1 = [0.0f64; 3];
+                        let mut s2 = [[0.0f64; 3]; 3];
+                        nearest.clear();
+                        for j in 0..candidates.len {
+                            let d = candidates.offset(j, q);
+                            let dist_sq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+                            if dist_sq <= radius_sq {
+                                nearest.push((dist_sq, j as u32));
+                            }
+                        }
+                        if nearest.len() > k {
+                            nearest.select_nth_unstable_by(k - 1, |a, b| {
+                                a.0.total_cmp(&b.0).then(a.1.cmp(&b.1))
+                            });
+                            nearest.truncate(k);
+                        }
+                        for &(_, j) in nearest.iter() {
+                            let d = candidates.offset(j as usize, q);
+                            let d = [f64::from(d[0]), f64::from(d[1]), f64::from(d[2])];
+                            count += 1;
+                            for r in 0..3 {
+                                s1[r] += d[r];
+                                for cc in 0..3 {
+                                    s2[r][cc] += d[r] * d[cc];
+                                }
+                            }
+                        }
+                        (count, s1, s2)
+                    }
+                };
+                if count < options.min_neighbours {
+                    continue;
+                }
+                let Some((mut normal, planarity)) = fit_plane(count, &s1, &s2) else {
+                    continue;
+                };
+                let p = [f64::from(q[0]), f64::from(q[1]), f64::from(q[2])];
+                let flip = if up_first && normal[2].abs() >= VERTICAL_COS {
+                    normal[2] < 0.0
+                } else if up_first {
+                    let dx = viewpoint.x - p[0];
+                    let dy = viewpoint.y - p[1];
+                    if dx * dx + dy * dy > 0.0 {
+                        normal[0] * dx + normal[1] * dy < 0.0
+                    } else {
+                        normal[2] < 0.0
+                    }
+                } else {
+                    let d = [viewpoint.x - p[0], viewpoint.y - p[1], viewpoint.z - p[2]];
+                    normal[0] * d[0] + normal[1] * d[1] + normal[2] * d[2] < 0.0
+                };
+                if flip {
+                    normal = [-normal[0], -normal[1], -normal[2]];
+                }
+                *slot = (
+                    [normal[0] as f32, normal[1] as f32, normal[2] as f32],
+                    planarity,
+                );
+            }
+        },
+    );
+
+    let mut report = NormalReport::default();
+    let mut normals = cloud.normals.take().unwrap_or_else(|| vec![[0.0; 3]; n]);
+    let mut planarity = cloud.planarity.take().unwrap_or_else(|| vec![0.0; n]);
+    for (slot, &i) in grid.order.iter().enumerate() {
+        let i = i as usize;
+        let (estimate, score) = results[slot];
+        let had = normal_is_set(&normals[i]);
+        if had && !options.recompute_all {
+            report.kept += 1;
+            planarity[i] = score.max(0.0);
+        } else if score >= 0.0 {
+            report.estimated += 1;
+            normals[i] = estimate;
+            planarity[i] = score;
+        } else {
+            report.failed += 1;
+            normals[i] = [0.0; 3];
+            planarity[i] = 0.0;
+        }
+    }
+    cloud.normals = Some(normals);
+    cloud.planarity = Some(planarity);
+    Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Matrix3, SymmetricEigen};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    #[test]
+    fn closed_form_eigen_matches_nalgebra() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for trial in 0..2000 {
+            let m = Matrix3::from_fn(|_, _| rng.gen_range(-1.0..1.0));
+            // Mix in flat (plane-like) and line-like spectra.
+            let d = match trial % 3 {
+                0 => Matrix3::from_diagonal(&Vector3::new(1.0, 0.7, 1e-4)),
+                1 => Matrix3::from_diagonal(&Vector3::new(1.0, 1e-3, 1e-3 * 0.999)),
+                _ => Matrix3::from_diagonal(&Vector3::new(
+                    rng.gen_range(0.0..1.0),
+                    rng.gen_range(0.0..1.0),
+                    rng.gen_range(0.0..1.0),
+                )),
+            };
+            let q = m.qr().q();
+            let a = q * d * q.transpose();
+            let arr = [
+                [a[(0, 0)], a[(0, 1)], a[(0, 2)]],
+                [a[(1, 0)], a[(1, 1)], a[(1, 2)]],
+                [a[(2, 0)], a[(2, 1)], a[(2, 2)]],
+            ];
+            let (l, v) = smallest_eigenvector(&arr).unwrap();
+            let eig = SymmetricEigen::new(a);
+            let mut vals: Vec<f64> = eig.eigenvalues.iter().copied().collect();
+            vals.sort_by(|x, y| y.total_cmp(x));
+            for k in 0..3 {
+                assert!(
+                    (l[k] - vals[k]).abs() < 1e-9,
+                    "trial {trial}: {l:?} vs {vals:?}"
+                );
+            }
+            let v = Vector3::new(v[0], v[1], v[2]);
+            assert!((v.norm() - 1.0).abs() < 1e-12);
+            // A v = l3 v (the residual is what matters for near-double roots).
+            let residual = (a * v - v * l[2]).norm();
+            assert!(residual < 1e-7, "trial {trial}: residual {residual}");
+            if trial % 3 == 0 {
+                let truth = q.column(2);
+                assert!(v.dot(&truth).abs() > 1.0 - 1e-9);
+            }
+        }
+        assert!(
+            smallest_eigenvector(&[[2.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 2.0]]).is_none()
+        );
+        assert!(smallest_eigenvector(&[[0.0; 3]; 3]).is_none());
+    }
+
+    #[test]
+    fn cell_grid_groups_points_by_cell_in_key_order() {
+        let cloud = PointCloud {
+            origin: Vector3::new(0.0, 0.0, 0.0),
+            points: vec![
+                [0.5, 0.5, 0.5],
+                [-0.5, 0.5, 0.5],
+                [0.6, 0.4, 0.1],
+                [1.5, 0.0, 0.0],
+            ],
+            normals: None,
+            planarity: None,
+        };
+        let grid = CellGrid::new(&cloud, 1.0).unwrap();
+        assert_eq!(grid.keys.len(), 3);
+        assert_eq!(grid.cell_points(0), &[1]);
+        assert_eq!(grid.cell_points(1), &[0, 2]);
+        assert_eq!(grid.cell_points(2), &[3]);
+        let k = grid.neighbour_key(grid.keys[1], [1, 0, 0]);
+        assert_eq!(grid.find(k), Some(2));
+        let k = grid.neighbour_key(grid.keys[1], [-1, 0, 0]);
+        assert_eq!(grid.find(k), Some(0));
+        assert_eq!(grid.find(grid.neighbour_key(grid.keys[1], [0, 1, 0])), None);
+    }
+}

@@ -1,0 +1,605 @@
+//! Integration tests: frustum culling against brute force, projection of the
+//! map at query pixels against exact ray casting on a synthetic scene of
+//! planes (all camera models), determinism, the dense depth image and its PNG.
+//! Also the projection benchmark (`#[ignore]`, see `scripts/bench_projection.sh`).
+use std::collections::BTreeSet;
+
+use colmap_lidar::map::depth_image::{colourise, render_depth_image, write_png};
+use colmap_lidar::map::grid::{Frustum, FrustumGrid, GridOptions};
+use colmap_lidar::map::projection::{
+    project_map_at_pixels, LidarHit, ProjectionOptions, SplatOptions,
+};
+use colmap_lidar::map::PointCloud;
+use colmap_lidar::scene::camera::{Camera, CameraModel};
+use colmap_lidar::scene::ids::CameraId;
+use colmap_lidar::scene::pose::Rigid3;
+use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector2, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::index::{uniform_cloud, utm_origin};
+
+/// `cam_from_world` of a camera at `centre_in_map` with the body convention
+/// of method.md (x forward, y left, z up; `R = Rz(yaw) Ry(pitch) Rx(roll)`).
+pub fn camera_pose(centre_in_map: Vector3<f64>, roll: f64, pitch: f64, yaw: f64) -> Rigid3 {
+    let world_from_body = Rotation3::from_euler_angles(roll, pitch, yaw).into_inner();
+    // Columns: the camera axes in body coordinates (x_cam = -y_body,
+    // y_cam = -z_body, z_cam = x_body).
+    let body_from_cam = Matrix3::new(0.0, 0.0, 1.0, -1.0, 0.0, 0.0, 0.0, -1.0, 0.0);
+    let world_from_cam = world_from_body * body_from_cam;
+    let cam_from_world = world_from_cam.transpose();
+    Rigid3::from_rotation_matrix(&cam_from_world, -(cam_from_world * centre_in_map))
+}
+
+fn camera(model: CameraModel, width: u32, height: u32, params: Vec<f64>) -> Camera {
+    assert_eq!(params.len(), model.num_params());
+    Camera {
+        id: CameraId(1),
+        model,
+        width,
+        height,
+        params,
+    }
+}
+
+/// One camera of every model, 400 x 300, focal ~300 px, mild distortion.
+fn cameras_all_models() -> Vec<Camera> {
+    use CameraModel as M;
+    let (w, h) = (400, 300);
+    let (f, cx, cy) = (300.0, 200.0, 150.0);
+    vec![
+        camera(M::SimplePinhole, w, h, vec![f, cx, cy]),
+        camera(M::Pinhole, w, h, vec![f, 310.0, cx, cy]),
+        camera(M::SimpleRadial, w, h, vec![f, cx, cy, -0.05]),
+        camera(M::Radial, w, h, vec![f, cx, cy, -0.06, 0.01]),
+        camera(
+            M::OpenCv,
+            w,
+            h,
+            vec![f, 305.0, cx, cy, -0.08, 0.01, 0.0005, -0.0003],
+        ),
+        camera(
+            M::OpenCvFisheye,
+            w,
+            h,
+            vec![f, f, cx, cy, 0.02, -0.01, 0.002, -0.001],
+        ),
+        camera(
+            M::FullOpenCv,
+            w,
+            h,
+            vec![
+                f, f, cx, cy, -0.05, 0.01, 0.0004, 0.0002, 0.001, 0.01, 0.0, 0.0,
+            ],
+        ),
+        camera(M::Fov, w, h, vec![f, f, cx, cy, 0.4]),
+        camera(M::SimpleRadialFisheye, w, h, vec![f, cx, cy, 0.02]),
+        camera(M::RadialFisheye, w, h, vec![f, cx, cy, 0.02, -0.005]),
+        camera(
+            M::ThinPrismFisheye,
+            w,
+            h,
+            vec![
+                f, f, cx, cy, 0.02, -0.01, 0.0005, 0.0002, 0.001, 0.0, 0.0005, -0.0005,
+            ],
+        ),
+    ]
+}
+
+/// A fisheye seeing more than 170 degrees across (side bounds impossible).
+fn wide_fisheye() -> Camera {
+    camera(
+        CameraModel::OpenCvFisheye,
+        400,
+        400,
+        vec![110.0, 110.0, 200.0, 200.0, 0.0, 0.0, 0.0, 0.0],
+    )
+}
+
+#[test]
+fn frustum_grid_never_misses_a_visible_point() {
+    let cloud = uniform_cloud(60_000, 50.0, 21);
+    let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+    assert_eq!(grid.num_points(), cloud.len());
+    let mut rng = ChaCha8Rng::seed_from_u64(22);
+    let (near, far, margin_px) = (0.5, 40.0, 12.0);
+    let mut cameras = cameras_all_models();
+    cameras.push(wide_fisheye());
+    let mut checked = 0;
+    for cam in &cameras {
+        let fold_sq = cam.max_normalized_radius().unwrap().powi(2);
+        for _ in 0..4 {
+            let centre = utm_origin()
+                + Vector3::new(
+                    rng.gen_range(-30.0..30.0),
+                    rng.gen_range(-30.0..30.0),
+                    rng.gen_range(-10.0..10.0),
+                );
+            let pose = camera_pose(
+                centre,
+                rng.gen_range(-0.5..0.5),
+                rng.gen_range(-0.8..0.8),
+                rng.gen_range(-3.1..3.1),
+            );
+            let frustum = Frustum::from_camera(cam, &pose, near, far, margin_px);
+            let culled: BTreeSet<u32> = grid.points_in_frustum(&frustum).into_iter().collect();
+            let mut visible = 0;
+            for i in 0..cloud.len() {
+                let p = pose.transform_point(&cloud.point_in_map(i));
+                if p.z < near || p.z > far || p.norm() > far {
+                    continue;
+                }
+                if (p.x * p.x + p.y * p.y) / (p.z * p.z) > fold_sq {
+                    continue;
+                }
+                let Some(px) = cam.project(&p) else { continue };
+                let inside = px.x >= -margin_px
+                    && px.y >= -margin_px
+                    && px.x <= cam.width as f64 + margin_px
+                    && px.y <= cam.height as f64 + margin_px;
+                if inside {
+                    visible += 1;
+                    assert!(
+                        culled.contains(&(i as u32)),
+                        "{}: point {i} projects to {px:?} but was culled",
+                        cam.model.name()
+                    );
+                }
+            }
+            if cam.model != CameraModel::OpenCvFisheye || cam.width != 400 || cam.params[0] > 200.0
+            {
+                // Narrow cameras: the cull must actually cull (a 40 m sphere
+                // around the camera holds ~3/4 of this box's points).
+                assert!(
+                    culled.len() < cloud.len() / 2,
+                    "{}: {} of {} points kept",
+                    cam.model.name(),
+                    culled.len(),
+                    cloud.len()
+                );
+            }
+            checked += visible;
+        }
+    }
+    assert!(checked > 10_000, "only {checked} visible points checked");
+}
+
+/// An axis-aligned or slanted rectangle: origin, two edges, plane id.
+struct Rect {
+    origin: Vector3<f64>,
+    u: Vector3<f64>,
+    v: Vector3<f64>,
+}
+
+impl Rect {
+    fn normal(&self) -> Vector3<f64> {
+        self.u.cross(&self.v).normalize()
+    }
+
+    /// Ray parameter of the intersection with the rectangle, if any.
+    fn intersect(&self, centre: &Vector3<f64>, dir: &Vector3<f64>) -> Option<f64> {
+        let n = self.normal();
+        let denom = n.dot(dir);
+        if denom.abs() < 1e-12 {
+            return None;
+        }
+        let t = n.dot(&(self.origin - centre)) / denom;
+        if t <= 0.0 {
+            return None;
+        }
+        let q = centre + t * dir - self.origin;
+        let a = q.dot(&self.u) / self.u.norm_squared();
+        let b = q.dot(&self.v) / self.v.norm_squared();
+        ((0.0..=1.0).contains(&a) && (0.0..=1.0).contains(&b)).then_some(t)
+    }
+}
+
+/// Floor, back wall, side wall, a frontal occluder panel and a slanted one,
+/// sampled on lattices of spacing `spacing_m`; map coordinates offset by
+/// [`utm_origin`]. Returns the cloud (with normals), the plane of each point
+/// and the rectangles in the map's local frame.
+fn planes_scene(spacing_m: f64) -> (PointCloud, Vec<usize>, Vec<Rect>) {
+    let d = |x: f64, y: f64, z: f64| Vector3::new(x, y, z);
+    let rects = vec![
+        Rect {
+            origin: d(0.0, -12.0, 0.0),
+            u: d(25.0, 0.0, 0.0),
+            v: d(0.0, 24.0, 0.0),
+        },
+        Rect {
+            origin: d(20.0, -12.0, 0.0),
+            u: d(0.0, 24.0, 0.0),
+            v: d(0.0, 0.0, 5.0),
+        },
+        Rect {
+            origin: d(0.0, 6.0, 0.0),
+            u: d(20.0, 0.0, 0.0),
+            v: d(0.0, 0.0, 5.0),
+        },
+        Rect {
+            origin: d(7.0, -1.5, 0.3),
+            u: d(0.0, 2.5, 0.0),
+            v: d(0.0, 0.0, 2.5),
+        },
+        Rect {
+            origin: d(10.0, -6.0, 0.0),
+            u: d(1.8, 2.4, 0.0),
+            v: d(0.0, 0.0, 3.0),
+        },
+    ];
+    let mut points = Vec::new();
+    let mut normals = Vec::new();
+    let mut plane_of = Vec::new();
+    for (k, r) in rects.iter().enumerate() {
+        let (nu, nv) = (
+            (r.u.norm() / spacing_m).round() as usize,
+            (r.v.norm() / spacing_m).round() as usize,
+        );
+        let n = r.normal();
+        for i in 0..nu {
+            for j in 0..nv {
+                let p = r.origin
+                    + r.u * ((i as f64 + 0.5) / nu as f64)
+                    + r.v * ((j as f64 + 0.5) / nv as f64);
+                points.push([p.x as f32, p.y as f32, p.z as f32]);
+                normals.push([n.x as f32, n.y as f32, n.z as f32]);
+                plane_of.push(k);
+            }
+        }
+    }
+    let cloud = PointCloud {
+        origin: utm_origin(),
+        points,
+        normals: Some(normals),
+        planarity: None,
+    };
+    (cloud, plane_of, rects)
+}
+
+/// First rectangle hit by the ray (centre and direction in the local frame).
+fn ray_cast(rects: &[Rect], centre: &Vector3<f64>, dir: &Vector3<f64>) -> Option<(usize, f64)> {
+    rects
+        .iter()
+        .enumerate()
+        .filter_map(|(k, r)| r.intersect(centre, dir).map(|t| (k, t)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+}
+
+/// Splats as large as the sampling spacing (no angular margin), so that a
+/// point covers its own lattice cell: the projection then reproduces ray
+/// casting up to about the spacing.
+fn test_options(spacing_m: f64) -> ProjectionOptions {
+    ProjectionOptions {
+        min_depth_m: 0.5,
+        max_depth_m: 40.0,
+        splat: SplatOptions {
+            patch_half_width_m: spacing_m,
+            angular_margin_rad: 0.0,
+            saturation_depth_m: 0.0,
+            min_half_size_px: 0.5,
+            max_half_size_px: 64.0,
+        },
+    }
+}
+
+#[test]
+fn projection_matches_ray_casting_on_planes() {
+    let spacing = 0.05;
+    let (cloud, plane_of, rects) = planes_scene(spacing);
+    let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+    let options = test_options(spacing);
+    let centre_local = Vector3::new(0.5, -0.5, 1.6);
+    let pose = camera_pose(utm_origin() + centre_local, 0.02, 0.12, 0.15);
+    let world_from_cam = pose.inverse();
+    let mut rng = ChaCha8Rng::seed_from_u64(31);
+    for cam in cameras_all_models() {
+        let name = cam.model.name();
+        let f = cam.mean_focal_length();
+        let ray_of = |px: &Vector2<f64>| -> Option<Vector3<f64>> {
+            let r = cam.unproject(px)?;
+            Some((world_from_cam.rotation * r).normalize())
+        };
+        let queries: Vec<Vector2<f64>> = (0..1500)
+            .map(|_| {
+                Vector2::new(
+                    rng.gen_range(0.0..cam.width as f64),
+                    rng.gen_range(0.0..cam.height as f64),
+                )
+            })
+            .collect();
+        let hits = project_map_at_pixels(&cloud, &grid, &cam, &pose, &queries, &options).unwrap();
+        assert_eq!(hits.len(), queries.len());
+        let (mut compared, mut empty) = (0, 0);
+        for (q, hit) in queries.iter().zip(&hits) {
+            let Some(dir) = ray_of(q) else { continue };
+            let expected = ray_cast(&rects, &centre_local, &dir);
+            // Skip queries near an occlusion or plane edge: any point within
+            // a few splat sizes may legitimately win there.
+            let h = match expected {
+                Some((_, t)) => options.splat.half_size_px(t.min(40.0) * 0.5, f),
+                None => 8.0,
+            };
+            let mut near_edge = false;
+            for k in 0..16 {
+                let a = k as f64 * std::f64::consts::PI / 8.0;
+                for radius in [1.5 * h + 1.0, 3.0 * h + 2.0] {
+                    let p = q + radius * Vector2::new(a.cos(), a.sin());
+                    let other = ray_of(&p).and_then(|d| ray_cast(&rects, &centre_local, &d));
+                    if other.map(|o| o.0) != expected.map(|e| e.0) {
+                        near_edge = true;
+                    }
+                }
+            }
+            if near_edge {
+                continue;
+            }
+            match (expected, hit) {
+                (None, None) => empty += 1,
+                (None, Some(h)) => panic!("{name}: query {q:?} sees nothing but got {h:?}"),
+                (Some((k, t)), None) => {
+                    assert!(
+                        t > 39.0,
+                        "{name}: query {q:?} sees plane {k} at {t} m, got nothing"
+                    )
+                }
+                (Some((k, t)), Some(h)) => {
+                    let LidarHit {
+                        point_idx,
+                        range_m,
+                        point_in_map,
+                        normal_in_map,
+                        ..
+                    } = h;
+                    assert_eq!(
+                        plane_of[*point_idx as usize], k,
+                        "{name}: query {q:?}: got a point of plane {} instead of {k} \
+                         (ranges {range_m} vs {t})",
+                        plane_of[*point_idx as usize]
+                    );
+                    // Range error: the spacing, plus the splat's footprint on
+                    // an oblique plane (grows with the tangent of incidence).
+                    let n = rects[k].normal();
+                    let cos_inc = n.dot(&dir).abs();
+                    let tan_inc = (1.0 - cos_inc * cos_inc).sqrt() / cos_inc;
+                    let depth = (pose.rotation * dir).z * t;
+                    let tol = spacing * (1.5 + 2.0 * (t / depth) * (1.0 + tan_inc));
+                    assert!(
+                        (range_m - t).abs() <= tol,
+                        "{name}: query {q:?}: range {range_m} vs ray cast {t} (tol {tol})"
+                    );
+                    assert!((point_in_map - cloud.point_in_map(*point_idx as usize)).norm() < 1e-9);
+                    assert!((pose.transform_point(point_in_map).norm() - range_m).abs() < 1e-6);
+                    let normal = normal_in_map.expect("the scene has normals");
+                    assert!((normal - n).norm() < 1e-6);
+                    compared += 1;
+                }
+            }
+        }
+        assert!(compared > 700, "{name}: only {compared} queries compared");
+        assert!(empty > 10, "{name}: only {empty} empty queries");
+    }
+}
+
+#[test]
+fn projection_is_deterministic_across_threads() {
+    let spacing = 0.05;
+    let (cloud, _, _) = planes_scene(spacing);
+    let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+    let options = ProjectionOptions::default();
+    let pose = camera_pose(utm_origin() + Vector3::new(0.5, -0.5, 1.6), 0.0, 0.1, 0.1);
+    let cam = &cameras_all_models()[4];
+    let mut rng = ChaCha8Rng::seed_from_u64(41);
+    let queries: Vec<Vector2<f64>> = (0..3000)
+        .map(|_| Vector2::new(rng.gen_range(0.0..400.0), rng.gen_range(0.0..300.0)))
+        .collect();
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                project_map_at_pixels(&cloud, &grid, cam, &pose, &queries, &options).unwrap()
+            })
+    };
+    let one = run(1);
+    assert!(one.iter().filter(|h| h.is_some()).count() > 1000);
+    assert_eq!(run(2), one);
+    assert_eq!(run(3), one);
+    assert_eq!(run(2), one);
+    let depth = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| render_depth_image(&cloud, &grid, cam, &pose, &options).unwrap())
+    };
+    assert_eq!(depth(1), depth(2));
+}
+
+#[test]
+fn ties_go_to_the_smaller_index() {
+    // Two copies of the same point, and a third farther behind.
+    let cloud = PointCloud {
+        origin: utm_origin(),
+        points: vec![[5.0, 0.0, 1.0], [5.0, 0.0, 1.0], [6.0, 0.0, 1.0]],
+        normals: None,
+        planarity: None,
+    };
+    let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+    let pose = camera_pose(utm_origin() + Vector3::new(0.0, 0.0, 1.0), 0.0, 0.0, 0.0);
+    let cam = &cameras_all_models()[0];
+    let centre = Vector2::new(200.0, 150.0);
+    let hits = project_map_at_pixels(
+        &cloud,
+        &grid,
+        cam,
+        &pose,
+        &[centre, Vector2::new(-5.0, 3.0)],
+        &ProjectionOptions::default(),
+    )
+    .unwrap();
+    let h = hits[0].as_ref().unwrap();
+    assert_eq!(h.point_idx, 0);
+    assert!((h.range_m - 5.0).abs() < 1e-6 && (h.depth_m - 5.0).abs() < 1e-6);
+    assert!(h.normal_in_map.is_none());
+    assert!(hits[1].is_none(), "a query outside the image sees nothing");
+}
+
+#[test]
+fn depth_image_agrees_with_queries_at_pixel_centres() {
+    let spacing = 0.1;
+    let (cloud, _, _) = planes_scene(spacing);
+    let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+    let options = ProjectionOptions::default();
+    let pose = camera_pose(utm_origin() + Vector3::new(0.5, -0.5, 1.6), 0.0, 0.1, 0.1);
+    let cam = camera(
+        CameraModel::OpenCv,
+        80,
+        60,
+        vec![60.0, 61.0, 40.0, 30.0, -0.05, 0.01, 0.0, 0.0],
+    );
+    let depth = render_depth_image(&cloud, &grid, &cam, &pose, &options).unwrap();
+    assert_eq!(depth.range_m.len(), 80 * 60);
+    let centres: Vec<Vector2<f64>> = (0..60)
+        .flat_map(|y| (0..80).map(move |x| Vector2::new(x as f64 + 0.5, y as f64 + 0.5)))
+        .collect();
+    let hits = project_map_at_pixels(&cloud, &grid, &cam, &pose, &centres, &options).unwrap();
+    let mut filled = 0;
+    for (k, hit) in hits.iter().enumerate() {
+        let r = depth.range_m[k];
+        match hit {
+            None => assert!(r.is_infinite(), "pixel {k}: depth {r} but no query hit"),
+            Some(h) => {
+                assert!((f64::from(r) - h.range_m).abs() < 1e-4, "pixel {k}");
+                filled += 1;
+            }
+        }
+    }
+    assert!(filled > 80 * 60 / 2 && filled < 80 * 60, "{filled} filled");
+
+    // The PNG: right size, black where empty, markers drawn.
+    let queries = vec![Vector2::new(40.0, 45.0), Vector2::new(40.0, 2.0)];
+    let hit = vec![true, false];
+    let img = colourise(&depth, 40.0, &queries, &hit);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("depth.png");
+    write_png(&img, &path).unwrap();
+    let back = image::open(&path).unwrap().to_rgb8();
+    assert_eq!(back.dimensions(), (80, 60));
+    assert_eq!(back, img);
+    assert_eq!(back.get_pixel(42, 46).0, [0, 255, 0]);
+    assert_eq!(back.get_pixel(42, 3).0, [255, 0, 0]);
+    let empty_pixel = (0..80 * 60)
+        .find(|&k| depth.range_m[k].is_infinite())
+        .unwrap();
+    assert_eq!(
+        back.get_pixel((empty_pixel % 80) as u32, (empty_pixel / 80) as u32)
+            .0,
+        [0, 0, 0]
+    );
+    // No temporary files left beside the output.
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+}
+
+#[test]
+fn bad_inputs_are_errors_not_panics() {
+    let (cloud, _, _) = planes_scene(0.2);
+    let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+    let pose = camera_pose(utm_origin(), 0.0, 0.0, 0.0);
+    let mut cam = cameras_all_models()[4].clone();
+    cam.params.pop();
+    let q = [Vector2::new(1.0, 1.0)];
+    let opts = ProjectionOptions::default();
+    assert!(project_map_at_pixels(&cloud, &grid, &cam, &pose, &q, &opts).is_err());
+    let cam = cameras_all_models()[0].clone();
+    let mut bad = opts.clone();
+    bad.max_depth_m = 0.1;
+    assert!(project_map_at_pixels(&cloud, &grid, &cam, &pose, &q, &bad).is_err());
+    let other = uniform_cloud(10, 1.0, 5);
+    assert!(project_map_at_pixels(&other, &grid, &cam, &pose, &q, &opts).is_err());
+    let _ = UnitQuaternion::<f64>::identity();
+}
+
+/// Benchmark (not a timed test): one projection at ~8000 query pixels, 1 MP
+/// camera, ~2 million map points in view, inside a 20-million-point
+/// building-like map (`COLMAP_LIDAR_BENCH_POINTS`). Also the dense depth
+/// image. Run it in release mode through `scripts/bench_projection.sh`.
+#[test]
+#[ignore]
+fn bench_projection() {
+    use colmap_lidar::map::projection::project_visible_points;
+    use std::time::Instant;
+
+    let n: usize = std::env::var("COLMAP_LIDAR_BENCH_POINTS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(20_000_000);
+    let cloud = super::index::building_cloud(n, 0.005, 7);
+    let t = Instant::now();
+    let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+    println!(
+        "BENCH grid of {} points: {:.2} s",
+        cloud.len(),
+        t.elapsed().as_secs_f64()
+    );
+    // Inside the building, ground floor, looking along the long axis.
+    let pose = camera_pose(
+        utm_origin() + Vector3::new(1.0, 25.0, 1.5),
+        0.0,
+        0.05,
+        -0.35,
+    );
+    let (w, h) = (1152u32, 864u32);
+    let cams = [
+        camera(CameraModel::Pinhole, w, h, vec![800.0, 800.0, 576.0, 432.0]),
+        camera(
+            CameraModel::OpenCv,
+            w,
+            h,
+            vec![800.0, 800.0, 576.0, 432.0, -0.1, 0.02, 0.0005, -0.0005],
+        ),
+    ];
+    let options = ProjectionOptions::default();
+    let mut rng = ChaCha8Rng::seed_from_u64(51);
+    let queries: Vec<Vector2<f64>> = (0..8000)
+        .map(|_| Vector2::new(rng.gen_range(0.0..w as f64), rng.gen_range(0.0..h as f64)))
+        .collect();
+    for cam in &cams {
+        let visible = project_visible_points(&cloud, &grid, cam, &pose, &options)
+            .unwrap()
+            .len();
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let mut times = Vec::new();
+            let mut found = 0;
+            for _ in 0..7 {
+                let t = Instant::now();
+                let hits = pool.install(|| {
+                    project_map_at_pixels(&cloud, &grid, cam, &pose, &queries, &options).unwrap()
+                });
+                times.push(t.elapsed().as_secs_f64() * 1e3);
+                found = hits.iter().filter(|h| h.is_some()).count();
+            }
+            times.sort_by(f64::total_cmp);
+            println!(
+                "BENCH projection {} {w}x{h}, {} queries, {visible} points in view: \
+                 median {:.1} ms, best {:.1} ms ({threads} threads; {found} queries hit)",
+                cam.model.name(),
+                queries.len(),
+                times[times.len() / 2],
+                times[0]
+            );
+        }
+        let t = Instant::now();
+        let depth = render_depth_image(&cloud, &grid, cam, &pose, &options).unwrap();
+        println!(
+            "BENCH dense depth image {}: {:.0} ms ({:.0}% filled)",
+            cam.model.name(),
+            t.elapsed().as_secs_f64() * 1e3,
+            100.0 * depth.num_filled() as f64 / depth.range_m.len() as f64
+        );
+    }
+}
