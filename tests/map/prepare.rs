@@ -440,10 +440,8 @@ fn prepare_map_library_entry_point_end_to_end() {
     assert!(format!("{err:#}").contains("missing.ply"));
 }
 
-/// The real binary. Ignored until the lead wires `prepare-map` into
-/// `src/main.rs`; run with `cargo test --test tests prepare_map_cli -- --ignored`.
+/// The real binary, end to end.
 #[test]
-#[ignore = "prepare-map is not wired into main.rs yet"]
 fn prepare_map_cli_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
     let raw = dir.path().join("raw.ply");
