@@ -1,1 +1,464 @@
-//! Integration tests: database.
+//! Integration tests: the COLMAP database reader and `inspect`, on databases
+//! created by the real `colmap database_creator` (COLMAP's own schema) and
+//! filled with hand-made rows whose reading is known exactly.
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use colmap_lidar::io::database::{image_ids_to_pair_id, read_database, DatabaseError};
+use colmap_lidar::scene::{CameraId, CameraModel, ImageId};
+use rusqlite::{params, Connection};
+
+use crate::common;
+
+/// An empty database with COLMAP 3.8's schema, made by COLMAP itself.
+fn colmap_empty_db(dir: &Path) -> Option<PathBuf> {
+    if !common::have_colmap() {
+        return None;
+    }
+    let path = dir.join("database.db");
+    let status = Command::new("colmap")
+        .env("QT_QPA_PLATFORM", "offscreen")
+        .args(["database_creator", "--database_path"])
+        .arg(&path)
+        .output()
+        .expect("colmap runs");
+    assert!(
+        status.status.success(),
+        "database_creator failed: {}",
+        String::from_utf8_lossy(&status.stderr)
+    );
+    Some(path)
+}
+
+fn f64_blob(v: &[f64]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+fn f32_blob(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+fn u32_blob(v: &[[u32; 2]]) -> Vec<u8> {
+    v.iter().flatten().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// Fills a hand-made scene: 2 cameras, 3 images (keypoint layouts with 6, 4 and
+/// 2 columns), 3 verified pairs forming one 3-view track and one 2-view track.
+fn fill_hand_made(path: &Path) {
+    let conn = Connection::open(path).unwrap();
+    conn.execute(
+        "INSERT INTO cameras VALUES (1, 2, 640, 480, ?1, 0)",
+        params![f64_blob(&[500.0, 320.0, 240.0, -0.05])],
+    )
+    .unwrap();
+    conn.execute(
+        "INSERT INTO cameras VALUES (2, 1, 800, 600, ?1, 1)",
+        params![f64_blob(&[700.0, 710.0, 400.5, 299.5])],
+    )
+    .unwrap();
+    conn.execute(
+        "INSERT INTO images (image_id, name, camera_id) VALUES (1, 'a.jpg', 1)",
+        [],
+    )
+    .unwrap();
+    conn.execute(
+        "INSERT INTO images VALUES (2, 'sub dir/b.jpg', 1, 1.0, 0.0, 0.0, 0.0, 0.5, -1.0, 2.0)",
+        [],
+    )
+    .unwrap();
+    conn.execute(
+        "INSERT INTO images (image_id, name, camera_id) VALUES (3, 'c.jpg', 2)",
+        [],
+    )
+    .unwrap();
+    // Image 1: 6 columns (x, y, affine); image 2: 4 columns; image 3: 2 columns.
+    let kp1 = [
+        10.5f32, 20.25, 1.0, 0.0, 0.0, 1.0, 100.0, 200.0, 2.0, 0.0, 0.0, 2.0,
+    ];
+    let kp2 = [
+        1.5f32, 2.5, 3.0, 0.1, 4.5, 5.5, 1.0, 0.2, 7.0, 8.0, 1.0, 0.0,
+    ];
+    let kp3 = [0.5f32, 0.75, 639.5, 479.5];
+    for (id, cols, data) in [(1, 6, &kp1[..]), (2, 4, &kp2[..]), (3, 2, &kp3[..])] {
+        conn.execute(
+            "INSERT INTO keypoints VALUES (?1, ?2, ?3, ?4)",
+            params![id, (data.len() / cols) as i64, cols as i64, f32_blob(data)],
+        )
+        .unwrap();
+    }
+    // Track A: (1,0) (2,1) (3,1). Track B: (1,1) (2,0). Pair (2,3) also matches (2,2)-(3,0)
+    // which with nothing else forms track C of length 2.
+    let pairs: [(u32, u32, Vec<[u32; 2]>, i64); 3] = [
+        (1, 2, vec![[0, 1], [1, 0]], 2),
+        (1, 3, vec![[0, 1]], 3),
+        (2, 3, vec![[1, 1], [2, 0]], 4),
+    ];
+    for (a, b, m, config) in pairs {
+        let pid = image_ids_to_pair_id(ImageId(a), ImageId(b)) as i64;
+        conn.execute(
+            "INSERT INTO two_view_geometries (pair_id, rows, cols, data, config) VALUES (?1, ?2, 2, ?3, ?4)",
+            params![pid, m.len() as i64, u32_blob(&m), config],
+        )
+        .unwrap();
+    }
+}
+
+fn checksum(path: &Path) -> Vec<u8> {
+    std::fs::read(path).unwrap()
+}
+
+#[test]
+fn reads_hand_made_database_exactly() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some(path) = colmap_empty_db(dir.path()) else {
+        return;
+    };
+    fill_hand_made(&path);
+    let db = read_database(&path).unwrap();
+    assert_eq!(db.schema.user_version, 3800);
+    assert_eq!(db.cameras.len(), 2);
+    let c1 = &db.cameras[&CameraId(1)];
+    assert_eq!(
+        (c1.model, c1.width, c1.height),
+        (CameraModel::SimpleRadial, 640, 480)
+    );
+    assert_eq!(c1.params, vec![500.0, 320.0, 240.0, -0.05]);
+    let c2 = &db.cameras[&CameraId(2)];
+    assert_eq!(
+        (c2.model, c2.params.clone()),
+        (CameraModel::Pinhole, vec![700.0, 710.0, 400.5, 299.5])
+    );
+
+    assert_eq!(db.images.len(), 3);
+    assert_eq!(db.images[&ImageId(2)].name, "sub dir/b.jpg");
+    assert_eq!(db.images[&ImageId(3)].camera_id, CameraId(2));
+    // x, y are the first two columns whatever the layout.
+    let xy = |id: u32| -> Vec<(f64, f64)> {
+        db.keypoints[&ImageId(id)]
+            .iter()
+            .map(|p| (p.x, p.y))
+            .collect()
+    };
+    assert_eq!(xy(1), vec![(10.5, 20.25), (100.0, 200.0)]);
+    assert_eq!(xy(2), vec![(1.5, 2.5), (4.5, 5.5), (7.0, 8.0)]);
+    assert_eq!(xy(3), vec![(0.5, 0.75), (639.5, 479.5)]);
+
+    assert_eq!(db.two_view_geometries.len(), 3);
+    let g = &db.two_view_geometries[2];
+    assert_eq!(
+        (g.image_id1, g.image_id2, g.config),
+        (ImageId(2), ImageId(3), 4)
+    );
+    assert_eq!(g.inlier_matches, vec![[1, 1], [2, 0]]);
+
+    // Image 2's 3.8 prior columns are read as cam_from_world.
+    let prior = db.pose_priors[&ImageId(2)]
+        .cam_from_world
+        .expect("prior of image 2");
+    assert_eq!(prior.translation, nalgebra::Vector3::new(0.5, -1.0, 2.0));
+    assert!(!db.pose_priors.contains_key(&ImageId(1)));
+
+    let graph = db.correspondence_graph();
+    let stats = graph.track_stats();
+    // Track A: (1,0) (2,1) (3,1); B: (1,1) (2,0); C: (2,2) (3,0).
+    assert_eq!(stats.num_tracks, 3);
+    assert_eq!(
+        stats.histogram,
+        std::collections::BTreeMap::from([(2, 2), (3, 1)])
+    );
+    assert_eq!(graph.num_matches_between(ImageId(3), ImageId(1)), 1);
+
+    let text = colmap_lidar::commands::inspect::summary(&db, true);
+    for expected in [
+        "Cameras   2",
+        "SIMPLE_RADIAL",
+        "Images    3",
+        "Keypoints 7 in all; per image min 2, median 2, max 3",
+        "Verified pairs  3 (inlier matches 5 in all",
+        "config 4 (planar): 1",
+        "tracks                           3",
+        "sub dir/b.jpg",
+    ] {
+        assert!(
+            text.contains(expected),
+            "inspect output lacks {expected:?}:\n{text}"
+        );
+    }
+}
+
+#[test]
+fn database_file_is_never_changed() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some(path) = colmap_empty_db(dir.path()) else {
+        return;
+    };
+    fill_hand_made(&path);
+    // Make the file and its folder read-only (root ignores permissions, so
+    // the checksum and the folder listing are the real checks).
+    let before = checksum(&path);
+    let listing = |d: &Path| {
+        let mut v: Vec<_> = std::fs::read_dir(d)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        v.sort();
+        v
+    };
+    let files_before = listing(dir.path());
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o444)).unwrap();
+    std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o555)).unwrap();
+    let db = read_database(&path);
+    let out = Command::new(common::bin())
+        .args(["inspect", "--database_path"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
+    assert!(db.is_ok(), "{:?}", db.err());
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(checksum(&path), before, "the database file changed");
+    assert_eq!(
+        listing(dir.path()),
+        files_before,
+        "files appeared beside the database"
+    );
+}
+
+/// Runs the binary and returns (success, stderr).
+fn inspect_cli(path: &Path) -> (bool, String) {
+    let out = Command::new(common::bin())
+        .args(["inspect", "--database"])
+        .arg(path)
+        .output()
+        .unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn assert_error(path: &Path, what: &str, check: impl Fn(&DatabaseError) -> bool) {
+    let err = read_database(path).expect_err(what);
+    assert!(check(&err), "{what}: unexpected error {err:?}");
+    let msg = err.to_string();
+    assert!(
+        msg.contains(&path.display().to_string()),
+        "{what}: message does not name the file: {msg}"
+    );
+    let (ok, stderr) = inspect_cli(path);
+    assert!(!ok, "{what}: inspect succeeded");
+    assert!(
+        stderr.starts_with("error: ") && !stderr.contains("panicked"),
+        "{what}: {stderr}"
+    );
+}
+
+#[test]
+fn bad_databases_give_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some(template) = colmap_empty_db(dir.path()) else {
+        return;
+    };
+    fill_hand_made(&template);
+    let variant = |name: &str, sql: &str| {
+        let p = dir.path().join(name);
+        std::fs::copy(&template, &p).unwrap();
+        let conn = Connection::open(&p).unwrap();
+        conn.execute_batch(sql).unwrap();
+        drop(conn);
+        p
+    };
+
+    let garbage = dir.path().join("garbage.db");
+    std::fs::write(&garbage, vec![0x42u8; 8192]).unwrap();
+    assert_error(&garbage, "not sqlite", |e| {
+        matches!(e, DatabaseError::NotSqlite { .. })
+    });
+
+    let missing = dir.path().join("missing.db");
+    assert_error(&missing, "missing file", |e| {
+        matches!(e, DatabaseError::Open { .. })
+    });
+
+    let other = dir.path().join("other.db");
+    Connection::open(&other)
+        .unwrap()
+        .execute_batch("CREATE TABLE t (x INTEGER);")
+        .unwrap();
+    assert_error(&other, "not colmap", |e| {
+        matches!(e, DatabaseError::NotColmap { .. })
+    });
+
+    let p = variant("no_kp.db", "DROP TABLE keypoints;");
+    assert_error(&p, "missing keypoints", |e| {
+        matches!(
+            e,
+            DatabaseError::MissingTable {
+                table: "keypoints",
+                ..
+            }
+        )
+    });
+
+    let p = variant("no_tvg.db", "DROP TABLE two_view_geometries;");
+    assert_error(&p, "missing tvg", |e| {
+        matches!(
+            e,
+            DatabaseError::MissingTable {
+                table: "two_view_geometries",
+                ..
+            }
+        )
+    });
+
+    let p = variant(
+        "bad_params.db",
+        "UPDATE cameras SET params = zeroblob(24) WHERE camera_id = 1;",
+    );
+    assert_error(
+        &p,
+        "short params",
+        |e| matches!(e, DatabaseError::BadRow { table: "cameras", row, .. } if row == "camera_id 1"),
+    );
+
+    let p = variant(
+        "bad_model.db",
+        "UPDATE cameras SET model = 99 WHERE camera_id = 2;",
+    );
+    assert_error(&p, "unknown model", |e| {
+        e.to_string().contains("unknown camera model id 99")
+    });
+
+    let p = variant(
+        "bad_kp.db",
+        "UPDATE keypoints SET rows = 5 WHERE image_id = 2;",
+    );
+    assert_error(
+        &p,
+        "keypoint blob size",
+        |e| matches!(e, DatabaseError::BadRow { table: "keypoints", row, .. } if row == "image_id 2"),
+    );
+
+    let p = variant(
+        "bad_cols.db",
+        "UPDATE keypoints SET cols = 3, rows = 4 WHERE image_id = 2;",
+    );
+    assert_error(&p, "keypoint cols", |e| {
+        e.to_string().contains("cols must be 2, 4 or 6")
+    });
+
+    let p = variant(
+        "no_cam.db",
+        "PRAGMA foreign_keys = OFF; UPDATE images SET camera_id = 7 WHERE image_id = 3;",
+    );
+    assert_error(&p, "missing camera", |e| {
+        matches!(
+            e,
+            DatabaseError::BadRow {
+                table: "images",
+                ..
+            }
+        ) && e.to_string().contains("camera_id 7")
+    });
+
+    let p = variant(
+        "bad_match.db",
+        "UPDATE two_view_geometries SET data = X'0000000009000000', rows = 1 WHERE config = 2;",
+    );
+    assert_error(&p, "match out of range", |e| {
+        e.to_string().contains("beyond the images'")
+    });
+
+    let p = variant(
+        "bad_tvg_blob.db",
+        "UPDATE two_view_geometries SET rows = 9 WHERE config = 3;",
+    );
+    assert_error(&p, "tvg blob size", |e| {
+        matches!(
+            e,
+            DatabaseError::BadRow {
+                table: "two_view_geometries",
+                ..
+            }
+        )
+    });
+}
+
+#[test]
+fn locked_database_is_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some(path) = colmap_empty_db(dir.path()) else {
+        return;
+    };
+    fill_hand_made(&path);
+    let holder = Connection::open(&path).unwrap();
+    holder
+        .execute_batch("PRAGMA locking_mode = EXCLUSIVE; BEGIN EXCLUSIVE;")
+        .unwrap();
+    holder
+        .execute(
+            "INSERT INTO images (image_id, name, camera_id) VALUES (9, 'x.jpg', 1)",
+            [],
+        )
+        .unwrap();
+    let err = read_database(&path).expect_err("locked");
+    assert!(matches!(err, DatabaseError::Locked { .. }), "{err:?}");
+    holder.execute_batch("ROLLBACK;").unwrap();
+}
+
+#[test]
+fn newer_schemas_are_read_and_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    let Some(path) = colmap_empty_db(dir.path()) else {
+        return;
+    };
+    fill_hand_made(&path);
+    let conn = Connection::open(&path).unwrap();
+    conn.execute_batch(
+        "PRAGMA user_version = 3900;
+         CREATE TABLE pose_priors (image_id INTEGER PRIMARY KEY NOT NULL, position BLOB, coordinate_system INTEGER NOT NULL, position_covariance BLOB);
+         CREATE TABLE rigs (rig_id INTEGER PRIMARY KEY);
+         CREATE TABLE frames (frame_id INTEGER PRIMARY KEY);
+         CREATE TABLE my_extra (x INTEGER);",
+    )
+    .unwrap();
+    conn.execute(
+        "INSERT INTO pose_priors VALUES (3, ?1, 1, NULL)",
+        params![f64_blob(&[500000.25, 4400000.5, 200.125])],
+    )
+    .unwrap();
+    drop(conn);
+    let db = read_database(&path).unwrap();
+    assert_eq!(db.schema.user_version, 3900);
+    assert_eq!(
+        db.pose_priors[&ImageId(3)].position,
+        Some([500000.25, 4400000.5, 200.125])
+    );
+    assert_eq!(db.pose_priors[&ImageId(3)].coordinate_system, Some(1));
+    assert_eq!(db.schema.unknown_tables, vec!["my_extra".to_owned()]);
+    let notes = db.schema.notes.join("\n");
+    assert!(
+        notes.contains("my_extra") && notes.contains("rigs"),
+        "{notes}"
+    );
+
+    // COLMAP 4.x re-keys pose_priors: reported, not misread.
+    let conn = Connection::open(&path).unwrap();
+    conn.execute_batch(
+        "DROP TABLE pose_priors; CREATE TABLE pose_priors (pose_prior_id INTEGER PRIMARY KEY, corr_data_id INTEGER, position BLOB);",
+    )
+    .unwrap();
+    drop(conn);
+    let db = read_database(&path).unwrap();
+    assert!(db.pose_priors.values().all(|p| p.position.is_none()));
+    assert!(
+        db.schema.notes.iter().any(|n| n.contains("pose_priors")),
+        "{:?}",
+        db.schema.notes
+    );
+}

@@ -18,6 +18,7 @@ use std::path::{Path, PathBuf};
 use nalgebra::Vector2;
 use rusqlite::{Connection, OpenFlags};
 
+use crate::scene::correspondence_graph::CorrespondenceGraph;
 use crate::scene::{Camera, CameraId, CameraModel, ImageId, Rigid3};
 
 /// COLMAP's bound on image ids used in pair ids.
@@ -133,6 +134,16 @@ impl DatabaseSnapshot {
     pub fn image_by_name(&self, name: &str) -> Option<&DbImage> {
         self.images.values().find(|i| i.name == name)
     }
+
+    /// The correspondence graph of the verified inlier matches.
+    pub fn correspondence_graph(&self) -> CorrespondenceGraph {
+        CorrespondenceGraph::new(
+            self.images.keys().map(|&id| (id, self.num_keypoints(id))),
+            self.two_view_geometries
+                .iter()
+                .map(|g| (g.image_id1, g.image_id2, g.inlier_matches.as_slice())),
+        )
+    }
 }
 
 const KNOWN_TABLES: &[&str] = &[
@@ -152,7 +163,7 @@ const KNOWN_TABLES: &[&str] = &[
 
 /// Opens `path` strictly read-only.
 ///
-/// When no `-wal`/`-journal` file lies beside it (no process has it open), the
+/// When no `-wal`/`-shm`/`-journal` file lies beside it (no process has it open), the
 /// database is opened `immutable`, which reads without creating any file and
 /// works on read-only files and folders. Otherwise it is opened `mode=ro`, which
 /// sees the pending write-ahead log and reports locks.
@@ -168,9 +179,9 @@ fn open_read_only(path: &Path) -> Result<Connection, DatabaseError> {
         s.push(suffix);
         PathBuf::from(s)
     };
-    let live = [sibling("-wal"), sibling("-journal")]
+    let live = [sibling("-wal"), sibling("-shm"), sibling("-journal")]
         .iter()
-        .any(|p| p.metadata().map(|m| m.len() > 0).unwrap_or(false));
+        .any(|p| p.exists());
     let abs = path.canonicalize().unwrap_or_else(|_| path.to_owned());
     let mut uri = String::from("file:");
     for b in abs.to_string_lossy().bytes() {

@@ -3,6 +3,100 @@
 
 #[cxx::bridge(namespace = "colmap_lidar")]
 pub(crate) mod ffi {
+    /// A bundle-adjustment problem as flat, index-addressed arrays. Built and
+    /// validated by `super::bridge`; the C++ side re-checks every size and index
+    /// (a failed glog CHECK inside Ceres would kill the process) and writes the
+    /// solved values back into `poses`, `camera_params` and `points`.
+    struct BaProblemFfi {
+        /// 7 per pose: qw qx qy qz tx ty tz (`cam_from_world`, unit quaternion).
+        poses: Vec<f64>,
+        /// 1 per pose: 1 = constant.
+        pose_constant: Vec<u8>,
+        /// 1 per camera: COLMAP model id.
+        camera_model_ids: Vec<i32>,
+        /// num_cameras + 1 offsets into `camera_params`.
+        camera_param_offsets: Vec<u32>,
+        /// All cameras' parameters, concatenated.
+        camera_params: Vec<f64>,
+        /// 1 per entry of `camera_params`: 1 = constant.
+        camera_param_constant: Vec<u8>,
+        /// 3 per point (world frame).
+        points: Vec<f64>,
+        /// 1 per point: 1 = constant.
+        point_constant: Vec<u8>,
+        /// 1 per observation each.
+        obs_pose: Vec<u32>,
+        obs_camera: Vec<u32>,
+        obs_point: Vec<u32>,
+        /// 2 per observation.
+        obs_pixel: Vec<f64>,
+        /// 1 per observation.
+        obs_weight: Vec<f64>,
+        /// 1 per plane constraint each, except `plane_normal` (3 per constraint).
+        plane_point: Vec<u32>,
+        plane_normal: Vec<f64>,
+        plane_offset: Vec<f64>,
+        plane_weight: Vec<f64>,
+        /// Residual family index of each plane constraint (>= 2).
+        plane_family: Vec<u32>,
+        /// 1 per prior each, except `prior_position` (3) and `prior_rotation` (4:
+        /// qw qx qy qz of the prior `cam_from_world` rotation).
+        prior_pose: Vec<u32>,
+        prior_position: Vec<f64>,
+        prior_rotation: Vec<f64>,
+        prior_position_weight: Vec<f64>,
+        prior_rotation_weight: Vec<f64>,
+    }
+
+    /// Solver options in the C++ side's terms (all validated in Rust).
+    struct BaOptionsFfi {
+        /// Per residual family (0 reprojection, 1 pose prior, 2.. plane families):
+        /// 0 trivial, 1 Huber, 2 Soft-L1, 3 Cauchy.
+        loss_kind: Vec<i32>,
+        /// Per residual family: the loss scale (ignored for trivial).
+        loss_scale: Vec<f64>,
+        max_iterations: i32,
+        function_tolerance: f64,
+        gradient_tolerance: f64,
+        parameter_tolerance: f64,
+        max_time_s: f64,
+        num_threads: i32,
+        /// 0 dense Schur, 1 sparse Schur, 2 iterative Schur, 3 dense QR,
+        /// 4 dense normal Cholesky, 5 sparse normal Cholesky.
+        linear_solver: i32,
+        logging: bool,
+    }
+
+    /// What a solve reports.
+    struct BaSummaryFfi {
+        initial_cost: f64,
+        final_cost: f64,
+        num_iterations: i32,
+        /// 0 convergence, 1 no convergence, 2 failure, 3 user success, 4 user failure.
+        termination: i32,
+        usable: bool,
+        time_s: f64,
+        message: String,
+        linear_solver_used: i32,
+        /// Per residual family (same indexing as the options' losses).
+        family_num_blocks: Vec<u32>,
+        family_initial_cost: Vec<f64>,
+        family_final_cost: Vec<f64>,
+    }
+
+    /// Residuals at the current parameters, without solving.
+    struct BaEvaluationFfi {
+        /// Observations (2 each), then planes (1 each), then priors (6 each), in
+        /// input order, as the cost functions return them (weights applied, loss
+        /// not applied). NaN where a cost function failed (point behind camera).
+        residuals: Vec<f64>,
+        family_num_blocks: Vec<u32>,
+        /// Per family: sum of 0.5 * rho(|r|^2) over residual blocks that evaluated.
+        family_cost: Vec<f64>,
+        /// Residual blocks whose cost function returned false.
+        num_failed_blocks: u32,
+    }
+
     unsafe extern "C++" {
         include!("colmap-lidar/cpp/camera_bridge.h");
 
@@ -15,5 +109,27 @@ pub(crate) mod ffi {
             points_in_cam: &[f64],
             pixels: &mut [f64],
         ) -> Result<()>;
+    }
+
+    unsafe extern "C++" {
+        include!("colmap-lidar/cpp/bundle_adjustment.h");
+
+        /// Builds the Ceres problem, solves it, writes the solution back into
+        /// `problem` and returns the summary. Any C++ exception becomes `Err`.
+        fn solve_bundle_adjustment(
+            problem: &mut BaProblemFfi,
+            options: &BaOptionsFfi,
+        ) -> Result<BaSummaryFfi>;
+
+        /// Builds the Ceres problem and evaluates every residual at the current
+        /// parameters without solving.
+        fn evaluate_bundle_adjustment(
+            problem: &mut BaProblemFfi,
+            options: &BaOptionsFfi,
+        ) -> Result<BaEvaluationFfi>;
+
+        /// True when this Ceres build has a sparse linear-algebra library
+        /// (SuiteSparse, Eigen sparse or CXSparse) for SPARSE_SCHUR.
+        fn sparse_linear_algebra_available() -> bool;
     }
 }
