@@ -197,6 +197,12 @@ fn synth_projections_agree_with_ray_casting() {
         },
     );
     let offset = Vector3::from(OFFSET);
+    // Points outside the field of view can fold back into the image through
+    // the radial distortion: keep those within the image corners' ray radius.
+    let max_radius = [(0.0, 0.0), (320.0, 0.0), (0.0, 240.0), (320.0, 240.0)]
+        .iter()
+        .map(|&(u, v)| lens::unproject(&camera, &Vector2::new(u, v)).xy().norm())
+        .fold(0.0, f64::max);
     let (mut visible, mut occluded) = (0usize, 0usize);
     for pose in gt.values() {
         // gt is in the offset world; the scene is local.
@@ -204,6 +210,9 @@ fn synth_projections_agree_with_ray_casting() {
         let centre = cam_from_local.camera_center();
         for p in &map.points {
             let pc = cam_from_local.transform_point(p);
+            if pc.z <= 0.0 || (pc.xy() / pc.z).norm() > max_radius {
+                continue;
+            }
             let Some(px) = lens::project(&camera, &pc) else {
                 continue;
             };
