@@ -25,6 +25,10 @@ enum Command {
     Inspect(commands::inspect::InspectArgs),
     /// Prepare a raw point cloud (PLY, PCD, LAS/LAZ) as a map: downsample, estimate normals.
     PrepareMap(commands::prepare_map::PrepareMapArgs),
+    /// Render a synthetic scene with exact ground truth (images, LiDAR map, true cameras).
+    Synth(commands::synth::SynthArgs),
+    /// Compare a model's camera poses with a reference model (ground truth).
+    Evaluate(commands::evaluate::EvaluateArgs),
     /// Render what the map looks like from a registered image: a colour-mapped depth PNG.
     Depth(commands::depth::DepthArgs),
     /// Benchmark helpers for the map (generate / load a large building-like cloud).
@@ -47,6 +51,8 @@ fn main() -> ExitCode {
         Command::Inspect(args) => commands::inspect::run(args),
         Command::PrepareMap(args) => commands::prepare_map::run(args),
         Command::Depth(args) => commands::depth::run(args),
+        Command::Synth(args) => commands::synth::run(args),
+        Command::Evaluate(args) => commands::evaluate::run(args),
         Command::BenchMap(args) => commands::bench_map::run(args),
     };
     match result {

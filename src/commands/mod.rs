@@ -1,5 +1,7 @@
 //! One module per command of the `colmap-lidar` binary.
 pub mod bench_map;
 pub mod depth;
+pub mod evaluate;
 pub mod inspect;
 pub mod prepare_map;
+pub mod synth;

@@ -1,0 +1,452 @@
+//! Evaluation of a reconstruction against reference (ground-truth) poses.
+//!
+//! Images are matched by name. Errors per image: camera-centre distance
+//! (metres) and rotation angle of `R_est * R_ref^T` (degrees), after an
+//! optional alignment of the model to the reference:
+//! * `none`: the model is compared as is (the honest comparison for a tool
+//!   that outputs poses in the map frame);
+//! * `sim3`: the best similarity (Umeyama, least squares over camera centres)
+//!   is applied first (the best case for scale-free SfM).
+//!
+//! The best Sim3 scale is always reported (with >= 3 registered images), as is
+//! the scale drift: the ratio of Sim3 scales fitted to the last and the first
+//! third of the registered images (reference name order).
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use nalgebra::{Matrix3, Vector3};
+use serde::Serialize;
+
+use crate::scene::Rigid3;
+
+pub mod model_poses;
+
+pub use model_poses::load_poses;
+
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    #[error("{path}: {message}")]
+    Model { path: PathBuf, message: String },
+    #[error("Sim3 alignment needs at least 3 registered images with distinct centres, got {0}")]
+    TooFewForSim3(usize),
+}
+
+/// How the model is aligned to the reference before errors are measured.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Alignment {
+    None,
+    Sim3,
+}
+
+/// A similarity `x_b = scale * R * x_a + t`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Sim3 {
+    pub scale: f64,
+    pub rotation: Matrix3<f64>,
+    pub translation: Vector3<f64>,
+}
+
+impl Sim3 {
+    pub fn identity() -> Self {
+        Self {
+            scale: 1.0,
+            rotation: Matrix3::identity(),
+            translation: Vector3::zeros(),
+        }
+    }
+
+    pub fn transform_point(&self, p: &Vector3<f64>) -> Vector3<f64> {
+        self.scale * (self.rotation * p) + self.translation
+    }
+
+    /// A `cam_from_a` pose expressed as `cam_from_b` (b = this transform's target frame).
+    pub fn transform_pose(&self, cam_from_a: &Rigid3) -> Rigid3 {
+        let r = cam_from_a.rotation_matrix() * self.rotation.transpose();
+        let centre = self.transform_point(&cam_from_a.camera_center());
+        Rigid3::from_rotation_matrix(&r, -(r * centre))
+    }
+}
+
+/// Least-squares similarity mapping `src[i]` onto `dst[i]` (Umeyama 1991).
+/// `None` with fewer than 3 pairs or degenerate (collinear or coincident) input.
+pub fn umeyama(src: &[Vector3<f64>], dst: &[Vector3<f64>]) -> Option<Sim3> {
+    let n = src.len();
+    if n < 3 || dst.len() != n {
+        return None;
+    }
+    let mean = |v: &[Vector3<f64>]| v.iter().sum::<Vector3<f64>>() / n as f64;
+    let (ms, md) = (mean(src), mean(dst));
+    let mut cov = Matrix3::zeros();
+    let mut var_src = 0.0;
+    for (s, d) in src.iter().zip(dst) {
+        let (a, b) = (s - ms, d - md);
+        cov += b * a.transpose();
+        var_src += a.norm_squared();
+    }
+    cov /= n as f64;
+    var_src /= n as f64;
+    if var_src < 1e-18 {
+        return None;
+    }
+    let svd = cov.svd(true, true);
+    let (u, v_t) = (svd.u?, svd.v_t?);
+    let sv = svd.singular_values;
+    // Rank check: collinear points leave the rotation about the line free.
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&i, &j| sv[j].total_cmp(&sv[i]));
+    if sv[order[1]] < 1e-12 * sv[order[0]].max(1e-300) {
+        return None;
+    }
+    let mut d = Matrix3::identity();
+    if (u * v_t).determinant() < 0.0 {
+        // Flip the axis of the smallest singular value.
+        d[(order[2], order[2])] = -1.0;
+    }
+    let rotation = u * d * v_t;
+    let trace_ds: f64 = (0..3).map(|i| d[(i, i)] * sv[i]).sum();
+    let scale = trace_ds / var_src;
+    let translation = md - scale * (rotation * ms);
+    Some(Sim3 {
+        scale,
+        rotation,
+        translation,
+    })
+}
+
+/// Median, 90th percentile (nearest rank) and maximum.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Stats {
+    pub median: f64,
+    pub p90: f64,
+    pub max: f64,
+}
+
+impl Stats {
+    pub fn of(values: &[f64]) -> Option<Self> {
+        if values.is_empty() {
+            return None;
+        }
+        let mut v = values.to_vec();
+        v.sort_by(f64::total_cmp);
+        let n = v.len();
+        let median = if n % 2 == 1 {
+            v[n / 2]
+        } else {
+            0.5 * (v[n / 2 - 1] + v[n / 2])
+        };
+        let rank = ((0.9 * n as f64).ceil() as usize).clamp(1, n);
+        Some(Self {
+            median,
+            p90: v[rank - 1],
+            max: v[n - 1],
+        })
+    }
+}
+
+/// Errors of one registered image.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ImageError {
+    pub name: String,
+    pub centre_error_m: f64,
+    pub rotation_error_deg: f64,
+}
+
+/// Share of all reference images within a centre and a rotation threshold.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ThresholdShare {
+    pub centre_m: f64,
+    pub rotation_deg: f64,
+    pub count: usize,
+    pub share: f64,
+}
+
+/// The thresholds reported, (metres, degrees).
+pub const THRESHOLDS: [(f64, f64); 3] = [(0.02, 0.1), (0.05, 0.5), (0.10, 1.0)];
+
+/// Result of [`evaluate`].
+#[derive(Clone, Debug, Serialize)]
+pub struct EvaluationReport {
+    pub alignment: Alignment,
+    pub num_reference: usize,
+    pub num_registered: usize,
+    pub registered_share: f64,
+    /// Model images absent from the reference (ignored).
+    pub num_unknown: usize,
+    /// Scale of the best Sim3 from the model to the reference.
+    pub sim3_scale: Option<f64>,
+    /// Sim3 scale on the last third over the first third (1 = no drift).
+    pub scale_drift: Option<f64>,
+    pub centre_error_m: Option<Stats>,
+    pub rotation_error_deg: Option<Stats>,
+    pub within: Vec<ThresholdShare>,
+    pub images: Vec<ImageError>,
+}
+
+/// Compares `model` to `reference` (both name -> `cam_from_world`).
+pub fn evaluate(
+    model: &BTreeMap<String, Rigid3>,
+    reference: &BTreeMap<String, Rigid3>,
+    alignment: Alignment,
+) -> Result<EvaluationReport, EvalError> {
+    let common: Vec<(&String, &Rigid3, &Rigid3)> = reference
+        .iter()
+        .filter_map(|(name, r)| model.get(name).map(|m| (name, m, r)))
+        .collect();
+    let src: Vec<Vector3<f64>> = common.iter().map(|(_, m, _)| m.camera_center()).collect();
+    let dst: Vec<Vector3<f64>> = common.iter().map(|(_, _, r)| r.camera_center()).collect();
+    let best = umeyama(&src, &dst);
+    let third = common.len() / 3;
+    let scale_drift = if third >= 3 {
+        let n = common.len();
+        match (
+            umeyama(&src[..third], &dst[..third]),
+            umeyama(&src[n - third..], &dst[n - third..]),
+        ) {
+            (Some(a), Some(b)) => Some(b.scale / a.scale),
+            _ => None,
+        }
+    } else {
+        None
+    };
+    let align = match alignment {
+        Alignment::None => Sim3::identity(),
+        Alignment::Sim3 => best.ok_or(EvalError::TooFewForSim3(common.len()))?,
+    };
+    let images: Vec<ImageError> = common
+        .iter()
+        .map(|(name, m, r)| {
+            let aligned = align.transform_pose(m);
+            let centre_error_m = (aligned.camera_center() - r.camera_center()).norm();
+            let rotation_error_deg = aligned.rotation.angle_to(&r.rotation).to_degrees();
+            ImageError {
+                name: (*name).clone(),
+                centre_error_m,
+                rotation_error_deg,
+            }
+        })
+        .collect();
+    let n_ref = reference.len();
+    let share = |k: usize| {
+        if n_ref == 0 {
+            0.0
+        } else {
+            k as f64 / n_ref as f64
+        }
+    };
+    let within = THRESHOLDS
+        .iter()
+        .map(|&(c, r)| {
+            let count = images
+                .iter()
+                .filter(|e| e.centre_error_m <= c && e.rotation_error_deg <= r)
+                .count();
+            ThresholdShare {
+                centre_m: c,
+                rotation_deg: r,
+                count,
+                share: share(count),
+            }
+        })
+        .collect();
+    let centres: Vec<f64> = images.iter().map(|e| e.centre_error_m).collect();
+    let rotations: Vec<f64> = images.iter().map(|e| e.rotation_error_deg).collect();
+    Ok(EvaluationReport {
+        alignment,
+        num_reference: n_ref,
+        num_registered: common.len(),
+        registered_share: share(common.len()),
+        num_unknown: model.keys().filter(|k| !reference.contains_key(*k)).count(),
+        sim3_scale: best.map(|s| s.scale),
+        scale_drift,
+        centre_error_m: Stats::of(&centres),
+        rotation_error_deg: Stats::of(&rotations),
+        within,
+        images,
+    })
+}
+
+impl EvaluationReport {
+    /// A human-readable table.
+    pub fn table(&self) -> String {
+        let mut s = String::new();
+        let opt =
+            |v: Option<f64>, p: usize| v.map(|x| format!("{x:.p$}")).unwrap_or_else(|| "-".into());
+        s += &format!("alignment            {:?}\n", self.alignment).to_lowercase();
+        s += &format!(
+            "registered           {} / {} ({:.1} %)\n",
+            self.num_registered,
+            self.num_reference,
+            100.0 * self.registered_share
+        );
+        if self.num_unknown > 0 {
+            s += &format!("not in reference     {}\n", self.num_unknown);
+        }
+        s += &format!("sim3 scale           {}\n", opt(self.sim3_scale, 6));
+        s += &format!("scale drift          {}\n", opt(self.scale_drift, 4));
+        s += "                     median       p90          max\n";
+        if let (Some(c), Some(r)) = (self.centre_error_m, self.rotation_error_deg) {
+            s += &format!(
+                "centre error (m)     {:<12.4} {:<12.4} {:.4}\n",
+                c.median, c.p90, c.max
+            );
+            s += &format!(
+                "rotation error (deg) {:<12.4} {:<12.4} {:.4}\n",
+                r.median, r.p90, r.max
+            );
+        }
+        for t in &self.within {
+            s += &format!(
+                "within {:>3.0} cm {:>4.1} deg  {} / {} ({:.1} %)\n",
+                t.centre_m * 100.0,
+                t.rotation_deg,
+                t.count,
+                self.num_reference,
+                100.0 * t.share
+            );
+        }
+        s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Rotation3, UnitQuaternion};
+
+    fn reference() -> BTreeMap<String, Rigid3> {
+        (0..10)
+            .map(|i| {
+                let f = i as f64;
+                let r = UnitQuaternion::from_euler_angles(0.1 * f, -0.05 * f, 0.3 + 0.2 * f);
+                let centre = Vector3::new(f, 0.3 * f * f, 1.0 + (f * 0.7).sin());
+                (format!("im{i:02}.jpg"), Rigid3::new(r, -(r * centre)))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn umeyama_recovers_known_similarity() {
+        let truth = Sim3 {
+            scale: 2.5,
+            rotation: *Rotation3::from_euler_angles(0.3, -1.0, 2.0).matrix(),
+            translation: Vector3::new(5e5, 4.4e6, 200.0),
+        };
+        let src: Vec<Vector3<f64>> = (0..7)
+            .map(|i| Vector3::new(i as f64, (i * i) as f64 * 0.1, (i as f64).cos()))
+            .collect();
+        let dst: Vec<Vector3<f64>> = src.iter().map(|p| truth.transform_point(p)).collect();
+        let est = umeyama(&src, &dst).unwrap();
+        assert!((est.scale - 2.5).abs() < 1e-9);
+        assert!((est.rotation - truth.rotation).norm() < 1e-9);
+        assert!((est.translation - truth.translation).norm() < 1e-6);
+        // Collinear points: undetermined rotation.
+        let line: Vec<Vector3<f64>> = (0..5).map(|i| Vector3::new(i as f64, 0.0, 0.0)).collect();
+        assert!(umeyama(&line, &line).is_none());
+        assert!(umeyama(&src[..2], &dst[..2]).is_none());
+    }
+
+    #[test]
+    fn stats_by_hand() {
+        let s = Stats::of(&[5.0, 1.0, 3.0, 2.0, 4.0, 6.0, 7.0, 8.0, 9.0, 10.0]).unwrap();
+        assert_eq!(
+            s,
+            Stats {
+                median: 5.5,
+                p90: 9.0,
+                max: 10.0
+            }
+        );
+        let s = Stats::of(&[3.0]).unwrap();
+        assert_eq!(
+            s,
+            Stats {
+                median: 3.0,
+                p90: 3.0,
+                max: 3.0
+            }
+        );
+        assert!(Stats::of(&[]).is_none());
+    }
+
+    #[test]
+    fn known_errors_without_alignment() {
+        let reference = reference();
+        let mut model = reference.clone();
+        // Shift one camera centre by 3 cm.
+        let p = model["im02.jpg"];
+        let c = p.camera_center() + Vector3::new(0.0, 0.03, 0.0);
+        model.insert(
+            "im02.jpg".into(),
+            Rigid3::new(p.rotation, -(p.rotation * c)),
+        );
+        // Rotate another by 0.2 deg about its own optical axis, keeping its centre.
+        let p = model["im05.jpg"];
+        let c = p.camera_center();
+        let r =
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.2f64.to_radians()) * p.rotation;
+        model.insert("im05.jpg".into(), Rigid3::new(r, -(r * c)));
+        // Drop one and add one the reference does not know.
+        model.remove("im09.jpg");
+        model.insert("extra.jpg".into(), Rigid3::identity());
+        let rep = evaluate(&model, &reference, Alignment::None).unwrap();
+        assert_eq!(
+            (rep.num_reference, rep.num_registered, rep.num_unknown),
+            (10, 9, 1)
+        );
+        assert!((rep.registered_share - 0.9).abs() < 1e-12);
+        let e2 = rep.images.iter().find(|e| e.name == "im02.jpg").unwrap();
+        assert!((e2.centre_error_m - 0.03).abs() < 1e-9 && e2.rotation_error_deg < 1e-6);
+        let e5 = rep.images.iter().find(|e| e.name == "im05.jpg").unwrap();
+        assert!(e5.centre_error_m < 1e-9 && (e5.rotation_error_deg - 0.2).abs() < 1e-6);
+        // 7 exact images; im02 fails (2 cm, 0.1 deg) but passes (5 cm, 0.5 deg); im05 fails only 0.1 deg.
+        let counts: Vec<usize> = rep.within.iter().map(|t| t.count).collect();
+        assert_eq!(counts, vec![7, 9, 9]);
+        assert!((rep.within[0].share - 0.7).abs() < 1e-12);
+        let c = rep.centre_error_m.unwrap();
+        assert!(c.median < 1e-9 && (c.max - 0.03).abs() < 1e-9);
+    }
+
+    #[test]
+    fn scaled_model_sim3_gives_zero_error_and_scale() {
+        let reference = reference();
+        // The model is the reference in another frame, scaled by 2.
+        let model_from_ref = Sim3 {
+            scale: 2.0,
+            rotation: *Rotation3::from_euler_angles(0.2, 0.1, -0.7).matrix(),
+            translation: Vector3::new(3.0, -1.0, 0.5),
+        };
+        let model: BTreeMap<String, Rigid3> = reference
+            .iter()
+            .map(|(k, p)| (k.clone(), model_from_ref.transform_pose(p)))
+            .collect();
+        let rep = evaluate(&model, &reference, Alignment::Sim3).unwrap();
+        assert!((rep.sim3_scale.unwrap() - 0.5).abs() < 1e-9);
+        assert!((rep.scale_drift.unwrap() - 1.0).abs() < 1e-9);
+        assert!(rep.centre_error_m.unwrap().max < 1e-9);
+        assert!(rep.rotation_error_deg.unwrap().max < 1e-6);
+        assert_eq!(rep.within[0].count, 10);
+        // Without alignment the same model is far off.
+        let rep = evaluate(&model, &reference, Alignment::None).unwrap();
+        assert!(rep.centre_error_m.unwrap().median > 0.5);
+        assert_eq!(rep.within[2].count, 0);
+        assert!((rep.sim3_scale.unwrap() - 0.5).abs() < 1e-9);
+    }
+
+    #[test]
+    fn sim3_needs_three_images() {
+        let reference = reference();
+        let model: BTreeMap<String, Rigid3> = reference
+            .iter()
+            .take(2)
+            .map(|(k, v)| (k.clone(), *v))
+            .collect();
+        assert!(matches!(
+            evaluate(&model, &reference, Alignment::Sim3),
+            Err(EvalError::TooFewForSim3(2))
+        ));
+        let rep = evaluate(&model, &reference, Alignment::None).unwrap();
+        assert_eq!(rep.num_registered, 2);
+        assert!(rep.sim3_scale.is_none());
+    }
+}
