@@ -15,13 +15,29 @@
 //! of the top-left pixel is (0.5, 0.5)); residual thresholds are in pixels unless a
 //! name says otherwise. Every estimator validates its options and returns typed
 //! outcomes; nothing here panics on degenerate or non-finite input.
+pub mod absolute_pose;
 pub mod p3p;
 pub mod ransac;
+pub mod ray_plane;
 pub mod similarity;
+pub mod triangulation;
 
+pub use absolute_pose::{
+    estimate_absolute_pose, refine_absolute_pose, reprojection_error_px, AbsolutePoseOptions,
+    AbsolutePoseOutcome, Correspondence2D3D, PoseRefinementError, PoseRefinementOptions,
+    PoseRefinementSummary, RegisteredPose, RobustLoss,
+};
 pub use p3p::p3p;
 pub use ransac::{Estimator, RansacError, RansacOptions, RansacReport};
+pub use ray_plane::{
+    camera_ray_in_world, intersect_pixel_ray_plane, intersect_ray_plane, RayPlaneHit, RayPlaneMiss,
+    RayPlaneOptions,
+};
 pub use similarity::{estimate_sim3_ransac, umeyama, Sim3};
+pub use triangulation::{
+    triangulate_dlt, triangulate_point, triangulate_track_ransac, triangulation_angle_deg,
+    PointObservation, TriangulatedPoint, TriangulationFailure, TriangulationOptions,
+};
 
 /// An options struct failed validation: names the field and the problem.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

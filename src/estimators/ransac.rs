@@ -146,17 +146,32 @@ impl Score {
     }
 }
 
-fn score<E: Estimator>(estimator: &E, model: &E::Model, data: &[E::Datum], max_sq: f64) -> Score {
+/// Scores `model`; stops early (returning [`Score::WORST`]) once it has more
+/// outliers than `max_outliers`, i.e. once it can no longer reach the best
+/// model's inlier count.
+fn score<E: Estimator>(
+    estimator: &E,
+    model: &E::Model,
+    data: &[E::Datum],
+    max_sq: f64,
+    max_outliers: usize,
+) -> Score {
     let mut s = Score {
         num_inliers: 0,
         residual_sum_sq: 0.0,
     };
+    let mut num_outliers = 0;
     for datum in data {
         let r_sq = estimator.residual_sq(model, datum);
         // NaN compares false: an outlier.
         if r_sq <= max_sq {
             s.num_inliers += 1;
             s.residual_sum_sq += r_sq;
+        } else {
+            num_outliers += 1;
+            if num_outliers > max_outliers {
+                return Score::WORST;
+            }
         }
     }
     s
@@ -242,8 +257,8 @@ pub fn run<E: Estimator>(
                         best: &mut Option<(E::Model, Score)>,
                         required: &mut usize,
                         inliers: &mut Vec<E::Datum>| {
-        let s = score(estimator, &model, data, max_sq);
         let best_score = best.as_ref().map_or(Score::WORST, |b| b.1);
+        let s = score(estimator, &model, data, max_sq, n - best_score.num_inliers);
         if !s.is_better_than(&best_score) {
             return;
         }
@@ -257,7 +272,13 @@ pub fn run<E: Estimator>(
                 let Some(refined) = estimator.refine(&current, inliers) else {
                     break;
                 };
-                let refined_score = score(estimator, &refined, data, max_sq);
+                let refined_score = score(
+                    estimator,
+                    &refined,
+                    data,
+                    max_sq,
+                    n - current_score.num_inliers,
+                );
                 if !refined_score.is_better_than(&current_score) {
                     break;
                 }
