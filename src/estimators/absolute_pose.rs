@@ -382,8 +382,8 @@ pub struct AbsolutePoseOptions {
     pub ransac: RansacOptions,
     /// Fewest inliers to accept a pose. Default: 30 (COLMAP's `abs_pose_min_num_inliers`).
     pub min_num_inliers: usize,
-    /// Smallest inliers / correspondences to accept a pose. Default: 0.25
-    /// (COLMAP's `abs_pose_min_inlier_ratio`).
+    /// Smallest ratio of inliers to all given correspondences (unusable ones
+    /// included) to accept a pose. Default: 0.25 (COLMAP's `abs_pose_min_inlier_ratio`).
     pub min_inlier_ratio: f64,
     /// Refine the RANSAC pose on its inliers. Default: true.
     pub refine: bool,

@@ -61,7 +61,9 @@ pub fn p3p(bearings: &[Vector3<f64>; 3], points_in_world: &[Vector3<f64>; 3]) ->
     let Some((d0, d_other)) = degenerate_conic(&d1, &d2) else {
         return vec![];
     };
-    let eigen = SymmetricEigen::new(d0);
+    let Some(eigen) = symmetric_eigen(d0) else {
+        return vec![];
+    };
     let mut order = [0usize, 1, 2];
     order.sort_by(|&i, &j| {
         eigen.eigenvalues[j]
@@ -116,6 +118,15 @@ pub fn p3p(bearings: &[Vector3<f64>; 3], points_in_world: &[Vector3<f64>; 3]) ->
     solutions
 }
 
+/// Eigen-decomposition with a bounded iteration count (nalgebra's `new` iterates
+/// without limit); `None` for non-finite input or no convergence.
+fn symmetric_eigen(m: Matrix3<f64>) -> Option<SymmetricEigen<f64, nalgebra::U3>> {
+    if !m.iter().all(|x| x.is_finite()) {
+        return None;
+    }
+    SymmetricEigen::try_new(m, f64::EPSILON, 1000)
+}
+
 fn det3(c0: &Vector3<f64>, c1: &Vector3<f64>, c2: &Vector3<f64>) -> f64 {
     c0.dot(&c1.cross(c2))
 }
@@ -154,11 +165,10 @@ fn degenerate_conic(d1: &Matrix3<f64>, d2: &Matrix3<f64>) -> Option<(Matrix3<f64
     for &g in &roots[..count] {
         let (w1, w2) = if swap { (g, 1.0) } else { (1.0, g) };
         let d0 = d1 * w1 + d2 * w2;
-        let mut ev: Vec<f64> = SymmetricEigen::new(d0)
-            .eigenvalues
-            .iter()
-            .map(|e| e.abs())
-            .collect();
+        let Some(eigen) = symmetric_eigen(d0) else {
+            continue;
+        };
+        let mut ev: Vec<f64> = eigen.eigenvalues.iter().map(|e| e.abs()).collect();
         ev.sort_by(|p, q| q.total_cmp(p));
         let quality = ev[2] / ev[1];
         if !quality.is_finite() {

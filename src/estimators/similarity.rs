@@ -82,7 +82,7 @@ pub fn umeyama(pairs: &[(Vector3<f64>, Vector3<f64>)], estimate_scale: bool) -> 
     if !(cov.iter().all(|x| x.is_finite()) && var_a.is_finite() && var_a > 0.0) {
         return None;
     }
-    let svd = cov.svd(true, true);
+    let svd = cov.try_svd(true, true, f64::EPSILON, 1000)?;
     let (u, v_t) = (svd.u?, svd.v_t?);
     let d = svd.singular_values; // sorted in decreasing order
     if d[1] <= DEGENERACY_RATIO * d[0] || d[0] <= 0.0 {

@@ -201,7 +201,7 @@ pub fn triangulate_dlt(views: &[(Rigid3, Vector3<f64>)]) -> Option<Vector3<f64>>
     if !a.iter().all(|x| x.is_finite()) {
         return None;
     }
-    let svd = a.svd(false, true);
+    let svd = a.try_svd(false, true, f64::EPSILON, 1000)?;
     let v_t = svd.v_t?;
     // Singular values are sorted decreasingly: the last row of Vᵀ is the null vector.
     let h = v_t.row(3);
