@@ -3,6 +3,7 @@ mod common;
 
 mod camera_models;
 mod database;
+mod estimators;
 mod map;
 mod model_io;
 mod solver;
