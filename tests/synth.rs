@@ -11,12 +11,9 @@ use colmap_lidar::synth::geometry::Scene;
 use colmap_lidar::synth::lidar::{sample_lidar, LidarOptions};
 use colmap_lidar::synth::scenes::{build_scene, trajectory};
 use colmap_lidar::synth::{
-    generate_scene, lens, make_database, read_init_pose, BodyPose, HarnessOptions, SceneKind,
-    SynthOptions,
+    generate_scene, lens, read_init_pose, BodyPose, SceneKind, SynthOptions,
 };
 use nalgebra::{Vector2, Vector3};
-
-use crate::common::have_colmap;
 
 const OFFSET: [f64; 3] = [500000.0, 4400000.0, 200.0];
 
@@ -278,18 +275,12 @@ fn synth_evaluate_command_on_ground_truth() {
 
 #[test]
 fn synth_colmap_harness_gives_features_and_matches() {
-    if !have_colmap() {
+    // The shared 16-image yard scene, rendered and run through COLMAP once.
+    let Some(scene) = crate::common::yard_db() else {
         return;
-    }
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("yard");
-    let mut opts = small_options(SceneKind::Yard, 10);
-    opts.width = 640;
-    opts.height = 480;
-    generate_scene(&opts, &out).unwrap();
-    let db = make_database(&out, &HarnessOptions::default()).unwrap();
-    let snap = read_database(&db).unwrap();
-    assert_eq!(snap.images.len(), 10);
+    };
+    let snap = read_database(&scene.database).unwrap();
+    assert_eq!(snap.images.len(), 16);
     let id_by_name: BTreeMap<String, _> = snap
         .images
         .values()
@@ -304,7 +295,7 @@ fn synth_colmap_harness_gives_features_and_matches() {
         .iter()
         .map(|g| ((g.image_id1, g.image_id2), g.inlier_matches.len()))
         .collect();
-    for i in 0..9 {
+    for i in 0..15 {
         let a = id_by_name[&format!("frame_{i:04}.jpg")];
         let b = id_by_name[&format!("frame_{:04}.jpg", i + 1)];
         let key = if a < b { (a, b) } else { (b, a) };
