@@ -6,6 +6,7 @@
 //! bridge), `map` (the LiDAR map), `synth` (synthetic scenes), `commands`
 //! (one module per CLI command).
 pub mod commands;
+pub mod estimators;
 pub mod eval;
 pub mod io;
 pub mod map;

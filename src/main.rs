@@ -23,6 +23,17 @@ struct Cli {
 enum Command {
     /// Summarise a COLMAP database: cameras, images, keypoints, verified pairs, tracks.
     Inspect(commands::inspect::InspectArgs),
+    /// Prepare a raw point cloud (PLY, PCD, LAS/LAZ) as a map: downsample, estimate normals.
+    PrepareMap(commands::prepare_map::PrepareMapArgs),
+    /// Render a synthetic scene with exact ground truth (images, LiDAR map, true cameras).
+    Synth(commands::synth::SynthArgs),
+    /// Compare a model's camera poses with a reference model (ground truth).
+    Evaluate(commands::evaluate::EvaluateArgs),
+    /// Render what the map looks like from a registered image: a colour-mapped depth PNG.
+    Depth(commands::depth::DepthArgs),
+    /// Benchmark helpers for the map (generate / load a large building-like cloud).
+    #[command(hide = true)]
+    BenchMap(commands::bench_map::BenchMapArgs),
 }
 
 fn main() -> ExitCode {
@@ -38,12 +49,33 @@ fn main() -> ExitCode {
         .init();
     let result = match &cli.command {
         Command::Inspect(args) => commands::inspect::run(args),
+        Command::PrepareMap(args) => commands::prepare_map::run(args),
+        Command::Depth(args) => commands::depth::run(args),
+        Command::Synth(args) => commands::synth::run(args),
+        Command::Evaluate(args) => commands::evaluate::run(args),
+        Command::BenchMap(args) => commands::bench_map::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
-            eprintln!("error: {err:#}");
+            eprintln!("error: {}", error_chain(&err));
             ExitCode::FAILURE
         }
     }
+}
+
+/// The error and its causes on one line, skipping a cause whose text the
+/// message before it already contains (typed errors often quote their source).
+fn error_chain(err: &anyhow::Error) -> String {
+    let mut text = err.to_string();
+    let mut last = text.clone();
+    for cause in err.chain().skip(1) {
+        let cause = cause.to_string();
+        if !last.contains(&cause) {
+            text.push_str(": ");
+            text.push_str(&cause);
+        }
+        last = cause;
+    }
+    text
 }

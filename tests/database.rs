@@ -462,3 +462,120 @@ fn newer_schemas_are_read_and_reported() {
         db.schema.notes
     );
 }
+
+fn f64s(blob: &[u8]) -> Vec<f64> {
+    blob.chunks_exact(8)
+        .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+        .collect()
+}
+
+/// A database written by the real `feature_extractor` + `exhaustive_matcher` on
+/// a rendered scene: counts agree with direct SQL, and every verified inlier
+/// satisfies the pair's stored epipolar geometry, which checks the keypoint
+/// decoding and the pair-id order (a swapped pair would fail it).
+#[test]
+fn real_colmap_database_is_read_and_summarised() {
+    let Some(scene) = common::yard_db() else {
+        return;
+    };
+    let path = &scene.database;
+    let before = checksum(path);
+    let db = read_database(path).unwrap();
+    assert_eq!(checksum(path), before);
+
+    let conn =
+        Connection::open_with_flags(path, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY).unwrap();
+    let count = |sql: &str| -> i64 { conn.query_row(sql, [], |r| r.get(0)).unwrap() };
+    assert_eq!(db.images.len() as i64, count("SELECT COUNT(*) FROM images"));
+    assert_eq!(db.images.len(), 16);
+    assert_eq!(db.cameras.len(), 1, "single camera");
+    let total_kp: usize = db.keypoints.values().map(Vec::len).sum();
+    assert_eq!(total_kp as i64, count("SELECT SUM(rows) FROM keypoints"));
+    let verified = db.two_view_geometries.len() as i64;
+    assert_eq!(
+        verified,
+        count("SELECT COUNT(*) FROM two_view_geometries WHERE rows > 0")
+    );
+    assert!(verified >= 15, "only {verified} verified pairs");
+
+    // Epipolar check with the stored F (pixels) or E (normalised rays).
+    let camera = db.cameras.values().next().unwrap();
+    let mut checked = 0;
+    for g in &db.two_view_geometries {
+        let pid = image_ids_to_pair_id(g.image_id1, g.image_id2) as i64;
+        let (f_blob, e_blob): (Option<Vec<u8>>, Option<Vec<u8>>) = conn
+            .query_row(
+                "SELECT F, E FROM two_view_geometries WHERE pair_id = ?1",
+                [pid],
+                |r| Ok((r.get(0)?, r.get(1)?)),
+            )
+            .unwrap();
+        let (k1, k2) = (&db.keypoints[&g.image_id1], &db.keypoints[&g.image_id2]);
+        let residual: Box<dyn Fn([u32; 2]) -> f64> = match g.config {
+            2 => {
+                let e = nalgebra::Matrix3::from_row_slice(&f64s(&e_blob.unwrap()));
+                let cam = camera.clone();
+                Box::new(move |m: [u32; 2]| {
+                    let x1 = cam.unproject(&k1[m[0] as usize]).unwrap();
+                    let x2 = cam.unproject(&k2[m[1] as usize]).unwrap();
+                    // Sampson distance in normalised units, scaled to pixels.
+                    let ex1 = e * x1;
+                    let etx2 = e.transpose() * x2;
+                    let num = x2.dot(&ex1).powi(2);
+                    let den = ex1.x.powi(2) + ex1.y.powi(2) + etx2.x.powi(2) + etx2.y.powi(2);
+                    (num / den).sqrt() * cam.mean_focal_length()
+                })
+            }
+            3 => {
+                let f = nalgebra::Matrix3::from_row_slice(&f64s(&f_blob.unwrap()));
+                Box::new(move |m: [u32; 2]| {
+                    let p1 = k1[m[0] as usize];
+                    let p2 = k2[m[1] as usize];
+                    let (x1, x2) = (p1.push(1.0), p2.push(1.0));
+                    let fx1 = f * x1;
+                    let ftx2 = f.transpose() * x2;
+                    let num = x2.dot(&fx1).powi(2);
+                    let den = fx1.x.powi(2) + fx1.y.powi(2) + ftx2.x.powi(2) + ftx2.y.powi(2);
+                    (num / den).sqrt()
+                })
+            }
+            _ => continue,
+        };
+        let mut errors: Vec<f64> = g.inlier_matches.iter().map(|&m| residual(m)).collect();
+        errors.sort_by(f64::total_cmp);
+        let median = errors[errors.len() / 2];
+        let bad = errors.iter().filter(|e| **e > 4.0).count();
+        // COLMAP's inliers are decided with its own estimate; a few sit just
+        // outside 4 px of the stored matrix. A swapped pair fails them all.
+        assert!(
+            median < 1.0 && bad * 20 <= errors.len(),
+            "pair {} {}: median {median:.2} px, {bad} of {} inliers beyond 4 px",
+            g.image_id1,
+            g.image_id2,
+            errors.len()
+        );
+        checked += 1;
+    }
+    assert!(
+        checked >= 10,
+        "only {checked} pairs had a calibrated/uncalibrated geometry"
+    );
+
+    // The command-line summary agrees.
+    let out = Command::new(common::bin())
+        .args(["inspect", "--database_path"])
+        .arg(path)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("Images    16"), "{text}");
+    assert!(
+        text.contains(&format!("Keypoints {total_kp} in all")),
+        "{text}"
+    );
+    assert!(
+        text.contains(&format!("Verified pairs  {verified} ")),
+        "{text}"
+    );
+}

@@ -1,1 +1,309 @@
-//! Integration tests: synth.
+//! Integration tests: synthetic scenes (ground truth, LiDAR, projections), the
+//! COLMAP database harness and the evaluate command.
+use std::collections::BTreeMap;
+use std::io::Read;
+use std::path::Path;
+
+use colmap_lidar::eval::{evaluate, load_poses, Alignment};
+use colmap_lidar::io::database::read_database;
+use colmap_lidar::scene::Rigid3;
+use colmap_lidar::synth::geometry::Scene;
+use colmap_lidar::synth::lidar::{sample_lidar, LidarOptions};
+use colmap_lidar::synth::scenes::{build_scene, trajectory};
+use colmap_lidar::synth::{
+    generate_scene, lens, read_init_pose, BodyPose, SceneKind, SynthOptions,
+};
+use nalgebra::{Vector2, Vector3};
+
+const OFFSET: [f64; 3] = [500000.0, 4400000.0, 200.0];
+
+fn small_options(scene: SceneKind, n: usize) -> SynthOptions {
+    let mut opts = SynthOptions {
+        scene,
+        num_images: n,
+        width: 320,
+        height: 240,
+        seed: 3,
+        offset_m: Vector3::from(OFFSET),
+        ..SynthOptions::default()
+    };
+    opts.lidar.max_points = 150_000;
+    opts
+}
+
+/// Minimal reader of the generator's binary PLY: (points, normals if present).
+fn read_ply(path: &Path) -> (Vec<Vector3<f64>>, Option<Vec<Vector3<f32>>>) {
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .unwrap()
+        .read_to_end(&mut bytes)
+        .unwrap();
+    let end = bytes
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .unwrap()
+        + 11;
+    let header = std::str::from_utf8(&bytes[..end]).unwrap();
+    assert!(header.contains("format binary_little_endian 1.0"));
+    let n: usize = header
+        .lines()
+        .find_map(|l| l.strip_prefix("element vertex "))
+        .unwrap()
+        .parse()
+        .unwrap();
+    let with_normals = header.contains("property float nx");
+    let stride = if with_normals { 36 } else { 24 };
+    assert_eq!(bytes.len() - end, n * stride, "{}", path.display());
+    let f64_at = |o: usize| f64::from_le_bytes(bytes[o..o + 8].try_into().unwrap());
+    let f32_at = |o: usize| f32::from_le_bytes(bytes[o..o + 4].try_into().unwrap());
+    let mut points = Vec::with_capacity(n);
+    let mut normals = Vec::new();
+    for i in 0..n {
+        let o = end + i * stride;
+        points.push(Vector3::new(f64_at(o), f64_at(o + 8), f64_at(o + 16)));
+        if with_normals {
+            normals.push(Vector3::new(f32_at(o + 24), f32_at(o + 28), f32_at(o + 32)));
+        }
+    }
+    (points, with_normals.then_some(normals))
+}
+
+#[test]
+fn synth_scene_writes_ground_truth_images_and_init_pose() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("yard");
+    let opts = small_options(SceneKind::Yard, 8);
+    let summary = generate_scene(&opts, &out).unwrap();
+    assert_eq!(summary.num_images, 8);
+    // Images: 8 JPEGs of the right size, in trajectory order.
+    let mut names: Vec<String> = std::fs::read_dir(out.join("images"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        (0..8)
+            .map(|i| format!("frame_{i:04}.jpg"))
+            .collect::<Vec<_>>()
+    );
+    let img = image::open(out.join("images").join(&names[3])).unwrap();
+    assert_eq!((img.width(), img.height()), (320, 240));
+    // Not flat: the pixel values spread widely.
+    let gray = img.to_luma8();
+    let (lo, hi) = gray
+        .pixels()
+        .fold((255u8, 0u8), |(lo, hi), p| (lo.min(p.0[0]), hi.max(p.0[0])));
+    assert!(hi - lo > 100, "{lo} {hi}");
+
+    // Ground truth: the trajectory shifted by the offset, exactly.
+    let gt = load_poses(&out.join("gt")).unwrap();
+    let truth = trajectory(SceneKind::Yard, 8, opts.seed);
+    assert_eq!(gt.len(), 8);
+    for (i, pose) in truth.iter().enumerate() {
+        let shifted = BodyPose {
+            position_m: pose.position_m + Vector3::from(OFFSET),
+            ..*pose
+        };
+        let expected = shifted.to_cam_from_world();
+        let got = gt[&format!("frame_{i:04}.jpg")];
+        assert!((got.camera_center() - shifted.position_m).norm() < 1e-6);
+        assert!(got.rotation.angle_to(&expected.rotation) < 1e-9);
+    }
+    let cameras = std::fs::read_to_string(out.join("gt/cameras.txt")).unwrap();
+    assert!(
+        cameras
+            .lines()
+            .any(|l| l.starts_with("1 SIMPLE_RADIAL 320 240 256 160 120 -0.04")),
+        "{cameras}"
+    );
+
+    // init_pose.txt: exact = first gt pose in body convention; perturbed 0.3 m / 3 deg away.
+    let (exact, perturbed) = read_init_pose(&out.join("init_pose.txt")).unwrap();
+    let to_pose = |a: [f64; 6]| {
+        BodyPose::from_degrees(Vector3::new(a[0], a[1], a[2]), a[3], a[4], a[5]).to_cam_from_world()
+    };
+    let first = gt["frame_0000.jpg"];
+    let e = to_pose(exact);
+    assert!((e.camera_center() - first.camera_center()).norm() < 1e-6);
+    assert!(e.rotation.angle_to(&first.rotation).to_degrees() < 1e-6);
+    let p = to_pose(perturbed);
+    assert!(((p.camera_center() - first.camera_center()).norm() - 0.3).abs() < 1e-6);
+    assert!((p.rotation.angle_to(&first.rotation).to_degrees() - 3.0).abs() < 1e-5);
+}
+
+/// Distance from each LiDAR point to the nearest surface of the scene.
+fn surface_distances(scene: &Scene, points: &[Vector3<f64>], step: usize) -> Vec<f64> {
+    points
+        .iter()
+        .step_by(step)
+        .map(|p| scene.distance_to_surfaces(p))
+        .collect()
+}
+
+#[test]
+fn synth_lidar_points_lie_on_the_surfaces() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("room");
+    let opts = small_options(SceneKind::Room, 2);
+    let summary = generate_scene(&opts, &out).unwrap();
+    let (points, normals) = read_ply(&out.join("lidar.ply"));
+    let (raw, raw_normals) = read_ply(&out.join("lidar_raw.ply"));
+    assert!(raw_normals.is_none());
+    assert_eq!(points.len(), summary.num_lidar_points);
+    assert_eq!(raw, points);
+    let normals = normals.unwrap();
+    assert!(normals.iter().all(|n| (n.norm() - 1.0).abs() < 1e-5));
+    let scene = build_scene(SceneKind::Room, opts.seed);
+    let local: Vec<Vector3<f64>> = points.iter().map(|p| p - Vector3::from(OFFSET)).collect();
+    let mut d = surface_distances(&scene, &local, 7);
+    d.sort_by(f64::total_cmp);
+    let n = d.len();
+    // |N(0, 1.5 cm)|: median 1.01 cm, 99th percentile 3.9 cm; the 0.1 % outliers sit beyond.
+    let median = d[n / 2];
+    assert!((median - 0.0101).abs() < 0.0015, "median {median}");
+    let p99 = d[n * 99 / 100];
+    assert!(p99 > 0.03 && p99 < 0.05, "p99 {p99}");
+    let far = d.iter().filter(|&&x| x > 0.1).count() as f64 / n as f64;
+    assert!(far > 0.0002 && far < 0.003, "outlier share {far}");
+    // Points were dropped inside the holes: fewer than area / spacing^2.
+    let area: f64 = scene.quads.iter().map(|q| q.area_m2()).sum();
+    assert!((points.len() as f64) < 0.99 * area / summary.lidar_spacing_m.powi(2));
+}
+
+#[test]
+fn synth_projections_agree_with_ray_casting() {
+    // Noise-free samples projected into the true cameras (read from gt/) must
+    // land on a pixel whose ray, cast through the scene, hits the sample or
+    // something in front of it (occlusion), never anything behind it.
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("corridor");
+    let opts = small_options(SceneKind::Corridor, 6);
+    generate_scene(&opts, &out).unwrap();
+    let gt = load_poses(&out.join("gt")).unwrap();
+    let camera = opts.camera();
+    let scene = build_scene(SceneKind::Corridor, opts.seed);
+    let map = sample_lidar(
+        &scene,
+        &LidarOptions {
+            spacing_m: Some(0.1),
+            noise_sigma_m: 0.0,
+            num_holes: 0,
+            outlier_fraction: 0.0,
+            ..LidarOptions::default()
+        },
+    );
+    let offset = Vector3::from(OFFSET);
+    // Points outside the field of view can fold back into the image through
+    // the radial distortion: keep those within the image corners' ray radius.
+    let max_radius = [(0.0, 0.0), (320.0, 0.0), (0.0, 240.0), (320.0, 240.0)]
+        .iter()
+        .map(|&(u, v)| lens::unproject(&camera, &Vector2::new(u, v)).xy().norm())
+        .fold(0.0, f64::max);
+    let (mut visible, mut occluded) = (0usize, 0usize);
+    for pose in gt.values() {
+        // gt is in the offset world; the scene is local.
+        let cam_from_local = Rigid3::new(pose.rotation, pose.translation + pose.rotation * offset);
+        let centre = cam_from_local.camera_center();
+        for p in &map.points {
+            let pc = cam_from_local.transform_point(p);
+            if pc.z <= 0.0 || (pc.xy() / pc.z).norm() > max_radius {
+                continue;
+            }
+            let Some(px) = lens::project(&camera, &pc) else {
+                continue;
+            };
+            if px.x < 0.0 || px.y < 0.0 || px.x >= 320.0 || px.y >= 240.0 {
+                continue;
+            }
+            let ray = lens::unproject(&camera, &Vector2::new(px.x, px.y));
+            let dir_world = cam_from_local.rotation.inverse() * ray.normalize();
+            let range = (p - centre).norm();
+            let hit = scene
+                .cast(&centre, &dir_world, 1e-4, 1e4)
+                .expect("a closed corridor: every ray hits");
+            assert!(
+                hit.t < range + 1e-6,
+                "hit behind the sample: {} > {range}",
+                hit.t
+            );
+            if hit.t > range - 1e-6 {
+                visible += 1;
+            } else {
+                occluded += 1;
+            }
+        }
+    }
+    assert!(
+        visible > 5000 && occluded > 100,
+        "visible {visible} occluded {occluded}"
+    );
+}
+
+#[test]
+fn synth_evaluate_command_on_ground_truth() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("yard");
+    generate_scene(&small_options(SceneKind::Yard, 5), &out).unwrap();
+    let json = dir.path().join("eval.json");
+    let args = colmap_lidar::commands::evaluate::EvaluateArgs {
+        model: out.join("gt"),
+        reference: out.join("gt"),
+        align: Alignment::Sim3,
+        json: Some(json.clone()),
+    };
+    colmap_lidar::commands::evaluate::run(&args).unwrap();
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(json).unwrap()).unwrap();
+    assert_eq!(v["num_registered"], 5);
+    assert!((v["sim3_scale"].as_f64().unwrap() - 1.0).abs() < 1e-9);
+    assert!(v["centre_error_m"]["max"].as_f64().unwrap() < 1e-6);
+    assert_eq!(v["within"][0]["count"], 5);
+    // Georeferenced ground truth against itself moved by 1 cm: every centre error is 1 cm.
+    let gt = load_poses(&out.join("gt")).unwrap();
+    let moved: BTreeMap<String, Rigid3> = gt
+        .iter()
+        .map(|(k, p)| {
+            let c = p.camera_center() + Vector3::new(0.01, 0.0, 0.0);
+            (k.clone(), Rigid3::new(p.rotation, -(p.rotation * c)))
+        })
+        .collect();
+    let rep = evaluate(&moved, &gt, Alignment::None).unwrap();
+    let c = rep.centre_error_m.unwrap();
+    assert!((c.median - 0.01).abs() < 1e-6 && (c.max - 0.01).abs() < 1e-6);
+}
+
+#[test]
+fn synth_colmap_harness_gives_features_and_matches() {
+    // The shared 16-image yard scene, rendered and run through COLMAP once.
+    let Some(scene) = crate::common::yard_db() else {
+        return;
+    };
+    let snap = read_database(&scene.database).unwrap();
+    assert_eq!(snap.images.len(), 16);
+    let id_by_name: BTreeMap<String, _> = snap
+        .images
+        .values()
+        .map(|im| (im.name.clone(), im.id))
+        .collect();
+    for (name, id) in &id_by_name {
+        let n = snap.num_keypoints(*id);
+        assert!(n > 1000, "{name}: only {n} keypoints");
+    }
+    let inliers: BTreeMap<_, usize> = snap
+        .two_view_geometries
+        .iter()
+        .map(|g| ((g.image_id1, g.image_id2), g.inlier_matches.len()))
+        .collect();
+    for i in 0..15 {
+        let a = id_by_name[&format!("frame_{i:04}.jpg")];
+        let b = id_by_name[&format!("frame_{:04}.jpg", i + 1)];
+        let key = if a < b { (a, b) } else { (b, a) };
+        let n = inliers.get(&key).copied().unwrap_or(0);
+        assert!(
+            n > 100,
+            "frames {i} and {}: only {n} verified matches",
+            i + 1
+        );
+    }
+}

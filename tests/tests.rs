@@ -3,6 +3,7 @@ mod common;
 
 mod camera_models;
 mod database;
+mod estimators;
 mod map;
 mod mapper;
 mod model_io;

@@ -1,4 +1,5 @@
 //! One module per command of the `colmap-lidar` binary.
+pub mod bench_map;
 pub mod depth;
 pub mod evaluate;
 pub mod inspect;

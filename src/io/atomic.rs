@@ -2,6 +2,7 @@
 //! into place, so a failed run never leaves a partial output behind.
 use std::fs;
 use std::io;
+use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 
 fn parent_of(path: &Path) -> PathBuf {
@@ -27,6 +28,8 @@ where
         .prefix(".colmap-lidar-tmp-")
         .tempdir_in(&parent)?;
     fill(tmp.path())?;
+    // Temporary folders are created 0700; outputs get the usual 0755.
+    fs::set_permissions(tmp.path(), fs::Permissions::from_mode(0o755))?;
     let staged = tmp.keep();
     if dir.exists() {
         let old = tempfile::Builder::new()
@@ -67,6 +70,8 @@ where
     let mut writer = io::BufWriter::new(file);
     fill(&mut writer)?;
     let file = writer.into_inner().map_err(|e| e.into_error())?;
+    // Temporary files are created 0600; outputs get the usual 0644.
+    file.set_permissions(fs::Permissions::from_mode(0o644))?;
     file.sync_all()?;
     tmp_path.persist(path).map_err(|e| e.error)?;
     Ok(())
@@ -103,12 +108,20 @@ mod tests {
         write_dir_atomically::<io::Error>(&out, |tmp| fs::write(tmp.join("new.txt"), "new"))
             .unwrap();
         assert!(!out.join("old.txt").exists());
+        assert_eq!(
+            fs::metadata(&out).unwrap().permissions().mode() & 0o777,
+            0o755
+        );
         assert_eq!(fs::read_to_string(out.join("new.txt")).unwrap(), "new");
 
         let file = root.path().join("f.txt");
         write_file_atomically::<io::Error>(&file, |w| w.write_all(b"one")).unwrap();
         write_file_atomically::<io::Error>(&file, |w| w.write_all(b"two")).unwrap();
         assert_eq!(fs::read_to_string(&file).unwrap(), "two");
+        assert_eq!(
+            fs::metadata(&file).unwrap().permissions().mode() & 0o777,
+            0o644
+        );
         assert_eq!(fs::read_dir(root.path()).unwrap().count(), 2);
     }
 }

@@ -64,7 +64,7 @@ pub struct NormalOptions {
     pub min_neighbours: usize,
     /// In radius mode, dense neighbourhoods are subsampled (a regular stride
     /// through the candidates) to about this many neighbours, which bounds
-    /// the cost on very dense clouds. Default 256.
+    /// the cost on very dense clouds. Default 512.
     pub max_neighbours: usize,
     /// Default [`NormalOrientation::UpThenTowardsCentre`].
     pub orientation: NormalOrientation,
@@ -80,7 +80,7 @@ impl Default for NormalOptions {
             radius_m: 0.15,
             k_nearest: None,
             min_neighbours: 6,
-            max_neighbours: 256,
+            max_neighbours: 512,
             orientation: NormalOrientation::UpThenTowardsCentre,
             recompute_all: false,
         }
@@ -329,8 +329,13 @@ impl CellGrid {
         })
     }
 
+    /// Positions in `order` of the points of cell `c`.
+    fn cell_range(&self, c: usize) -> std::ops::Range<usize> {
+        self.starts[c] as usize..self.starts[c + 1] as usize
+    }
+
     fn cell_points(&self, c: usize) -> &[u32] {
-        &self.order[self.starts[c] as usize..self.starts[c + 1] as usize]
+        &self.order[self.cell_range(c)]
     }
 
     /// Index of the cell with `key`, if occupied.
@@ -512,6 +517,103 @@ fn fit_plane(n: usize, s1: &[f64; 3], s2: &[[f64; 3]; 3]) -> Option<([f64; 3], f
     Some((normal, planarity as f32))
 }
 
+/// Lanes of the neighbour accumulation (the compiler vectorises them).
+const LANES: usize = 8;
+
+/// Neighbour candidates of one cell, structure of arrays in blocks of
+/// [`LANES`], the last block padded with far-away points.
+#[derive(Default)]
+struct Candidates {
+    x: Vec<[f32; LANES]>,
+    y: Vec<[f32; LANES]>,
+    z: Vec<[f32; LANES]>,
+    len: usize,
+}
+
+impl Candidates {
+    /// Far enough never to be a neighbour, small enough that `0 * d` is 0.
+    const FAR_M: f32 = 1.0e9;
+
+    /// Every `stride`-th point of the concatenation of `slices`.
+    fn fill<'a>(&mut self, slices: impl Iterator<Item = &'a [[f32; 3]]>, stride: usize) {
+        self.x.clear();
+        self.y.clear();
+        self.z.clear();
+        self.len = 0;
+        // Position in the concatenation of the next point to take.
+        let mut skip = 0usize;
+        for slice in slices {
+            let mut k = skip;
+            while k < slice.len() {
+                let p = slice[k];
+                let (b, l) = (self.len / LANES, self.len % LANES);
+                if l == 0 {
+                    self.x.push([Self::FAR_M; LANES]);
+                    self.y.push([Self::FAR_M; LANES]);
+                    self.z.push([Self::FAR_M; LANES]);
+                }
+                self.x[b][l] = p[0];
+                self.y[b][l] = p[1];
+                self.z[b][l] = p[2];
+                self.len += 1;
+                k += stride;
+            }
+            skip = k - slice.len();
+        }
+    }
+
+    fn offset(&self, j: usize, q: [f32; 3]) -> [f32; 3] {
+        let (b, l) = (j / LANES, j % LANES);
+        [
+            self.x[b][l] - q[0],
+            self.y[b][l] - q[1],
+            self.z[b][l] - q[2],
+        ]
+    }
+
+    /// Count, first and second moments of the offsets `p - q` of the
+    /// candidates within `sqrt(radius_sq)` of `q`. Accumulated in f32 per
+    /// lane (offsets are below the radius, so sums of a few hundred squares
+    /// lose nothing that matters), lanes summed in f64 in a fixed order.
+    fn radius_moments(&self, q: [f32; 3], radius_sq: f32) -> (usize, [f64; 3], [[f64; 3]; 3]) {
+        let mut n = [0.0f32; LANES];
+        let (mut sx, mut sy, mut sz) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
+        let (mut sxx, mut sxy, mut sxz) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
+        let (mut syy, mut syz, mut szz) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
+        for ((xb, yb), zb) in self.x.iter().zip(&self.y).zip(&self.z) {
+            for l in 0..LANES {
+                let dx = xb[l] - q[0];
+                let dy = yb[l] - q[1];
+                let dz = zb[l] - q[2];
+                let w = if dx * dx + dy * dy + dz * dz <= radius_sq {
+                    1.0f32
+                } else {
+                    0.0
+                };
+                let (wx, wy, wz) = (w * dx, w * dy, w * dz);
+                n[l] += w;
+                sx[l] += wx;
+                sy[l] += wy;
+                sz[l] += wz;
+                sxx[l] += wx * dx;
+                sxy[l] += wx * dy;
+                sxz[l] += wx * dz;
+                syy[l] += wy * dy;
+                syz[l] += wy * dz;
+                szz[l] += wz * dz;
+            }
+        }
+        let total = |a: &[f32; LANES]| a.iter().map(|v| f64::from(*v)).sum::<f64>();
+        let (xx, xy, xz) = (total(&sxx), total(&sxy), total(&sxz));
+        let (yy, yz, zz) = (total(&syy), total(&syz), total(&szz));
+        (
+            total(&n).round() as usize,
+            [total(&sx), total(&sy), total(&sz)],
+            [[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]],
+        )
+    }
+}
+
 /// Cosine of the largest angle from the z axis at which a normal counts as
 /// vertical for orientation (30 degrees).
 const VERTICAL_COS: f64 = 0.866_025_403_784_438_6;
@@ -567,7 +669,13 @@ pub fn estimate_normals(
     };
     let up_first = matches!(options.orientation, NormalOrientation::UpThenTowardsCentre);
     let radius_sq = (options.radius_m * options.radius_m) as f32;
-    let points = &cloud.points;
+    // The points in grid order: each cell's points are contiguous, so the
+    // neighbour gathers below read memory sequentially.
+    let sorted_points: Vec<[f32; 3]> = grid
+        .order
+        .par_iter()
+        .map(|&i| cloud.points[i as usize])
+        .collect();
 
     // Results in grid order: (normal, planarity); planarity < 0 = failed.
     let mut results = vec![([0.0f32; 3], -1.0f32); n];
@@ -580,53 +688,46 @@ pub fn estimate_normals(
         rest = tail;
     }
     slices.into_par_iter().enumerate().for_each_init(
-        || (Vec::<[f32; 3]>::new(), Vec::<(f32, u32)>::new()),
+        || (Candidates::default(), Vec::<(f32, u32)>::new()),
         |(candidates, nearest), (c, out)| {
-            candidates.clear();
+            // Neighbour cells' points; in radius mode, a regular subsample
+            // when there are many more than `max_neighbours`.
             let key = grid.keys[c];
+            let mut cells = [usize::MAX; 27];
+            let mut total = 0usize;
+            let mut slot = 0;
             for dx in -1..=1 {
                 for dy in -1..=1 {
                     for dz in -1..=1 {
                         if let Some(nc) = grid.find(grid.neighbour_key(key, [dx, dy, dz])) {
-                            candidates
-                                .extend(grid.cell_points(nc).iter().map(|&i| points[i as usize]));
+                            cells[slot] = nc;
+                            total += grid.cell_range(nc).len();
                         }
+                        slot += 1;
                     }
                 }
             }
             let stride = match options.k_nearest {
                 Some(_) => 1,
-                None => (candidates.len() / (3 * options.max_neighbours)).max(1),
+                None => total.div_ceil(3 * options.max_neighbours).max(1),
             };
-            for (local, (&i, slot)) in grid.cell_points(c).iter().zip(out.iter_mut()).enumerate() {
-                let q = points[i as usize];
-                let mut count = 0usize;
-                let mut s1 = [0.0f64; 3];
-                let mut s2 = [[0.0f64; 3]; 3];
-                let mut add = |d: [f32; 3]| {
-                    let d = [f64::from(d[0]), f64::from(d[1]), f64::from(d[2])];
-                    count += 1;
-                    for r in 0..3 {
-                        s1[r] += d[r];
-                        for cc in r..3 {
-                            s2[r][cc] += d[r] * d[cc];
-                        }
-                    }
-                };
-                let offset = |p: &[f32; 3]| [p[0] - q[0], p[1] - q[1], p[2] - q[2]];
-                match options.k_nearest {
-                    None => {
-                        for p in candidates.iter().skip(local % stride).step_by(stride) {
-                            let d = offset(p);
-                            if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= radius_sq {
-                                add(d);
-                            }
-                        }
-                    }
+            candidates.fill(
+                cells
+                    .iter()
+                    .filter(|&&nc| nc != usize::MAX)
+                    .map(|&nc| &sorted_points[grid.cell_range(nc)]),
+                stride,
+            );
+            for (&q, slot) in sorted_points[grid.cell_range(c)].iter().zip(out.iter_mut()) {
+                let (count, s1, s2) = match options.k_nearest {
+                    None => candidates.radius_moments(q, radius_sq),
                     Some(k) => {
+                        let mut count = 0usize;
+                        let mut s1 = [0.0f64; 3];
+                        let mut s2 = [[0.0f64; 3]; 3];
                         nearest.clear();
-                        for (j, p) in candidates.iter().enumerate() {
-                            let d = offset(p);
+                        for j in 0..candidates.len {
+                            let d = candidates.offset(j, q);
                             let dist_sq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
                             if dist_sq <= radius_sq {
                                 nearest.push((dist_sq, j as u32));
@@ -639,17 +740,21 @@ pub fn estimate_normals(
                             nearest.truncate(k);
                         }
                         for &(_, j) in nearest.iter() {
-                            add(offset(&candidates[j as usize]));
+                            let d = candidates.offset(j as usize, q);
+                            let d = [f64::from(d[0]), f64::from(d[1]), f64::from(d[2])];
+                            count += 1;
+                            for r in 0..3 {
+                                s1[r] += d[r];
+                                for cc in 0..3 {
+                                    s2[r][cc] += d[r] * d[cc];
+                                }
+                            }
                         }
+                        (count, s1, s2)
                     }
-                }
+                };
                 if count < options.min_neighbours {
                     continue;
-                }
-                for r in 0..3 {
-                    for cc in 0..r {
-                        s2[r][cc] = s2[cc][r];
-                    }
                 }
                 let Some((mut normal, planarity)) = fit_plane(count, &s1, &s2) else {
                     continue;

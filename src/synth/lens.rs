@@ -1,10 +1,8 @@
 //! The rendering camera: pixel <-> ray through a COLMAP camera model.
 //!
-//! This is the one place the synthetic renderer touches camera models. It
-//! implements the distortion of the models the generator offers
-//! (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV) directly, so the
-//! renderer does not wait for `Camera::project/unproject`; once those exist
-//! the bodies of [`project`] and [`unproject`] can delegate to them.
+//! This is the one place the synthetic renderer touches camera models: it
+//! delegates to [`Camera::project`] / [`Camera::unproject`]. The generator
+//! offers the models listed in [`SUPPORTED_MODELS`].
 use nalgebra::{Vector2, Vector3};
 
 use crate::scene::{Camera, CameraModel};
@@ -18,111 +16,20 @@ pub const SUPPORTED_MODELS: [CameraModel; 5] = [
     CameraModel::OpenCv,
 ];
 
-struct Split {
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-    /// k1, k2, p1, p2 (zeros where the model has none).
-    k: [f64; 4],
-}
-
-fn split(camera: &Camera) -> Split {
-    let p = &camera.params;
-    match camera.model {
-        CameraModel::SimplePinhole => Split {
-            fx: p[0],
-            fy: p[0],
-            cx: p[1],
-            cy: p[2],
-            k: [0.0; 4],
-        },
-        CameraModel::Pinhole => Split {
-            fx: p[0],
-            fy: p[1],
-            cx: p[2],
-            cy: p[3],
-            k: [0.0; 4],
-        },
-        CameraModel::SimpleRadial => Split {
-            fx: p[0],
-            fy: p[0],
-            cx: p[1],
-            cy: p[2],
-            k: [p[3], 0.0, 0.0, 0.0],
-        },
-        CameraModel::Radial => Split {
-            fx: p[0],
-            fy: p[0],
-            cx: p[1],
-            cy: p[2],
-            k: [p[3], p[4], 0.0, 0.0],
-        },
-        CameraModel::OpenCv => Split {
-            fx: p[0],
-            fy: p[1],
-            cx: p[2],
-            cy: p[3],
-            k: [p[4], p[5], p[6], p[7]],
-        },
-        other => panic!(
-            "synthetic renderer: unsupported camera model {} (checked by SynthOptions::validate)",
-            other.name()
-        ),
-    }
-}
-
-/// Distortion offset added to normalised coordinates (COLMAP's formulas).
-fn distortion(k: &[f64; 4], x: f64, y: f64) -> (f64, f64) {
-    let (x2, y2, xy) = (x * x, y * y, x * y);
-    let r2 = x2 + y2;
-    let radial = k[0] * r2 + k[1] * r2 * r2;
-    let dx = x * radial + 2.0 * k[2] * xy + k[3] * (r2 + 2.0 * x2);
-    let dy = y * radial + 2.0 * k[3] * xy + k[2] * (r2 + 2.0 * y2);
-    (dx, dy)
-}
-
 /// Pixel coordinates of a point in the camera frame; `None` behind the camera.
 pub fn project(camera: &Camera, point_in_cam: &Vector3<f64>) -> Option<Vector2<f64>> {
-    if point_in_cam.z <= 1e-12 {
-        return None;
-    }
-    let s = split(camera);
-    let (x, y) = (
-        point_in_cam.x / point_in_cam.z,
-        point_in_cam.y / point_in_cam.z,
-    );
-    let (dx, dy) = distortion(&s.k, x, y);
-    Some(Vector2::new(s.fx * (x + dx) + s.cx, s.fy * (y + dy) + s.cy))
+    camera.project(point_in_cam)
 }
 
-/// Ray direction (z = 1) of a pixel, undoing the distortion by Newton's method.
+/// Ray direction (z = 1) of a pixel. For the supported models with the mild
+/// distortion the generator uses, undistortion always converges; the
+/// undistorted-pinhole ray is a fallback that keeps rendering total.
 pub fn unproject(camera: &Camera, pixel: &Vector2<f64>) -> Vector3<f64> {
-    let s = split(camera);
-    let (xd, yd) = ((pixel.x - s.cx) / s.fx, (pixel.y - s.cy) / s.fy);
-    let (mut x, mut y) = (xd, yd);
-    for _ in 0..50 {
-        let (dx, dy) = distortion(&s.k, x, y);
-        let (fx, fy) = (x + dx - xd, y + dy - yd);
-        if fx.abs() < 1e-14 && fy.abs() < 1e-14 {
-            break;
-        }
-        // Numerical Jacobian of x + d(x).
-        let h = 1e-7;
-        let (dxx, dyx) = distortion(&s.k, x + h, y);
-        let (dxy, dyy) = distortion(&s.k, x, y + h);
-        let j00 = 1.0 + (dxx - dx) / h;
-        let j10 = (dyx - dy) / h;
-        let j01 = (dxy - dx) / h;
-        let j11 = 1.0 + (dyy - dy) / h;
-        let det = j00 * j11 - j01 * j10;
-        if det.abs() < 1e-12 {
-            break;
-        }
-        x -= (j11 * fx - j01 * fy) / det;
-        y -= (-j10 * fx + j00 * fy) / det;
-    }
-    Vector3::new(x, y, 1.0)
+    camera.unproject(pixel).unwrap_or_else(|| {
+        let f = camera.mean_focal_length();
+        let c = camera.principal_point();
+        Vector3::new((pixel.x - c.x) / f, (pixel.y - c.y) / f, 1.0)
+    })
 }
 
 #[cfg(test)]

@@ -23,3 +23,47 @@ pub fn have_colmap() -> bool {
     }
     found
 }
+
+/// A synthetic scene with its real COLMAP database, made once per test run and
+/// shared by every test that needs one (rendering and COLMAP cost tens of seconds).
+pub struct SceneDb {
+    /// Keeps the folder alive for the whole run.
+    _dir: tempfile::TempDir,
+    /// The scene folder (`images/`, `lidar.ply`, `gt/`, `init_pose.txt`).
+    pub scene: PathBuf,
+    /// The COLMAP database made by `feature_extractor` + `exhaustive_matcher`.
+    pub database: PathBuf,
+}
+
+/// The shared CI-sized yard scene (16 images, 640x480, seed 7) and its database,
+/// or `None` (with a loud message) when `colmap` is not installed.
+pub fn yard_db() -> Option<&'static SceneDb> {
+    use colmap_lidar::synth::{
+        generate_scene, make_database, HarnessOptions, SceneKind, SynthOptions,
+    };
+    static YARD: std::sync::OnceLock<Option<SceneDb>> = std::sync::OnceLock::new();
+    YARD.get_or_init(|| {
+        if !have_colmap() {
+            return None;
+        }
+        let dir = tempfile::tempdir().expect("temporary folder");
+        let scene = dir.path().join("yard");
+        let options = SynthOptions {
+            scene: SceneKind::Yard,
+            num_images: 16,
+            width: 640,
+            height: 480,
+            seed: 7,
+            ..SynthOptions::default()
+        };
+        generate_scene(&options, &scene).expect("yard scene renders");
+        let database =
+            make_database(&scene, &HarnessOptions::default()).expect("COLMAP makes the database");
+        Some(SceneDb {
+            _dir: dir,
+            scene,
+            database,
+        })
+    })
+    .as_ref()
+}

@@ -1,1 +1,470 @@
-//! Integration tests: map prepare.
+//! Preparation: voxel downsampling on a hand-made case, PCA normals on noisy
+//! planes (1.5 cm noise) and a box corner against the true normals, the
+//! orientation rules, and `prepare-map` end to end.
+use colmap_lidar::commands::prepare_map::prepare_map_file;
+use colmap_lidar::map::io::read_point_cloud;
+use colmap_lidar::map::prepare::{
+    estimate_normals, prepare, voxel_downsample, NormalOptions, NormalOrientation, PrepareOptions,
+};
+use colmap_lidar::map::PointCloud;
+use nalgebra::{Rotation3, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+
+use super::{angle_deg, ply_bytes, Enc};
+
+const NOISE_M: f64 = 0.015;
+
+fn cloud_of(points: Vec<[f32; 3]>) -> PointCloud {
+    PointCloud {
+        origin: Vector3::zeros(),
+        points,
+        normals: None,
+        planarity: None,
+    }
+}
+
+/// Sorted copy, for percentiles.
+fn percentile(values: &[f64], q: f64) -> f64 {
+    let mut v = values.to_vec();
+    v.sort_by(|a, b| a.total_cmp(b));
+    v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
+#[test]
+fn voxel_downsampling_matches_a_hand_computed_case() {
+    let p = |x: f32, y: f32, z: f32| [x, y, z];
+    let mut cloud = cloud_of(vec![
+        p(1.2, 0.1, 0.1),
+        p(0.1, 0.1, 0.1),
+        p(-0.5, 0.2, 0.2),
+        p(1.4, 0.3, 0.1),
+        p(0.3, 0.5, 0.9),
+        p(1.9, 0.8, 0.4),
+    ]);
+    cloud.normals = Some(vec![
+        [1.0, 0.0, 0.0],
+        [0.0, 0.0, 1.0],
+        [0.0, 0.0, -1.0],
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [0.0, 0.0, 0.0],
+    ]);
+    let out = voxel_downsample(&cloud, 1.0).unwrap();
+    let mean = |v: &[f32]| (v.iter().map(|x| f64::from(*x)).sum::<f64>() / v.len() as f64) as f32;
+    // Voxels in key order: (-1,0,0), (0,0,0), (1,0,0).
+    assert_eq!(
+        out.points,
+        vec![
+            [-0.5, 0.2, 0.2],
+            [mean(&[0.1, 0.3]), mean(&[0.1, 0.5]), mean(&[0.1, 0.9])],
+            [
+                mean(&[1.2, 1.4, 1.9]),
+                mean(&[0.1, 0.3, 0.8]),
+                mean(&[0.1, 0.1, 0.4])
+            ],
+        ]
+    );
+    let s = std::f32::consts::FRAC_1_SQRT_2;
+    let normals = out.normals.unwrap();
+    assert_eq!(normals[0], [0.0, 0.0, -1.0]);
+    assert!(
+        (normals[1][1] - s).abs() < 1e-6
+            && (normals[1][2] - s).abs() < 1e-6
+            && normals[1][0] == 0.0
+    );
+    assert_eq!(normals[2], [1.0, 0.0, 0.0]);
+
+    // The grid is aligned on the map frame, not on the local origin:
+    // map x = 500000.0 is a voxel boundary for 0.5 m voxels.
+    let cloud = PointCloud {
+        origin: Vector3::new(500_000.0, 0.0, 0.0),
+        points: vec![[-0.1, 0.0, 0.0], [0.1, 0.0, 0.0], [0.2, 0.0, 0.0]],
+        normals: None,
+        planarity: None,
+    };
+    let out = voxel_downsample(&cloud, 0.5).unwrap();
+    assert_eq!(out.origin, cloud.origin);
+    assert_eq!(
+        out.points,
+        vec![[-0.1, 0.0, 0.0], [mean(&[0.1, 0.2]), 0.0, 0.0]]
+    );
+    assert!(voxel_downsample(&cloud, 0.0).is_err());
+    assert!(voxel_downsample(&cloud, f64::NAN).is_err());
+}
+
+/// Points on the square [-h, h]^2 of the plane through `centre` with normal
+/// `R e_z`, with Gaussian noise along the normal; returns points and their
+/// distance to the square's border.
+fn noisy_square(
+    rotation: &Rotation3<f64>,
+    centre: Vector3<f64>,
+    half_m: f64,
+    count: usize,
+    rng: &mut ChaCha8Rng,
+) -> Vec<([f32; 3], f64)> {
+    let noise = Normal::new(0.0, NOISE_M).unwrap();
+    (0..count)
+        .map(|_| {
+            let u = rng.gen_range(-half_m..half_m);
+            let v = rng.gen_range(-half_m..half_m);
+            let local = Vector3::new(u, v, noise.sample(rng));
+            let p = centre + rotation * local;
+            let border = (half_m - u.abs()).min(half_m - v.abs());
+            ([p.x as f32, p.y as f32, p.z as f32], border)
+        })
+        .collect()
+}
+
+#[test]
+fn normals_on_noisy_planes_are_within_two_degrees() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let rotations = [
+        Rotation3::identity(),
+        Rotation3::from_euler_angles(std::f64::consts::FRAC_PI_2, 0.0, 0.0),
+        Rotation3::from_euler_angles(0.4, -0.7, 1.9),
+        Rotation3::from_euler_angles(-1.2, 0.3, 0.2),
+    ];
+    for (r, rotation) in rotations.iter().enumerate() {
+        let centre = Vector3::new(3.0, -2.0, 1.0);
+        // 1 point per cm^2, as a raw scan.
+        let samples = noisy_square(rotation, centre, 1.0, 40_000, &mut rng);
+        let truth = rotation * Vector3::z();
+        let sensor = centre + truth * 2.0;
+        let mut cloud = cloud_of(samples.iter().map(|s| s.0).collect());
+        let options = NormalOptions {
+            orientation: NormalOrientation::TowardsViewpoint(sensor),
+            ..Default::default()
+        };
+        let report = estimate_normals(&mut cloud, &options).unwrap();
+        assert_eq!(report.estimated, cloud.len());
+        assert_eq!(report.failed, 0);
+        let normals = cloud.normals.as_ref().unwrap();
+        let planarity = cloud.planarity.as_ref().unwrap();
+        let mut errors = Vec::new();
+        let mut planarities = Vec::new();
+        for (i, (_, border)) in samples.iter().enumerate() {
+            let n = normals[i];
+            let n = [f64::from(n[0]), f64::from(n[1]), f64::from(n[2])];
+            // Oriented towards the sensor: the signed angle is small.
+            let err = angle_deg(n, [truth.x, truth.y, truth.z], false);
+            assert!(
+                err < 90.0,
+                "rotation {r}: point {i} faces away from the sensor"
+            );
+            if *border > options.radius_m {
+                errors.push(err);
+                planarities.push(f64::from(planarity[i]));
+            }
+        }
+        let (median, p95, p99, max) = (
+            percentile(&errors, 0.5),
+            percentile(&errors, 0.95),
+            percentile(&errors, 0.99),
+            percentile(&errors, 1.0),
+        );
+        let mean = errors.iter().sum::<f64>() / errors.len() as f64;
+        eprintln!(
+            "plane {r}: angle error mean {mean:.3} median {median:.3} p95 {p95:.3} p99 {p99:.3} \
+             max {max:.3} deg; planarity p1 {:.3} median {:.3}",
+            percentile(&planarities, 0.01),
+            percentile(&planarities, 0.5)
+        );
+        assert!(mean < 1.0 && p95 < 2.0, "plane {r}: mean {mean}, p95 {p95}");
+        assert!(percentile(&planarities, 0.01) > 0.6 && percentile(&planarities, 0.5) > 0.8);
+
+        // Deterministic: a second run gives the same bits.
+        let mut again = cloud_of(cloud.points.clone());
+        estimate_normals(&mut again, &options).unwrap();
+        assert_eq!(again.normals, cloud.normals);
+        assert_eq!(again.planarity, cloud.planarity);
+    }
+}
+
+#[test]
+fn normals_at_a_box_corner_are_right_and_oriented_by_the_default_rule() {
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let side = 1.5;
+    let noise = Normal::new(0.0, NOISE_M).unwrap();
+    // Floor z = 0, walls x = 0 and y = 0; face index and true normal.
+    let mut points = Vec::new();
+    let mut faces = Vec::new();
+    for face in 0..3 {
+        for _ in 0..67_500 / 3 {
+            let (a, b) = (rng.gen_range(0.0..side), rng.gen_range(0.0..side));
+            let e = noise.sample(&mut rng);
+            let p = match face {
+                0 => [a, b, e],
+                1 => [e, a, b],
+                _ => [a, e, b],
+            };
+            // Distance to the other two faces' planes.
+            let d = match face {
+                0 => p[0].min(p[1]),
+                1 => p[1].min(p[2]),
+                _ => p[0].min(p[2]),
+            };
+            points.push([p[0] as f32, p[1] as f32, p[2] as f32]);
+            faces.push((face, d));
+        }
+    }
+    let mut cloud = cloud_of(points);
+    let options = NormalOptions::default();
+    estimate_normals(&mut cloud, &options).unwrap();
+    let normals = cloud.normals.as_ref().unwrap();
+    let planarity = cloud.planarity.as_ref().unwrap();
+    let truth = [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+    let mut errors = Vec::new();
+    let (mut edge_planarity, mut edge_count) = (0.0, 0);
+    for (i, &(face, d)) in faces.iter().enumerate() {
+        let n = normals[i];
+        let n = [f64::from(n[0]), f64::from(n[1]), f64::from(n[2])];
+        if d > options.radius_m + 0.02 {
+            // Floor up (+z); walls towards the box's centre (+x, +y).
+            let err = angle_deg(n, truth[face], false);
+            assert!(err < 10.0, "face {face} point {i}: {n:?}");
+            errors.push(err);
+        } else if d < 0.02 {
+            edge_planarity += f64::from(planarity[i]);
+            edge_count += 1;
+        }
+    }
+    let (median, p95, p99) = (
+        percentile(&errors, 0.5),
+        percentile(&errors, 0.95),
+        percentile(&errors, 0.99),
+    );
+    eprintln!("box corner: angle error median {median:.3} p95 {p95:.3} p99 {p99:.3} deg");
+    assert!(median < 1.0 && p95 < 2.0, "median {median}, p95 {p95}");
+    // Median planarity on the faces (patch borders, where the neighbourhood
+    // is a half disc, score lower) against the mean along the corner's edges.
+    let face_planarities: Vec<f64> = faces
+        .iter()
+        .enumerate()
+        .filter(|(_, f)| f.1 > 0.2)
+        .map(|(i, _)| f64::from(planarity[i]))
+        .collect();
+    let face_planarity = percentile(&face_planarities, 0.5);
+    let edge_planarity = edge_planarity / edge_count as f64;
+    eprintln!("planarity: faces {face_planarity:.3}, edges {edge_planarity:.3}");
+    assert!(face_planarity > 0.8 && edge_planarity < face_planarity - 0.2);
+}
+
+#[test]
+fn k_nearest_mode_valid_input_normals_and_sparse_points() {
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let rotation = Rotation3::from_euler_angles(0.3, 0.5, 0.0);
+    let samples = noisy_square(&rotation, Vector3::zeros(), 1.0, 20_000, &mut rng);
+    let truth = rotation * Vector3::z();
+    let mut points: Vec<[f32; 3]> = samples.iter().map(|s| s.0).collect();
+    // Two isolated points far away.
+    points.push([50.0, 50.0, 50.0]);
+    points.push([-50.0, 50.0, 50.0]);
+    let n = points.len();
+    let mut cloud = cloud_of(points);
+    // Every 4th point carries a (deliberately wrong but unit) input normal.
+    let mut input = vec![[0.0f32; 3]; n];
+    for i in (0..n).step_by(4) {
+        input[i] = [0.0, 1.0, 0.0];
+    }
+    cloud.normals = Some(input);
+    let options = NormalOptions {
+        k_nearest: Some(200),
+        ..Default::default()
+    };
+    let report = estimate_normals(&mut cloud, &options).unwrap();
+    let kept = (0..n).step_by(4).count();
+    assert_eq!(report.kept, kept);
+    assert_eq!(
+        report.failed,
+        2 - (0..n).step_by(4).filter(|i| *i >= n - 2).count()
+    );
+    assert_eq!(report.estimated + report.kept + report.failed, n);
+    let normals = cloud.normals.as_ref().unwrap();
+    let mut errors = Vec::new();
+    for i in 0..n - 2 {
+        if i % 4 == 0 {
+            assert_eq!(normals[i], [0.0, 1.0, 0.0]);
+        } else if samples[i].1 > 0.2 {
+            let m = normals[i];
+            errors.push(angle_deg(
+                [m[0].into(), m[1].into(), m[2].into()],
+                [truth.x, truth.y, truth.z],
+                true,
+            ));
+        }
+    }
+    let median = percentile(&errors, 0.5);
+    eprintln!(
+        "k = 200: median {median:.3} deg, p99 {:.3}",
+        percentile(&errors, 0.99)
+    );
+    assert!(median < 2.5, "median {median}");
+
+    // recompute_all replaces the input normals too.
+    let mut again = cloud.clone();
+    let report = estimate_normals(
+        &mut again,
+        &NormalOptions {
+            recompute_all: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(report.kept, 0);
+    assert_eq!(report.failed, 2);
+    let m = again.normals.as_ref().unwrap()[4 * 100];
+    assert!(
+        angle_deg(
+            [m[0].into(), m[1].into(), m[2].into()],
+            [truth.x, truth.y, truth.z],
+            true
+        ) < 5.0
+    );
+
+    // prepare() drops the points left without a normal.
+    let (prepared, report) = prepare(
+        cloud_of(again.points.clone()),
+        &PrepareOptions {
+            voxel_size_m: 0.0,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(report.dropped_without_normal, 2);
+    assert_eq!(prepared.len(), n - 2);
+    assert!(prepared
+        .normals
+        .as_ref()
+        .unwrap()
+        .iter()
+        .all(|m| m != &[0.0; 3]));
+    assert!(estimate_normals(
+        &mut again,
+        &NormalOptions {
+            radius_m: -1.0,
+            ..Default::default()
+        }
+    )
+    .is_err());
+}
+
+/// A georeferenced raw scan (floor + wall, no normals, doubles at UTM
+/// coordinates) through the library entry point of `prepare-map`.
+fn write_raw_scan(path: &std::path::Path) -> Vec<(Vec<f64>, [f64; 3])> {
+    let mut rng = ChaCha8Rng::seed_from_u64(14);
+    let noise = Normal::new(0.0, 0.005).unwrap();
+    let base = [512_345.0, 5_412_345.0, 230.0];
+    let mut rows = Vec::new();
+    for _ in 0..60_000 {
+        let (a, b) = (rng.gen_range(0.0..3.0), rng.gen_range(0.0..3.0));
+        if rng.gen_bool(0.5) {
+            rows.push((
+                vec![base[0] + a, base[1] + b, base[2] + noise.sample(&mut rng)],
+                [0.0, 0.0, 1.0],
+            ));
+        } else {
+            rows.push((
+                vec![
+                    base[0] + a,
+                    base[1] + 3.0 + noise.sample(&mut rng),
+                    base[2] + b,
+                ],
+                [0.0, -1.0, 0.0],
+            ));
+        }
+    }
+    let props = [("double", "x"), ("double", "y"), ("double", "z")];
+    let plain: Vec<Vec<f64>> = rows.iter().map(|r| r.0.clone()).collect();
+    std::fs::write(path, ply_bytes(Enc::Le, &props, &plain, None)).unwrap();
+    rows
+}
+
+#[test]
+fn prepare_map_library_entry_point_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let raw = dir.path().join("raw.ply");
+    write_raw_scan(&raw);
+    let out = dir.path().join("map.ply");
+    let (load, report) = prepare_map_file(&raw, &out, &PrepareOptions::default()).unwrap();
+    assert_eq!(load.points_read, 60_000);
+    assert!(report.after_voxel < 30_000, "{report:?}");
+    let bytes = std::fs::read(&out).unwrap();
+    let head = String::from_utf8_lossy(&bytes[..400]).to_string();
+    for line in [
+        "format binary_little_endian 1.0",
+        "property double x",
+        "property float nx",
+        "property float ny",
+        "property float nz",
+        "property float planarity",
+    ] {
+        assert!(head.contains(line), "{line} missing in {head}");
+    }
+    let (map, _) = read_point_cloud(&out).unwrap();
+    assert_eq!(map.len(), report.output_points);
+    let normals = map.normals.as_ref().unwrap();
+    let mut wrong = 0;
+    for i in 0..map.len() {
+        let p = map.point_in_map(i);
+        let local = [p.x - 512_345.0, p.y - 5_412_345.0, p.z - 230.0];
+        let n = normals[i];
+        let n = [f64::from(n[0]), f64::from(n[1]), f64::from(n[2])];
+        // Away from the floor/wall edge, the true normal is known: floor up,
+        // wall facing the centre of the map (-y).
+        if local[2] > 0.2 && local[0] > 0.2 && local[0] < 2.8 && local[2] < 2.8 {
+            assert!((local[1] - 3.0).abs() < 0.05);
+            if angle_deg(n, [0.0, -1.0, 0.0], false) > 2.0 {
+                wrong += 1;
+            }
+        } else if local[1] < 2.8 && local[0] > 0.2 && local[0] < 2.8 && local[1] > 0.2 {
+            assert!(local[2].abs() < 0.05);
+            if angle_deg(n, [0.0, 0.0, 1.0], false) > 2.0 {
+                wrong += 1;
+            }
+        }
+    }
+    assert!(
+        wrong < map.len() / 200,
+        "{wrong} of {} normals off by more than 2 deg",
+        map.len()
+    );
+    // Errors name the input.
+    let err = prepare_map_file(
+        &dir.path().join("missing.ply"),
+        &out,
+        &PrepareOptions::default(),
+    )
+    .unwrap_err();
+    assert!(format!("{err:#}").contains("missing.ply"));
+}
+
+/// The real binary, end to end.
+#[test]
+fn prepare_map_cli_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let raw = dir.path().join("raw.ply");
+    write_raw_scan(&raw);
+    let out = dir.path().join("map.ply");
+    let status = std::process::Command::new(crate::common::bin())
+        .args(["prepare-map", "--input"])
+        .arg(&raw)
+        .arg("--output")
+        .arg(&out)
+        .args(["--voxel", "0.03", "--normal-radius", "0.15"])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let (map, _) = read_point_cloud(&out).unwrap();
+    assert!(map.len() > 10_000);
+    assert!(map.normals.unwrap().iter().all(|n| n != &[0.0; 3]));
+    let status = std::process::Command::new(crate::common::bin())
+        .args(["prepare-map", "--input"])
+        .arg(dir.path().join("missing.ply"))
+        .arg("--output")
+        .arg(&out)
+        .status()
+        .unwrap();
+    assert!(!status.success());
+}

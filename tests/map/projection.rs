@@ -603,3 +603,70 @@ fn bench_projection() {
         );
     }
 }
+
+/// The `depth` command end to end (through its library entry point; the
+/// binary's wiring is the lead's): a PLY map and a text model in, a PNG out.
+#[test]
+fn depth_command_writes_png() {
+    use colmap_lidar::commands::depth::{run, DepthArgs};
+    use colmap_lidar::io::model::{write_model, ModelFormat};
+    use colmap_lidar::map::io::write_ply;
+    use colmap_lidar::scene::ids::ImageId;
+    use colmap_lidar::scene::reconstruction::{Image, Point2D, Reconstruction};
+
+    let (cloud, _, _) = planes_scene(0.1);
+    let dir = tempfile::tempdir().unwrap();
+    let map = dir.path().join("map.ply");
+    write_ply(&map, &cloud).unwrap();
+    let cam = camera(
+        CameraModel::Pinhole,
+        160,
+        120,
+        vec![120.0, 120.0, 80.0, 60.0],
+    );
+    let pose = camera_pose(utm_origin() + Vector3::new(0.5, -0.5, 1.6), 0.0, 0.1, 0.1);
+    let mut rec = Reconstruction::default();
+    rec.cameras.insert(cam.id, cam.clone());
+    let points2d = vec![
+        Point2D {
+            xy: Vector2::new(80.5, 100.5),
+            point3d_id: None,
+        },
+        Point2D {
+            xy: Vector2::new(10.0, 5.0),
+            point3d_id: None,
+        },
+    ];
+    rec.images.insert(
+        ImageId(1),
+        Image {
+            id: ImageId(1),
+            name: "a.jpg".into(),
+            camera_id: cam.id,
+            cam_from_world: Some(pose),
+            points2d,
+        },
+    );
+    let model = dir.path().join("model");
+    write_model(&model, &rec, ModelFormat::Text).unwrap();
+    let output = dir.path().join("out").join("depth.png");
+    let mut args = DepthArgs {
+        lidar: map,
+        model,
+        image: "a.jpg".into(),
+        output: output.clone(),
+        min_depth: 0.5,
+        max_depth: 40.0,
+    };
+    run(&args).unwrap();
+    let img = image::open(&output).unwrap().to_rgb8();
+    assert_eq!(img.dimensions(), (160, 120));
+    // The floor is seen below the horizon: not black there.
+    assert_ne!(img.get_pixel(80, 110).0, [0, 0, 0]);
+    // Unknown image: a clear error, no output.
+    args.image = "missing.jpg".into();
+    args.output = dir.path().join("none.png");
+    let err = run(&args).unwrap_err();
+    assert!(format!("{err:#}").contains("missing.jpg"));
+    assert!(!args.output.exists());
+}

@@ -31,6 +31,16 @@ pub fn read_las(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
     let record = u64::from(header.point_format().len()).max(1);
     let hint = declared.min(file_len / record + 1) as usize;
     let mut sink = CloudSink::new(format, hint, false, false);
+    // The header's bounds give an origin near the middle of the cloud.
+    let bounds = header.bounds();
+    let centre = [
+        0.5 * (bounds.min.x + bounds.max.x),
+        0.5 * (bounds.min.y + bounds.max.y),
+        0.5 * (bounds.min.z + bounds.max.z),
+    ];
+    if declared > 0 && centre.iter().all(|c| c.is_finite()) {
+        sink.set_origin(super::choose_origin(centre));
+    }
     let mut batch = ::las::PointDataBuilder::new().for_header(&header).build();
     let mut done = 0u64;
     while done < declared {

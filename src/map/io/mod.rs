@@ -144,7 +144,7 @@ impl fmt::Display for CloudFormat {
 }
 
 /// What a reader saw, returned beside the cloud.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct LoadReport {
     pub format: CloudFormat,
     /// Point records in the file (kept + dropped).
@@ -156,7 +156,16 @@ pub struct LoadReport {
     /// Kept points whose normal was zero, NaN, infinite or not unit length
     /// (stored as `[0, 0, 0]`).
     pub normals_invalid: u64,
+    /// Largest coordinate of a kept point relative to the chosen origin
+    /// (metres, any axis). Above [`PRECISION_WARNING_OFFSET_M`] the f32
+    /// offsets lose millimetres (a far-away first point chose the origin);
+    /// readers then log a warning.
+    pub max_offset_m: f64,
 }
+
+/// Offsets beyond this (metres) are stored with a resolution coarser than
+/// 1 mm in f32.
+pub const PRECISION_WARNING_OFFSET_M: f64 = 8192.0;
 
 impl LoadReport {
     pub(crate) fn new(format: CloudFormat) -> Self {
@@ -166,6 +175,7 @@ impl LoadReport {
             dropped_non_finite: 0,
             had_normals: false,
             normals_invalid: 0,
+            max_offset_m: 0.0,
         }
     }
 }
@@ -222,11 +232,13 @@ impl CloudSink {
             return;
         }
         let origin = *self.origin.get_or_insert_with(|| choose_origin(p_m));
-        self.points.push([
-            (p_m[0] - origin.x) as f32,
-            (p_m[1] - origin.y) as f32,
-            (p_m[2] - origin.z) as f32,
-        ]);
+        let offset = [p_m[0] - origin.x, p_m[1] - origin.y, p_m[2] - origin.z];
+        let largest = offset[0].abs().max(offset[1].abs()).max(offset[2].abs());
+        if largest > self.report.max_offset_m {
+            self.report.max_offset_m = largest;
+        }
+        self.points
+            .push([offset[0] as f32, offset[1] as f32, offset[2] as f32]);
         if let Some(normals) = &mut self.normals {
             let len =
                 (normal[0] * normal[0] + normal[1] * normal[1] + normal[2] * normal[2]).sqrt();
@@ -250,6 +262,11 @@ impl CloudSink {
         }
     }
 
+    /// Fixes the origin before the first point (e.g. from a header's bounds).
+    pub(crate) fn set_origin(&mut self, origin: Vector3<f64>) {
+        self.origin = Some(origin);
+    }
+
     pub(crate) fn finish(self) -> (PointCloud, LoadReport) {
         let mut cloud = PointCloud {
             origin: self.origin.unwrap_or_else(Vector3::zeros),
@@ -266,6 +283,21 @@ impl CloudSink {
 /// `.pcd`, `.las`, `.laz`, any case) or, failing that, from the file's first
 /// bytes.
 pub fn read_point_cloud(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
+    let (cloud, report) = read_any(path)?;
+    if report.max_offset_m > PRECISION_WARNING_OFFSET_M {
+        log::warn!(
+            "{}: points lie up to {:.0} m from the local origin {:?} chosen from the first point; \
+             coordinates that far keep only {:.1} mm resolution",
+            path.display(),
+            report.max_offset_m,
+            cloud.origin.as_slice(),
+            1000.0 * report.max_offset_m / f64::from(1u32 << 24)
+        );
+    }
+    Ok((cloud, report))
+}
+
+fn read_any(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
