@@ -23,6 +23,8 @@ struct Cli {
 enum Command {
     /// Summarise a COLMAP database: cameras, images, keypoints, verified pairs, tracks.
     Inspect(commands::inspect::InspectArgs),
+    /// Structure-from-motion inside the LiDAR map: COLMAP database + map -> model in the map frame.
+    Map(commands::map::MapArgs),
     /// Prepare a raw point cloud (PLY, PCD, LAS/LAZ) as a map: downsample, estimate normals.
     PrepareMap(commands::prepare_map::PrepareMapArgs),
     /// Render a synthetic scene with exact ground truth (images, LiDAR map, true cameras).
@@ -49,6 +51,7 @@ fn main() -> ExitCode {
         .init();
     let result = match &cli.command {
         Command::Inspect(args) => commands::inspect::run(args),
+        Command::Map(args) => commands::map::run(args),
         Command::PrepareMap(args) => commands::prepare_map::run(args),
         Command::Depth(args) => commands::depth::run(args),
         Command::Synth(args) => commands::synth::run(args),

@@ -113,14 +113,14 @@ fn check_run(r: &Run) {
 
 #[test]
 fn yard_with_colmap_database() {
-    if !have_colmap() {
+    // The shared 16-image yard and its real COLMAP database (made once per run).
+    let Some(shared) = crate::common::yard_db() else {
         return;
-    }
+    };
+    let scene = shared.scene.clone();
     let dir = tempfile::tempdir().unwrap();
-    let scene = dir.path().join("yard");
-    scene_with_database(&scene, SceneKind::Yard, 10, 2048);
     let a = map_scene(&scene, &dir.path().join("a"), |_| {});
-    print_run("yard (10 images, 2048 features)", &a);
+    print_run("yard (16 images)", &a);
     check_run(&a);
     // Same inputs and seed: byte-identical model files.
     let b = map_scene(&scene, &dir.path().join("b"), |_| {});
@@ -166,10 +166,7 @@ fn yard_with_colmap_database() {
         "{err:#}"
     );
     assert!(!out.exists());
-    // The same through the binary, once the command is wired into it.
-    if !binary_has_map() {
-        return;
-    }
+    // The same through the binary.
     let run_bin = |extra: &[&str]| {
         let mut cmd = std::process::Command::new(crate::common::bin());
         cmd.arg("map")
@@ -197,21 +194,6 @@ fn yard_with_colmap_database() {
         let y = std::fs::read(out.join(f)).unwrap();
         assert!(x == y, "{f}: the binary and the library disagree");
     }
-}
-
-/// Whether the built binary has the `map` command (the lead wires it into
-/// `main.rs`); says so loudly when it does not.
-pub fn binary_has_map() -> bool {
-    let ok = std::process::Command::new(crate::common::bin())
-        .args(["map", "--help"])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    if !ok {
-        eprintln!(
-            "\n!!!!! SKIPPED: the colmap-lidar binary has no `map` command yet (wire it in main.rs) !!!!!\n"
-        );
-    }
-    ok
 }
 
 /// The numbers of the issue: yard and room, 24 images, full feature count,
