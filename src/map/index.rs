@@ -1,23 +1,40 @@
 //! Nearest-neighbour index of the LiDAR map, behind a small API of our own.
 //!
-//! A kiddo 6 immutable kd-tree (`f32`, 3D, items = point indices `u32`) holds
-//! the map points **rotated by a fixed generic rotation** (`index_from_local`).
-//! Building maps are made of floors and walls parallel to the axes, and
-//! kd-tree queries on such axis-aligned planar clouds are 17-35x slower than on
-//! generic clouds (many points share a split coordinate); a fixed rotation of
-//! the cloud inside the index removes the degeneracy. Distances are invariant
-//! under rotation, so callers never see the rotated frame: queries take points
-//! in the map frame (f64), the index subtracts the cloud's local origin once and
-//! rotates the offset.
+//! A sparse two-level voxel grid, built for the queries the mapper makes
+//! (nearest map point within a radius of 0.1-1.5 m of points near surfaces)
+//! on maps of tens of millions of points:
 //!
-//! Accuracy: coordinates inside the tree are f32 offsets from the local origin,
-//! so returned squared distances carry a relative error of about 1e-7 of the
-//! map's extent (0.1 mm for a map 1 km across). Use
-//! [`PointCloud::point_in_map`] for the exact point.
-use std::num::NonZeroUsize;
+//! * **cells** (default 0.2 m, [`IndexOptions::cell_size_m`]) hold the points,
+//!   stored contiguously per cell (compressed sparse rows) as 16-bit
+//!   coordinates relative to the cell's corner (cell / 65535: 3 µm for 0.2 m
+//!   cells), structure of arrays, plus the point's index in the cloud;
+//! * **blocks** of 8 x 8 x 8 cells, found through a small open-addressing hash
+//!   table, each with a 512-bit occupancy mask and the index of its first cell
+//!   per z-layer, so a cell's position is a popcount away and empty space is
+//!   skipped a block or a mask word at a time.
+//!
+//! A query scans the query's own cell first (near a surface it holds the
+//! nearest point), then only the cells whose box lies within the best distance
+//! so far: a handful of cache lines, whatever the map's size. Queries far from
+//! the map cost at most the blocks within the radius; unbounded queries
+//! ([`MapIndex::nearest`], [`MapIndex::k_nearest`]) widen the radius
+//! geometrically.
+//!
+//! The index costs 10 bytes a point plus 4 bytes an occupied cell and ~100
+//! bytes an occupied block; the build sorts 16 bytes a point (parallel) and
+//! frees them.
+//!
+//! Results are exact for the stored coordinates and deterministic: the nearest
+//! by (squared distance, point index), whatever the visiting order. Accuracy:
+//! stored coordinates are within half a quantisation step (1.5 µm for 0.2 m
+//! cells) of the cloud's f32 coordinates, and squared distances are computed in
+//! f32 relative to the cell, so returned distances carry an error of a few µm
+//! (independent of the map's extent). Use [`PointCloud::point_in_map`] for the
+//! exact point.
+use std::collections::BinaryHeap;
 
-use kiddo::{ImmutableKdTree, SquaredEuclidean};
-use nalgebra::{Matrix3, Rotation3, Vector3};
+use nalgebra::Vector3;
+use rayon::prelude::*;
 
 use super::cloud::PointCloud;
 
@@ -28,8 +45,19 @@ pub enum IndexError {
     TooManyPoints(usize),
     #[error("map point {index} has a non-finite coordinate")]
     NonFinitePoint { index: usize },
-    #[error("building the kd-tree failed: {0}")]
+    #[error("building the index failed: {0}")]
     Construction(String),
+    #[error("index cell size must be finite and positive, got {0} m")]
+    BadCellSize(f64),
+    #[error(
+        "the map spans {cells} index cells of {cell_size_m} m along one axis; at most {max} are \
+         supported (use larger cells)"
+    )]
+    TooLarge {
+        cells: i64,
+        cell_size_m: f64,
+        max: i64,
+    },
 }
 
 /// One neighbour found by a query.
@@ -41,128 +69,675 @@ pub struct Neighbour {
     pub dist_sq: f64,
 }
 
-/// Nearest-neighbour index of a [`PointCloud`]. Holds no reference to the
-/// cloud; results are point indices into it.
+/// Options of [`MapIndex::build_with_options`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct IndexOptions {
+    /// Edge of a grid cell (m). Default 0.2: about 40-60 points a cell on a
+    /// surface sampled every 2.5-3 cm, and the query radii of the mapper
+    /// (0.1-1.5 m) span a few cells. Smaller for denser maps.
+    pub cell_size_m: f64,
+}
+
+impl Default for IndexOptions {
+    fn default() -> Self {
+        Self { cell_size_m: 0.2 }
+    }
+}
+
+/// Cells per block edge is `1 << BLOCK_SHIFT` (8: 512 cells, one `u64` mask
+/// word per z-layer).
+const BLOCK_SHIFT: i64 = 3;
+const BLOCK_EDGE: i64 = 1 << BLOCK_SHIFT;
+/// Bits per axis of a packed block key.
+const KEY_AXIS_BITS: u32 = 18;
+/// Cells per axis the grid can span.
+const MAX_CELLS_PER_AXIS: i64 = 1 << (KEY_AXIS_BITS as i64 + BLOCK_SHIFT);
+/// Quantisation steps across a cell.
+const STEPS: f64 = 65535.0;
+/// Empty slot of the block hash table (no valid key has all bits set).
+const EMPTY_KEY: u64 = u64::MAX;
+
+fn pack_block(b: [i64; 3]) -> u64 {
+    ((b[0] as u64) << (2 * KEY_AXIS_BITS)) | ((b[1] as u64) << KEY_AXIS_BITS) | (b[2] as u64)
+}
+
+fn unpack_block(key: u64) -> [i64; 3] {
+    let m = (1u64 << KEY_AXIS_BITS) - 1;
+    [
+        (key >> (2 * KEY_AXIS_BITS)) as i64,
+        ((key >> KEY_AXIS_BITS) & m) as i64,
+        (key & m) as i64,
+    ]
+}
+
+/// 8 x 8 x 8 cells: bit `x | y << 3` of word `z` is set when cell (x, y, z)
+/// of the block holds points; the cells of word `z` are numbered from
+/// `first_cell[z]` in bit order.
+#[derive(Clone, Copy, Debug)]
+struct Block {
+    occupied: [u64; 8],
+    first_cell: [u32; 8],
+}
+
+impl Block {
+    #[inline]
+    fn cell_id(&self, z: usize, bit: u32) -> u32 {
+        self.first_cell[z] + (self.occupied[z] & ((1u64 << bit) - 1)).count_ones()
+    }
+}
+
+/// Open-addressing hash table (linear probing) from block keys to block ids.
+#[derive(Clone, Debug)]
+struct BlockTable {
+    keys: Vec<u64>,
+    ids: Vec<u32>,
+    shift: u32,
+}
+
+impl BlockTable {
+    fn new(block_keys: &[u64]) -> Self {
+        let capacity = (2 * block_keys.len()).next_power_of_two().max(2);
+        let shift = 64 - capacity.trailing_zeros();
+        let mut table = Self {
+            keys: vec![EMPTY_KEY; capacity],
+            ids: vec![0; capacity],
+            shift,
+        };
+        let mask = capacity - 1;
+        for (id, &key) in block_keys.iter().enumerate() {
+            let mut s = table.slot(key);
+            while table.keys[s] != EMPTY_KEY {
+                s = (s + 1) & mask;
+            }
+            table.keys[s] = key;
+            table.ids[s] = id as u32;
+        }
+        table
+    }
+
+    #[inline]
+    fn slot(&self, key: u64) -> usize {
+        (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> self.shift) as usize
+    }
+
+    #[inline]
+    fn get(&self, key: u64) -> Option<u32> {
+        let mask = self.keys.len() - 1;
+        let mut s = self.slot(key);
+        loop {
+            let k = self.keys[s];
+            if k == key {
+                return Some(self.ids[s]);
+            }
+            if k == EMPTY_KEY {
+                return None;
+            }
+            s = (s + 1) & mask;
+        }
+    }
+}
+
+/// Nearest-neighbour index of a [`PointCloud`] (see the module doc). Holds no
+/// reference to the cloud; results are point indices into it.
 pub struct MapIndex {
     /// The cloud's local origin (map frame, metres).
     origin: Vector3<f64>,
-    /// Fixed generic rotation applied to local offsets before they enter the tree.
-    index_from_local: Matrix3<f64>,
-    /// `None` for an empty map (kiddo does not build empty trees).
-    tree: Option<ImmutableKdTree<f32, 3>>,
-    num_points: usize,
+    cell_size_m: f64,
+    /// Integer coordinates (cells from the cloud's origin) of grid cell 0.
+    min_cell: [i64; 3],
+    /// Cells spanned per axis (grid cells are `0..extent`).
+    extent: [i64; 3],
+    table: BlockTable,
+    /// Packed keys of the blocks, increasing; `blocks[i]` is block `block_keys[i]`.
+    block_keys: Vec<u64>,
+    blocks: Vec<Block>,
+    /// `cell_start[c]..cell_start[c + 1]` is cell `c`'s range in the point arrays.
+    cell_start: Vec<u32>,
+    /// Point coordinates relative to their cell's corner, in steps of
+    /// `cell_size_m / 65535`.
+    xs: Vec<u16>,
+    ys: Vec<u16>,
+    zs: Vec<u16>,
+    /// Index in the cloud of each stored point (increasing within a cell).
+    point_idx: Vec<u32>,
 }
 
 impl std::fmt::Debug for MapIndex {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("MapIndex")
             .field("origin", &self.origin)
-            .field("num_points", &self.num_points)
+            .field("num_points", &self.point_idx.len())
+            .field("cell_size_m", &self.cell_size_m)
+            .field("num_cells", &(self.cell_start.len().saturating_sub(1)))
+            .field("num_blocks", &self.blocks.len())
             .finish()
     }
 }
 
-/// The fixed rotation applied inside the index: generic angles (no multiple of
-/// a simple fraction of pi), so no map axis stays aligned with a tree axis.
-fn generic_rotation() -> Matrix3<f64> {
-    Rotation3::from_euler_angles(0.371_4, 0.517_3, 0.834_2).into_inner()
+/// The best candidate so far of a single-nearest query: squared distance in
+/// squared quantisation steps, point index.
+#[derive(Clone, Copy)]
+struct Best {
+    d: f32,
+    idx: u32,
+}
+
+/// Heap key of a k-nearest query: `(squared distance bits, point index)`;
+/// distances are non-negative, so their bit patterns order like their values.
+#[inline]
+fn heap_key(d: f32, idx: u32) -> u64 {
+    (u64::from(d.to_bits()) << 32) | u64::from(idx)
+}
+
+#[inline]
+fn key_dist(key: u64) -> f32 {
+    f32::from_bits((key >> 32) as u32)
 }
 
 impl MapIndex {
-    /// Builds the index of every point of `cloud`. Parallel (rayon) for large
-    /// maps; the tree does not depend on the number of threads.
+    /// Builds the index of every point of `cloud` with the default options.
+    /// Parallel (rayon); the index does not depend on the number of threads.
     pub fn build(cloud: &PointCloud) -> Result<Self, IndexError> {
+        Self::build_with_options(cloud, &IndexOptions::default())
+    }
+
+    /// Builds the index of every point of `cloud`.
+    pub fn build_with_options(
+        cloud: &PointCloud,
+        options: &IndexOptions,
+    ) -> Result<Self, IndexError> {
+        let s = options.cell_size_m;
+        if !(s.is_finite() && s > 0.0) {
+            return Err(IndexError::BadCellSize(s));
+        }
         let n = cloud.len();
         if n >= u32::MAX as usize {
             return Err(IndexError::TooManyPoints(n));
         }
-        let index_from_local = generic_rotation();
-        let tree = if n == 0 {
-            None
-        } else {
-            let r = index_from_local;
-            let mut rotated = vec![[0f32; 3]; n];
-            {
-                use rayon::prelude::*;
-                rotated
-                    .par_chunks_mut(1 << 16)
-                    .zip(cloud.points.par_chunks(1 << 16))
-                    .for_each(|(dst, src)| {
-                        for (d, p) in dst.iter_mut().zip(src) {
-                            let v = Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-                            let q = r * v;
-                            *d = [q.x as f32, q.y as f32, q.z as f32];
-                        }
-                    });
-            }
-            if let Some(index) = rotated
-                .iter()
-                .position(|p| !p.iter().all(|c| c.is_finite()))
-            {
-                return Err(IndexError::NonFinitePoint { index });
-            }
-            let tree = ImmutableKdTree::<f32, 3>::new_from_slice_parallel(&rotated)
-                .map_err(|e| IndexError::Construction(e.to_string()))?;
-            Some(tree)
+        if let Some(index) = cloud
+            .points
+            .par_iter()
+            .position_first(|p| !p.iter().all(|c| c.is_finite()))
+        {
+            return Err(IndexError::NonFinitePoint { index });
+        }
+        let inv = 1.0 / s;
+        let cell_of = |p: &[f32; 3]| -> [i64; 3] {
+            [
+                (f64::from(p[0]) * inv).floor() as i64,
+                (f64::from(p[1]) * inv).floor() as i64,
+                (f64::from(p[2]) * inv).floor() as i64,
+            ]
         };
+        let (min_cell, max_cell) = cloud
+            .points
+            .par_iter()
+            .fold(
+                || ([i64::MAX; 3], [i64::MIN; 3]),
+                |(mut lo, mut hi), p| {
+                    let c = cell_of(p);
+                    for a in 0..3 {
+                        lo[a] = lo[a].min(c[a]);
+                        hi[a] = hi[a].max(c[a]);
+                    }
+                    (lo, hi)
+                },
+            )
+            .reduce(
+                || ([i64::MAX; 3], [i64::MIN; 3]),
+                |(a, b), (c, d)| {
+                    (
+                        [a[0].min(c[0]), a[1].min(c[1]), a[2].min(c[2])],
+                        [b[0].max(d[0]), b[1].max(d[1]), b[2].max(d[2])],
+                    )
+                },
+            );
+        let (min_cell, extent) = if n == 0 {
+            ([0; 3], [0; 3])
+        } else {
+            let extent = [
+                max_cell[0] - min_cell[0] + 1,
+                max_cell[1] - min_cell[1] + 1,
+                max_cell[2] - min_cell[2] + 1,
+            ];
+            if let Some(&cells) = extent.iter().find(|&&e| e > MAX_CELLS_PER_AXIS) {
+                return Err(IndexError::TooLarge {
+                    cells,
+                    cell_size_m: s,
+                    max: MAX_CELLS_PER_AXIS,
+                });
+            }
+            (min_cell, extent)
+        };
+        // (block key << 9 | cell bit in block, point index), sorted: blocks in
+        // key order, cells by (z, y, x) in a block, points by index in a cell.
+        let mut pairs: Vec<(u64, u32)> = cloud
+            .points
+            .par_iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let c = cell_of(p);
+                let g = [c[0] - min_cell[0], c[1] - min_cell[1], c[2] - min_cell[2]];
+                let block = pack_block([
+                    g[0] >> BLOCK_SHIFT,
+                    g[1] >> BLOCK_SHIFT,
+                    g[2] >> BLOCK_SHIFT,
+                ]);
+                let m = BLOCK_EDGE - 1;
+                let bit = ((g[2] & m) << 6) | ((g[1] & m) << 3) | (g[0] & m);
+                ((block << 9) | bit as u64, i as u32)
+            })
+            .collect();
+        pairs.par_sort_unstable();
+        let mut block_keys: Vec<u64> = Vec::new();
+        let mut blocks: Vec<Block> = Vec::new();
+        let mut cell_start: Vec<u32> = Vec::new();
+        let mut last_key = u64::MAX;
+        for (k, &(key, _)) in pairs.iter().enumerate() {
+            if key == last_key {
+                continue;
+            }
+            last_key = key;
+            let block_key = key >> 9;
+            if block_keys.last() != Some(&block_key) {
+                block_keys.push(block_key);
+                blocks.push(Block {
+                    occupied: [0; 8],
+                    first_cell: [0; 8],
+                });
+            }
+            let cell_id = cell_start.len() as u32;
+            cell_start.push(k as u32);
+            // A block was pushed above: `last` cannot fail.
+            let block = blocks.last_mut().expect("a block exists");
+            let (z, bit) = (((key >> 6) & 7) as usize, key & 63);
+            if block.occupied[z] == 0 {
+                block.first_cell[z] = cell_id;
+            }
+            block.occupied[z] |= 1u64 << bit;
+        }
+        cell_start.push(n as u32);
+        let table = BlockTable::new(&block_keys);
+
+        let mut xs = vec![0u16; n];
+        let mut ys = vec![0u16; n];
+        let mut zs = vec![0u16; n];
+        let mut point_idx = vec![0u32; n];
+        const CHUNK: usize = 1 << 15;
+        let step = s / STEPS;
+        xs.par_chunks_mut(CHUNK)
+            .zip(ys.par_chunks_mut(CHUNK))
+            .zip(zs.par_chunks_mut(CHUNK))
+            .zip(point_idx.par_chunks_mut(CHUNK))
+            .zip(pairs.par_chunks(CHUNK))
+            .for_each(|((((x, y), z), idx), pairs)| {
+                for (k, &(key, i)) in pairs.iter().enumerate() {
+                    let b = unpack_block(key >> 9);
+                    let local = [
+                        (key & 7) as i64,
+                        ((key >> 3) & 7) as i64,
+                        ((key >> 6) & 7) as i64,
+                    ];
+                    let p = cloud.points[i as usize];
+                    let mut q = [0u16; 3];
+                    for a in 0..3 {
+                        let cell = (b[a] << BLOCK_SHIFT) + local[a] + min_cell[a];
+                        let steps = (f64::from(p[a]) - cell as f64 * s) / step;
+                        // Within [0, 65535] up to rounding: `as` saturates,
+                        // +0.5 rounds.
+                        q[a] = (steps + 0.5).clamp(0.0, STEPS) as u16;
+                    }
+                    x[k] = q[0];
+                    y[k] = q[1];
+                    z[k] = q[2];
+                    idx[k] = i;
+                }
+            });
+        drop(pairs);
         Ok(Self {
             origin: cloud.origin,
-            index_from_local,
-            tree,
-            num_points: n,
+            cell_size_m: s,
+            min_cell,
+            extent,
+            table,
+            block_keys,
+            blocks,
+            cell_start,
+            xs,
+            ys,
+            zs,
+            point_idx,
         })
     }
 
     pub fn len(&self) -> usize {
-        self.num_points
+        self.point_idx.len()
     }
 
     pub fn is_empty(&self) -> bool {
-        self.num_points == 0
+        self.point_idx.is_empty()
     }
 
-    /// Query point in the tree's (rotated, local) frame.
-    fn to_index_frame(&self, point_in_map: &Vector3<f64>) -> [f32; 3] {
-        let q = self.index_from_local * (point_in_map - self.origin);
-        [q.x as f32, q.y as f32, q.z as f32]
+    /// Edge of a grid cell (m).
+    pub fn cell_size_m(&self) -> f64 {
+        self.cell_size_m
     }
 
-    /// The nearest map point within `radius_m` (inclusive) of `point_in_map`,
-    /// or `None` when there is none. Radius-bounded, so fast even far from the
-    /// map.
-    pub fn nearest_within(&self, point_in_map: &Vector3<f64>, radius_m: f64) -> Option<Neighbour> {
-        let tree = self.tree.as_ref()?;
+    /// Number of occupied cells.
+    pub fn num_cells(&self) -> usize {
+        self.cell_start.len().saturating_sub(1)
+    }
+
+    /// Heap bytes held by the index.
+    pub fn memory_bytes(&self) -> usize {
+        self.table.keys.capacity() * 8
+            + self.table.ids.capacity() * 4
+            + self.block_keys.capacity() * 8
+            + self.blocks.capacity() * std::mem::size_of::<Block>()
+            + self.cell_start.capacity() * 4
+            + (self.xs.capacity() + self.ys.capacity() + self.zs.capacity()) * 2
+            + self.point_idx.capacity() * 4
+    }
+
+    /// Squared length of a quantisation step (m²).
+    fn step_sq(&self) -> f64 {
+        let step = self.cell_size_m / STEPS;
+        step * step
+    }
+
+    /// The query point in continuous grid-cell coordinates (`None` when not
+    /// finite).
+    fn to_grid(&self, point_in_map: &Vector3<f64>) -> Option<[f64; 3]> {
+        let l = point_in_map - self.origin;
+        let inv = 1.0 / self.cell_size_m;
+        let g = [
+            l.x * inv - self.min_cell[0] as f64,
+            l.y * inv - self.min_cell[1] as f64,
+            l.z * inv - self.min_cell[2] as f64,
+        ];
+        g.iter().all(|c| c.is_finite()).then_some(g)
+    }
+
+    /// A radius (m) as a squared distance in squared steps (inclusive bound);
+    /// `None` for a negative or NaN radius.
+    fn radius_steps_sq(&self, radius_m: f64) -> Option<f32> {
         if !(radius_m >= 0.0) {
             return None;
         }
-        let q = self.to_index_frame(point_in_map);
-        let radius_sq = (radius_m * radius_m) as f32;
-        // NonZero literal: 1 is not zero.
-        let one = NonZeroUsize::MIN;
-        let found = tree
-            .query(&q)
-            .nearest_n::<SquaredEuclidean<f32>>(one)
-            .within(radius_sq)
-            .execute();
-        found.first().map(|r| Neighbour {
-            point_idx: r.item,
-            dist_sq: f64::from(r.distance),
+        Some((radius_m * radius_m / self.step_sq()) as f32)
+    }
+
+    /// The id of the grid cell `c`, if occupied.
+    #[inline]
+    fn cell_id(&self, c: [i64; 3]) -> Option<u32> {
+        if (0..3).any(|a| c[a] < 0 || c[a] >= self.extent[a]) {
+            return None;
+        }
+        let b = [
+            c[0] >> BLOCK_SHIFT,
+            c[1] >> BLOCK_SHIFT,
+            c[2] >> BLOCK_SHIFT,
+        ];
+        let block = &self.blocks[self.table.get(pack_block(b))? as usize];
+        let m = BLOCK_EDGE - 1;
+        let (z, bit) = ((c[2] & m) as usize, ((c[1] & m) << 3 | (c[0] & m)) as u32);
+        (block.occupied[z] >> bit & 1 == 1).then(|| block.cell_id(z, bit))
+    }
+
+    /// Squared distance (squared steps) from `g` to the box of cell `c`.
+    #[inline]
+    fn box_dist_steps_sq(g: &[f64; 3], c: [i64; 3]) -> f32 {
+        let mut d = 0.0;
+        for a in 0..3 {
+            let lo = c[a] as f64;
+            let v = if g[a] < lo {
+                lo - g[a]
+            } else if g[a] > lo + 1.0 {
+                g[a] - lo - 1.0
+            } else {
+                0.0
+            };
+            d += v * v;
+        }
+        (d * (STEPS * STEPS)) as f32
+    }
+
+    /// Calls `f(cell id, cell)` for every occupied cell in the inclusive cell
+    /// box `[lo, hi]` (clamped to the grid), block by block.
+    #[inline]
+    fn for_each_cell_in_box(&self, lo: [i64; 3], hi: [i64; 3], mut f: impl FnMut(u32, [i64; 3])) {
+        let lo = [lo[0].max(0), lo[1].max(0), lo[2].max(0)];
+        let hi = [
+            hi[0].min(self.extent[0] - 1),
+            hi[1].min(self.extent[1] - 1),
+            hi[2].min(self.extent[2] - 1),
+        ];
+        if (0..3).any(|a| lo[a] > hi[a]) {
+            return;
+        }
+        let blo = [
+            lo[0] >> BLOCK_SHIFT,
+            lo[1] >> BLOCK_SHIFT,
+            lo[2] >> BLOCK_SHIFT,
+        ];
+        let bhi = [
+            hi[0] >> BLOCK_SHIFT,
+            hi[1] >> BLOCK_SHIFT,
+            hi[2] >> BLOCK_SHIFT,
+        ];
+        let span = (bhi[0] - blo[0] + 1) * (bhi[1] - blo[1] + 1) * (bhi[2] - blo[2] + 1);
+        let mut visit = |b: [i64; 3], block: &Block| {
+            let base = [
+                b[0] << BLOCK_SHIFT,
+                b[1] << BLOCK_SHIFT,
+                b[2] << BLOCK_SHIFT,
+            ];
+            let r = |a: usize| -> (i64, i64) {
+                (
+                    (lo[a] - base[a]).max(0),
+                    (hi[a] - base[a]).min(BLOCK_EDGE - 1),
+                )
+            };
+            let ((x0, x1), (y0, y1), (z0, z1)) = (r(0), r(1), r(2));
+            if x0 > x1 || y0 > y1 || z0 > z1 {
+                return;
+            }
+            let row = ((1u64 << (x1 - x0 + 1)) - 1) << x0;
+            let mut rect = 0u64;
+            for y in y0..=y1 {
+                rect |= row << (8 * y);
+            }
+            for z in z0..=z1 {
+                let occupied = block.occupied[z as usize];
+                let mut m = occupied & rect;
+                while m != 0 {
+                    let bit = m.trailing_zeros();
+                    m &= m - 1;
+                    let id = block.cell_id(z as usize, bit);
+                    f(
+                        id,
+                        [
+                            base[0] + i64::from(bit & 7),
+                            base[1] + i64::from(bit >> 3),
+                            base[2] + z,
+                        ],
+                    );
+                }
+            }
+        };
+        if span as usize > self.blocks.len() {
+            // Wider than the map's blocks: walk the blocks instead.
+            for (key, block) in self.block_keys.iter().zip(&self.blocks) {
+                let b = unpack_block(*key);
+                if (0..3).all(|a| b[a] >= blo[a] && b[a] <= bhi[a]) {
+                    visit(b, block);
+                }
+            }
+        } else {
+            for bx in blo[0]..=bhi[0] {
+                for by in blo[1]..=bhi[1] {
+                    for bz in blo[2]..=bhi[2] {
+                        if let Some(id) = self.table.get(pack_block([bx, by, bz])) {
+                            visit([bx, by, bz], &self.blocks[id as usize]);
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// The query relative to cell `c`'s corner, in steps.
+    #[inline]
+    fn local_query(g: &[f64; 3], c: [i64; 3]) -> [f32; 3] {
+        [
+            ((g[0] - c[0] as f64) * STEPS) as f32,
+            ((g[1] - c[1] as f64) * STEPS) as f32,
+            ((g[2] - c[2] as f64) * STEPS) as f32,
+        ]
+    }
+
+    /// Range of cell `id` in the point arrays.
+    #[inline]
+    fn cell_range(&self, id: u32) -> std::ops::Range<usize> {
+        self.cell_start[id as usize] as usize..self.cell_start[id as usize + 1] as usize
+    }
+
+    /// Smallest squared distance (squared steps) from `q` (cell-local steps)
+    /// to a point of `range`, and the first position where it occurs.
+    #[inline]
+    fn cell_min(&self, range: std::ops::Range<usize>, q: [f32; 3]) -> (f32, usize) {
+        let (xs, ys, zs) = (
+            &self.xs[range.clone()],
+            &self.ys[range.clone()],
+            &self.zs[range.clone()],
+        );
+        let dist = |x: u16, y: u16, z: u16| -> f32 {
+            let dx = q[0] - f32::from(x);
+            let dy = q[1] - f32::from(y);
+            let dz = q[2] - f32::from(z);
+            dx * dx + dy * dy + dz * dz
+        };
+        // Lane-wise minimum over chunks of 8 (vectorised), then the rest.
+        const LANES: usize = 8;
+        let mut acc = [f32::INFINITY; LANES];
+        let (cx, cy, cz) = (
+            xs.chunks_exact(LANES),
+            ys.chunks_exact(LANES),
+            zs.chunks_exact(LANES),
+        );
+        let (rx, ry, rz) = (cx.remainder(), cy.remainder(), cz.remainder());
+        for ((x, y), z) in cx.zip(cy).zip(cz) {
+            for l in 0..LANES {
+                let d = dist(x[l], y[l], z[l]);
+                acc[l] = if d < acc[l] { d } else { acc[l] };
+            }
+        }
+        let mut min = f32::INFINITY;
+        for a in acc {
+            min = if a < min { a } else { min };
+        }
+        for ((x, y), z) in rx.iter().zip(ry).zip(rz) {
+            let d = dist(*x, *y, *z);
+            min = if d < min { d } else { min };
+        }
+        let pos = (0..xs.len())
+            .position(|i| dist(xs[i], ys[i], zs[i]) == min)
+            .unwrap_or(0);
+        (min, range.start + pos)
+    }
+
+    /// Scans cell `id` for the nearest point; updates `best` (and returns
+    /// true) when it holds a better one within `bound` (inclusive).
+    #[inline]
+    fn scan_nearest(
+        &self,
+        id: u32,
+        c: [i64; 3],
+        g: &[f64; 3],
+        bound: f32,
+        best: &mut Option<Best>,
+    ) {
+        let range = self.cell_range(id);
+        let (d, pos) = self.cell_min(range, Self::local_query(g, c));
+        if !(d <= bound) {
+            return;
+        }
+        let idx = self.point_idx[pos];
+        let better = match best {
+            None => true,
+            Some(b) => d < b.d || (d == b.d && idx < b.idx),
+        };
+        if better {
+            *best = Some(Best { d, idx });
+        }
+    }
+
+    /// The nearest map point within `radius_m` (inclusive) of `point_in_map`,
+    /// or `None` when there is none. Ties go to the smaller point index.
+    pub fn nearest_within(&self, point_in_map: &Vector3<f64>, radius_m: f64) -> Option<Neighbour> {
+        if self.is_empty() {
+            return None;
+        }
+        let bound = self.radius_steps_sq(radius_m)?;
+        let g = self.to_grid(point_in_map)?;
+        self.nearest_bounded(&g, bound).map(|b| Neighbour {
+            point_idx: b.idx,
+            dist_sq: f64::from(b.d) * self.step_sq(),
         })
+    }
+
+    fn nearest_bounded(&self, g: &[f64; 3], bound: f32) -> Option<Best> {
+        let own = [
+            g[0].floor() as i64,
+            g[1].floor() as i64,
+            g[2].floor() as i64,
+        ];
+        let mut best = None;
+        if let Some(id) = self.cell_id(own) {
+            self.scan_nearest(id, own, g, bound, &mut best);
+        }
+        let reach_steps_sq = best.map_or(bound, |b: Best| b.d);
+        // Cells within the current best distance of the query.
+        let reach = f64::from(reach_steps_sq).sqrt() / STEPS;
+        let lo = [
+            (g[0] - reach).floor() as i64,
+            (g[1] - reach).floor() as i64,
+            (g[2] - reach).floor() as i64,
+        ];
+        let hi = [
+            (g[0] + reach).floor() as i64,
+            (g[1] + reach).floor() as i64,
+            (g[2] + reach).floor() as i64,
+        ];
+        if lo == hi {
+            // Only the own cell is in reach.
+            return best;
+        }
+        self.for_each_cell_in_box(lo, hi, |id, c| {
+            if c == own {
+                return;
+            }
+            let current = best.map_or(bound, |b| b.d);
+            if Self::box_dist_steps_sq(g, c) > current {
+                return;
+            }
+            self.scan_nearest(id, c, g, bound, &mut best);
+        });
+        best
     }
 
     /// [`nearest_within`](Self::nearest_within) for many query points at
     /// once: the answer for `points_in_map[i]` is at `i`. Queries run in a
-    /// space-filling-curve order (consecutive queries touch the same tree
-    /// nodes, so far fewer cache misses than in arbitrary order), in parallel
-    /// over chunks (rayon); the result does not depend on the thread count.
+    /// space-filling-curve order (consecutive queries touch the same cells, so
+    /// far fewer cache misses than in arbitrary order), in parallel over
+    /// chunks (rayon); the result does not depend on the thread count.
     pub fn nearest_within_batch(
         &self,
         points_in_map: &[Vector3<f64>],
         radius_m: f64,
     ) -> Vec<Option<Neighbour>> {
-        use rayon::prelude::*;
         let n = points_in_map.len();
-        if self.tree.is_none() || n == 0 {
+        if self.is_empty() || n == 0 {
             return vec![None; n];
         }
         let order = spatial_order(points_in_map);
@@ -181,34 +756,134 @@ impl MapIndex {
         out
     }
 
+    /// The `k` nearest points within `bound` (squared steps, inclusive) of
+    /// `g`, as heap keys (unsorted).
+    fn k_nearest_bounded(&self, g: &[f64; 3], k: usize, bound: f32) -> BinaryHeap<u64> {
+        let mut heap = BinaryHeap::with_capacity(k.min(4096) + 1);
+        if k == 0 {
+            return heap;
+        }
+        let limit = |heap: &BinaryHeap<u64>| -> f32 {
+            match heap.peek() {
+                Some(&worst) if heap.len() >= k => key_dist(worst),
+                _ => bound,
+            }
+        };
+        let scan = |id: u32, c: [i64; 3], heap: &mut BinaryHeap<u64>| {
+            let mut lim = limit(heap);
+            if Self::box_dist_steps_sq(g, c) > lim {
+                return;
+            }
+            let q = Self::local_query(g, c);
+            for pos in self.cell_range(id) {
+                let dx = q[0] - f32::from(self.xs[pos]);
+                let dy = q[1] - f32::from(self.ys[pos]);
+                let dz = q[2] - f32::from(self.zs[pos]);
+                let d = dx * dx + dy * dy + dz * dz;
+                if !(d <= lim) {
+                    continue;
+                }
+                let key = heap_key(d, self.point_idx[pos]);
+                if heap.len() < k {
+                    heap.push(key);
+                } else if heap.peek().is_some_and(|&worst| key < worst) {
+                    heap.pop();
+                    heap.push(key);
+                } else {
+                    continue;
+                }
+                lim = limit(heap);
+            }
+        };
+        let own = [
+            g[0].floor() as i64,
+            g[1].floor() as i64,
+            g[2].floor() as i64,
+        ];
+        if let Some(id) = self.cell_id(own) {
+            scan(id, own, &mut heap);
+        }
+        let reach = f64::from(limit(&heap)).sqrt() / STEPS;
+        let lo = [
+            (g[0] - reach).floor() as i64,
+            (g[1] - reach).floor() as i64,
+            (g[2] - reach).floor() as i64,
+        ];
+        let hi = [
+            (g[0] + reach).floor() as i64,
+            (g[1] + reach).floor() as i64,
+            (g[2] + reach).floor() as i64,
+        ];
+        self.for_each_cell_in_box(lo, hi, |id, c| {
+            if c != own {
+                scan(id, c, &mut heap);
+            }
+        });
+        heap
+    }
+
+    /// Heap keys to neighbours, nearest first (ties by point index).
+    fn sorted_neighbours(&self, heap: BinaryHeap<u64>) -> Vec<Neighbour> {
+        let step_sq = self.step_sq();
+        heap.into_sorted_vec()
+            .into_iter()
+            .map(|key| Neighbour {
+                point_idx: key as u32,
+                dist_sq: f64::from(key_dist(key)) * step_sq,
+            })
+            .collect()
+    }
+
+    /// The `k` nearest points of `g` whatever their distance: the radius
+    /// grows geometrically until `k` points (or the whole map) are in reach.
+    fn k_nearest_unbounded(&self, g: &[f64; 3], k: usize) -> BinaryHeap<u64> {
+        let want = k.min(self.len());
+        // Distance (cells) from g to the farthest corner of the grid's box.
+        let mut far_sq = 0.0;
+        for a in 0..3 {
+            let e = self.extent[a] as f64;
+            let v = g[a].abs().max((g[a] - e).abs());
+            far_sq += v * v;
+        }
+        let mut radius_cells = 1.0f64;
+        loop {
+            let all = radius_cells * radius_cells >= far_sq;
+            let bound = if all {
+                f32::INFINITY
+            } else {
+                (radius_cells * radius_cells * STEPS * STEPS) as f32
+            };
+            let heap = self.k_nearest_bounded(g, k, bound);
+            if heap.len() >= want || all {
+                return heap;
+            }
+            radius_cells *= 4.0;
+        }
+    }
+
     /// The nearest map point, whatever its distance (`None` for an empty map).
     /// Prefer [`nearest_within`](Self::nearest_within): unbounded queries far
-    /// from any surface visit many tree nodes.
+    /// from any surface visit many cells.
     pub fn nearest(&self, point_in_map: &Vector3<f64>) -> Option<Neighbour> {
-        let tree = self.tree.as_ref()?;
-        let q = self.to_index_frame(point_in_map);
-        let r = tree
-            .query(&q)
-            .nearest_one::<SquaredEuclidean<f32>>()
-            .execute();
-        Some(Neighbour {
-            point_idx: r.item,
-            dist_sq: f64::from(r.distance),
-        })
+        let g = self.to_grid(point_in_map)?;
+        if self.is_empty() {
+            return None;
+        }
+        self.sorted_neighbours(self.k_nearest_unbounded(&g, 1))
+            .into_iter()
+            .next()
     }
 
     /// The `k` nearest map points, nearest first (ties by point index). Fewer
     /// than `k` when the map is smaller.
     pub fn k_nearest(&self, point_in_map: &Vector3<f64>, k: usize) -> Vec<Neighbour> {
-        let (Some(tree), Some(k)) = (self.tree.as_ref(), NonZeroUsize::new(k)) else {
+        let Some(g) = self.to_grid(point_in_map) else {
             return Vec::new();
         };
-        let q = self.to_index_frame(point_in_map);
-        let found = tree
-            .query(&q)
-            .nearest_n::<SquaredEuclidean<f32>>(k)
-            .execute();
-        sorted_neighbours(found.into_iter().map(|r| (r.item, r.distance)))
+        if self.is_empty() || k == 0 {
+            return Vec::new();
+        }
+        self.sorted_neighbours(self.k_nearest_unbounded(&g, k))
     }
 
     /// The `k` nearest map points within `radius_m` (inclusive), nearest first
@@ -219,37 +894,62 @@ impl MapIndex {
         k: usize,
         radius_m: f64,
     ) -> Vec<Neighbour> {
-        let (Some(tree), Some(k)) = (self.tree.as_ref(), NonZeroUsize::new(k)) else {
+        let (Some(g), Some(bound)) = (self.to_grid(point_in_map), self.radius_steps_sq(radius_m))
+        else {
             return Vec::new();
         };
-        if !(radius_m >= 0.0) {
+        if self.is_empty() || k == 0 {
             return Vec::new();
         }
-        let q = self.to_index_frame(point_in_map);
-        let found = tree
-            .query(&q)
-            .nearest_n::<SquaredEuclidean<f32>>(k)
-            .within((radius_m * radius_m) as f32)
-            .execute();
-        sorted_neighbours(found.into_iter().map(|r| (r.item, r.distance)))
+        self.sorted_neighbours(self.k_nearest_bounded(&g, k, bound))
     }
 
     /// Every map point within `radius_m` (inclusive) of `point_in_map`,
     /// nearest first (ties by point index).
     pub fn within_radius(&self, point_in_map: &Vector3<f64>, radius_m: f64) -> Vec<Neighbour> {
-        let Some(tree) = self.tree.as_ref() else {
+        let (Some(g), Some(bound)) = (self.to_grid(point_in_map), self.radius_steps_sq(radius_m))
+        else {
             return Vec::new();
         };
-        if !(radius_m >= 0.0) {
+        let reach = f64::from(bound).sqrt() / STEPS;
+        let lo = [
+            (g[0] - reach).floor() as i64,
+            (g[1] - reach).floor() as i64,
+            (g[2] - reach).floor() as i64,
+        ];
+        let hi = [
+            (g[0] + reach).floor() as i64,
+            (g[1] + reach).floor() as i64,
+            (g[2] + reach).floor() as i64,
+        ];
+        let mut found: Vec<u64> = Vec::new();
+        if self.is_empty() {
             return Vec::new();
         }
-        let q = self.to_index_frame(point_in_map);
-        let found = tree
-            .query(&q)
-            .within::<SquaredEuclidean<f32>>((radius_m * radius_m) as f32)
-            .unsorted()
-            .execute();
-        sorted_neighbours(found.into_iter().map(|r| (r.item, r.distance)))
+        self.for_each_cell_in_box(lo, hi, |id, c| {
+            if Self::box_dist_steps_sq(&g, c) > bound {
+                return;
+            }
+            let q = Self::local_query(&g, c);
+            for pos in self.cell_range(id) {
+                let dx = q[0] - f32::from(self.xs[pos]);
+                let dy = q[1] - f32::from(self.ys[pos]);
+                let dz = q[2] - f32::from(self.zs[pos]);
+                let d = dx * dx + dy * dy + dz * dz;
+                if d <= bound {
+                    found.push(heap_key(d, self.point_idx[pos]));
+                }
+            }
+        });
+        found.sort_unstable();
+        let step_sq = self.step_sq();
+        found
+            .into_iter()
+            .map(|key| Neighbour {
+                point_idx: key as u32,
+                dist_sq: f64::from(key_dist(key)) * step_sq,
+            })
+            .collect()
     }
 }
 
@@ -286,18 +986,6 @@ fn spatial_order(points: &[Vector3<f64>]) -> Vec<u32> {
         .collect();
     keyed.sort_unstable();
     keyed.into_iter().map(|(_, i)| i).collect()
-}
-
-/// Sorts by (distance, index): deterministic whatever the tree's visiting order.
-fn sorted_neighbours(found: impl Iterator<Item = (u32, f32)>) -> Vec<Neighbour> {
-    let mut v: Vec<(f32, u32)> = found.map(|(i, d)| (d, i)).collect();
-    v.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-    v.into_iter()
-        .map(|(d, i)| Neighbour {
-            point_idx: i,
-            dist_sq: f64::from(d),
-        })
-        .collect()
 }
 
 #[cfg(test)]
