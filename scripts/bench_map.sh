@@ -36,7 +36,7 @@ timed() {
 echo "== generating $POINTS points into $RAW"
 "$BIN" bench-map generate --output "$RAW" --points "$POINTS"
 ls -l "$RAW"
-echo "== load + index"
+echo "== load + index (nearest-neighbour index and frustum grid; target < 15 s, < 1.5 GB)"
 timed "load + index" "$BIN" bench-map load --input "$RAW" --index
 echo "== load only"
 timed "load" "$BIN" bench-map load --input "$RAW"

@@ -44,7 +44,8 @@ pub enum BenchMapAction {
     Load {
         #[arg(long)]
         input: PathBuf,
-        /// Also build the nearest-neighbour index ([`crate::map::index::MapIndex`]).
+        /// Also build the nearest-neighbour index ([`crate::map::index::MapIndex`])
+        /// and the frustum grid ([`crate::map::grid::FrustumGrid`]).
         #[arg(long)]
         index: bool,
     },
@@ -199,10 +200,25 @@ pub fn run(args: &BenchMapArgs) -> anyhow::Result<()> {
                     }
                 }
                 println!(
-                    "built the index of {} points in {built:.2} s ({found} self-queries found); \
-                     load + index {:.2} s",
+                    "built the index of {} points in {built:.2} s ({:.0} MB, {} cells of {} m; \
+                     {found} self-queries found)",
                     map_index.len(),
-                    loaded + built
+                    map_index.memory_bytes() as f64 / 1e6,
+                    map_index.num_cells(),
+                    map_index.cell_size_m(),
+                );
+                let start = Instant::now();
+                let grid = crate::map::grid::FrustumGrid::build(
+                    &cloud,
+                    &crate::map::grid::GridOptions::default(),
+                )?;
+                let gridded = start.elapsed().as_secs_f64();
+                println!(
+                    "built the frustum grid in {gridded:.2} s ({:.0} MB, {} cells); \
+                     load + index + grid {:.2} s",
+                    grid.memory_bytes() as f64 / 1e6,
+                    grid.num_cells(),
+                    loaded + built + gridded
                 );
             }
         }

@@ -26,11 +26,11 @@
 //!
 //! Results are exact for the stored coordinates and deterministic: the nearest
 //! by (squared distance, point index), whatever the visiting order. Accuracy:
-//! stored coordinates are within half a quantisation step (1.5 µm for 0.2 m
-//! cells) of the cloud's f32 coordinates, and squared distances are computed in
-//! f32 relative to the cell, so returned distances carry an error of a few µm
-//! (independent of the map's extent). Use [`PointCloud::point_in_map`] for the
-//! exact point.
+//! stored coordinates are within half a quantisation step per axis (1.5 µm
+//! for 0.2 m cells) of the cloud's f32 coordinates, and squared distances are
+//! computed in f32 relative to the cell, so returned distances carry an error
+//! below 1.4e-5 of the cell size (2.7 µm for 0.2 m cells), independent of the
+//! map's extent. Use [`PointCloud::point_in_map`] for the exact point.
 use std::collections::BinaryHeap;
 
 use nalgebra::Vector3;
@@ -72,17 +72,26 @@ pub struct Neighbour {
 /// Options of [`MapIndex::build_with_options`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct IndexOptions {
-    /// Edge of a grid cell (m). Default 0.2: about 40-60 points a cell on a
-    /// surface sampled every 2.5-3 cm, and the query radii of the mapper
-    /// (0.1-1.5 m) span a few cells. Smaller for denser maps.
-    pub cell_size_m: f64,
+    /// Edge of a grid cell (m). Default `None`: automatic, 0.2 m (about
+    /// 40-60 points a cell on a surface sampled every 2.5-3 cm; the mapper's
+    /// query radii, 0.1-1.5 m, span a few cells), rebuilt once with a cell
+    /// size scaled to give about 32 points an occupied cell when the mean
+    /// is below 8 or above 256 (sparser or denser maps).
+    pub cell_size_m: Option<f64>,
 }
 
 impl Default for IndexOptions {
     fn default() -> Self {
-        Self { cell_size_m: 0.2 }
+        Self { cell_size_m: None }
     }
 }
+
+/// Automatic cell size: the first try, and the bounds of the mean number of
+/// points an occupied cell outside which the index is rebuilt once.
+const AUTO_CELL_M: f64 = 0.2;
+const AUTO_MIN_MEAN: f64 = 8.0;
+const AUTO_MAX_MEAN: f64 = 256.0;
+const AUTO_TARGET_MEAN: f64 = 32.0;
 
 /// Cells per block edge is `1 << BLOCK_SHIFT` (8: 512 cells, one `u64` mask
 /// word per z-layer).
@@ -234,6 +243,86 @@ fn key_dist(key: u64) -> f32 {
     f32::from_bits((key >> 32) as u32)
 }
 
+/// A query run by [`MapIndex::search_growing`].
+trait Search {
+    /// Current bound on the squared distance of a useful point (squared
+    /// steps, inclusive).
+    fn limit(&self) -> f32;
+    /// Scans cell `id` (grid cell `c`) for the query `g`.
+    fn scan(&mut self, index: &MapIndex, id: u32, c: [i64; 3], g: &[f64; 3]);
+}
+
+/// Single nearest point within `bound`.
+struct NearestSearch {
+    bound: f32,
+    best: Option<Best>,
+}
+
+impl Search for NearestSearch {
+    #[inline]
+    fn limit(&self) -> f32 {
+        self.best.map_or(self.bound, |b| b.d)
+    }
+
+    #[inline]
+    fn scan(&mut self, index: &MapIndex, id: u32, c: [i64; 3], g: &[f64; 3]) {
+        let range = index.cell_range(id);
+        let (d, pos) = index.cell_min(range, MapIndex::local_query(g, c));
+        if !(d <= self.bound) {
+            return;
+        }
+        let idx = index.point_idx[pos];
+        let better = match self.best {
+            None => true,
+            Some(b) => d < b.d || (d == b.d && idx < b.idx),
+        };
+        if better {
+            self.best = Some(Best { d, idx });
+        }
+    }
+}
+
+/// The `k` nearest points within `bound`, in a max-heap of [`heap_key`]s.
+struct KSearch {
+    k: usize,
+    bound: f32,
+    heap: BinaryHeap<u64>,
+}
+
+impl Search for KSearch {
+    #[inline]
+    fn limit(&self) -> f32 {
+        match self.heap.peek() {
+            Some(&worst) if self.heap.len() >= self.k => key_dist(worst),
+            _ => self.bound,
+        }
+    }
+
+    fn scan(&mut self, index: &MapIndex, id: u32, c: [i64; 3], g: &[f64; 3]) {
+        let q = MapIndex::local_query(g, c);
+        let mut lim = self.limit();
+        for pos in index.cell_range(id) {
+            let dx = q[0] - f32::from(index.xs[pos]);
+            let dy = q[1] - f32::from(index.ys[pos]);
+            let dz = q[2] - f32::from(index.zs[pos]);
+            let d = dx * dx + dy * dy + dz * dz;
+            if !(d <= lim) {
+                continue;
+            }
+            let key = heap_key(d, index.point_idx[pos]);
+            if self.heap.len() < self.k {
+                self.heap.push(key);
+            } else if self.heap.peek().is_some_and(|&worst| key < worst) {
+                self.heap.pop();
+                self.heap.push(key);
+            } else {
+                continue;
+            }
+            lim = self.limit();
+        }
+    }
+}
+
 impl MapIndex {
     /// Builds the index of every point of `cloud` with the default options.
     /// Parallel (rayon); the index does not depend on the number of threads.
@@ -246,7 +335,24 @@ impl MapIndex {
         cloud: &PointCloud,
         options: &IndexOptions,
     ) -> Result<Self, IndexError> {
-        let s = options.cell_size_m;
+        if let Some(s) = options.cell_size_m {
+            return Self::build_with_cell_size(cloud, s);
+        }
+        let first = Self::build_with_cell_size(cloud, AUTO_CELL_M)?;
+        let mean = first.len() as f64 / first.num_cells().max(1) as f64;
+        if first.is_empty() || (AUTO_MIN_MEAN..=AUTO_MAX_MEAN).contains(&mean) {
+            return Ok(first);
+        }
+        // Points a cell scale with the cell's area on surfaces.
+        let s = (AUTO_CELL_M * (AUTO_TARGET_MEAN / mean).sqrt()).clamp(0.01, 10.0);
+        drop(first);
+        match Self::build_with_cell_size(cloud, s) {
+            Err(IndexError::TooLarge { .. }) => Self::build_with_cell_size(cloud, AUTO_CELL_M),
+            other => other,
+        }
+    }
+
+    fn build_with_cell_size(cloud: &PointCloud, s: f64) -> Result<Self, IndexError> {
         if !(s.is_finite() && s > 0.0) {
             return Err(IndexError::BadCellSize(s));
         }
@@ -646,29 +752,72 @@ impl MapIndex {
         (min, range.start + pos)
     }
 
-    /// Scans cell `id` for the nearest point; updates `best` (and returns
-    /// true) when it holds a better one within `bound` (inclusive).
-    #[inline]
-    fn scan_nearest(
-        &self,
-        id: u32,
-        c: [i64; 3],
-        g: &[f64; 3],
-        bound: f32,
-        best: &mut Option<Best>,
-    ) {
-        let range = self.cell_range(id);
-        let (d, pos) = self.cell_min(range, Self::local_query(g, c));
-        if !(d <= bound) {
-            return;
+    /// Visits the occupied cells around `g` nearest first, roughly: the own
+    /// cell, then cubes of half-width 1, 2, 4, ... cells around it (each cell
+    /// once), until the cube holds the ball of radius `sqrt(search.limit())`
+    /// (the limit may shrink while visiting). Cells whose box lies beyond the
+    /// limit are not scanned.
+    fn search_growing<S: Search>(&self, g: &[f64; 3], search: &mut S) {
+        let own = [
+            g[0].floor() as i64,
+            g[1].floor() as i64,
+            g[2].floor() as i64,
+        ];
+        if let Some(id) = self.cell_id(own) {
+            search.scan(self, id, own, g);
         }
-        let idx = self.point_idx[pos];
-        let better = match best {
-            None => true,
-            Some(b) => d < b.d || (d == b.d && idx < b.idx),
-        };
-        if better {
-            *best = Some(Best { d, idx });
+        let mut done: i64 = 0;
+        loop {
+            let limit = search.limit();
+            let reach = if limit.is_finite() {
+                f64::from(limit).sqrt() / STEPS
+            } else {
+                f64::INFINITY
+            };
+            // `as` saturates for infinite reaches; clamped to the grid.
+            let lo = [
+                ((g[0] - reach).floor() as i64).max(0),
+                ((g[1] - reach).floor() as i64).max(0),
+                ((g[2] - reach).floor() as i64).max(0),
+            ];
+            let hi = [
+                ((g[0] + reach).floor() as i64).min(self.extent[0] - 1),
+                ((g[1] + reach).floor() as i64).min(self.extent[1] - 1),
+                ((g[2] + reach).floor() as i64).min(self.extent[2] - 1),
+            ];
+            if (0..3).any(|a| lo[a] > hi[a]) {
+                return;
+            }
+            let needed = (0..3)
+                .map(|a| (own[a] - lo[a]).max(hi[a] - own[a]))
+                .max()
+                .unwrap_or(0);
+            if needed <= done {
+                return;
+            }
+            let next = needed.min((2 * done).max(1));
+            let box_lo = [
+                (own[0] - next).max(lo[0]),
+                (own[1] - next).max(lo[1]),
+                (own[2] - next).max(lo[2]),
+            ];
+            let box_hi = [
+                (own[0] + next).min(hi[0]),
+                (own[1] + next).min(hi[1]),
+                (own[2] + next).min(hi[2]),
+            ];
+            self.for_each_cell_in_box(box_lo, box_hi, |id, c| {
+                let cheb = (0..3).map(|a| (c[a] - own[a]).abs()).max().unwrap_or(0);
+                if cheb <= done {
+                    // Visited by an earlier cube.
+                    return;
+                }
+                if Self::box_dist_steps_sq(g, c) > search.limit() {
+                    return;
+                }
+                search.scan(self, id, c, g);
+            });
+            done = next;
         }
     }
 
@@ -680,50 +829,12 @@ impl MapIndex {
         }
         let bound = self.radius_steps_sq(radius_m)?;
         let g = self.to_grid(point_in_map)?;
-        self.nearest_bounded(&g, bound).map(|b| Neighbour {
+        let mut search = NearestSearch { bound, best: None };
+        self.search_growing(&g, &mut search);
+        search.best.map(|b| Neighbour {
             point_idx: b.idx,
             dist_sq: f64::from(b.d) * self.step_sq(),
         })
-    }
-
-    fn nearest_bounded(&self, g: &[f64; 3], bound: f32) -> Option<Best> {
-        let own = [
-            g[0].floor() as i64,
-            g[1].floor() as i64,
-            g[2].floor() as i64,
-        ];
-        let mut best = None;
-        if let Some(id) = self.cell_id(own) {
-            self.scan_nearest(id, own, g, bound, &mut best);
-        }
-        let reach_steps_sq = best.map_or(bound, |b: Best| b.d);
-        // Cells within the current best distance of the query.
-        let reach = f64::from(reach_steps_sq).sqrt() / STEPS;
-        let lo = [
-            (g[0] - reach).floor() as i64,
-            (g[1] - reach).floor() as i64,
-            (g[2] - reach).floor() as i64,
-        ];
-        let hi = [
-            (g[0] + reach).floor() as i64,
-            (g[1] + reach).floor() as i64,
-            (g[2] + reach).floor() as i64,
-        ];
-        if lo == hi {
-            // Only the own cell is in reach.
-            return best;
-        }
-        self.for_each_cell_in_box(lo, hi, |id, c| {
-            if c == own {
-                return;
-            }
-            let current = best.map_or(bound, |b| b.d);
-            if Self::box_dist_steps_sq(g, c) > current {
-                return;
-            }
-            self.scan_nearest(id, c, g, bound, &mut best);
-        });
-        best
     }
 
     /// [`nearest_within`](Self::nearest_within) for many query points at
@@ -756,70 +867,18 @@ impl MapIndex {
         out
     }
 
-    /// The `k` nearest points within `bound` (squared steps, inclusive) of
-    /// `g`, as heap keys (unsorted).
+    /// The `k` nearest points within `bound` (squared steps, inclusive; may
+    /// be infinite) of `g`, as heap keys (unsorted).
     fn k_nearest_bounded(&self, g: &[f64; 3], k: usize, bound: f32) -> BinaryHeap<u64> {
-        let mut heap = BinaryHeap::with_capacity(k.min(4096) + 1);
-        if k == 0 {
-            return heap;
-        }
-        let limit = |heap: &BinaryHeap<u64>| -> f32 {
-            match heap.peek() {
-                Some(&worst) if heap.len() >= k => key_dist(worst),
-                _ => bound,
-            }
+        let mut search = KSearch {
+            k,
+            bound,
+            heap: BinaryHeap::with_capacity(k.min(4096) + 1),
         };
-        let scan = |id: u32, c: [i64; 3], heap: &mut BinaryHeap<u64>| {
-            let mut lim = limit(heap);
-            if Self::box_dist_steps_sq(g, c) > lim {
-                return;
-            }
-            let q = Self::local_query(g, c);
-            for pos in self.cell_range(id) {
-                let dx = q[0] - f32::from(self.xs[pos]);
-                let dy = q[1] - f32::from(self.ys[pos]);
-                let dz = q[2] - f32::from(self.zs[pos]);
-                let d = dx * dx + dy * dy + dz * dz;
-                if !(d <= lim) {
-                    continue;
-                }
-                let key = heap_key(d, self.point_idx[pos]);
-                if heap.len() < k {
-                    heap.push(key);
-                } else if heap.peek().is_some_and(|&worst| key < worst) {
-                    heap.pop();
-                    heap.push(key);
-                } else {
-                    continue;
-                }
-                lim = limit(heap);
-            }
-        };
-        let own = [
-            g[0].floor() as i64,
-            g[1].floor() as i64,
-            g[2].floor() as i64,
-        ];
-        if let Some(id) = self.cell_id(own) {
-            scan(id, own, &mut heap);
+        if k > 0 {
+            self.search_growing(g, &mut search);
         }
-        let reach = f64::from(limit(&heap)).sqrt() / STEPS;
-        let lo = [
-            (g[0] - reach).floor() as i64,
-            (g[1] - reach).floor() as i64,
-            (g[2] - reach).floor() as i64,
-        ];
-        let hi = [
-            (g[0] + reach).floor() as i64,
-            (g[1] + reach).floor() as i64,
-            (g[2] + reach).floor() as i64,
-        ];
-        self.for_each_cell_in_box(lo, hi, |id, c| {
-            if c != own {
-                scan(id, c, &mut heap);
-            }
-        });
-        heap
+        search.heap
     }
 
     /// Heap keys to neighbours, nearest first (ties by point index).
@@ -834,33 +893,6 @@ impl MapIndex {
             .collect()
     }
 
-    /// The `k` nearest points of `g` whatever their distance: the radius
-    /// grows geometrically until `k` points (or the whole map) are in reach.
-    fn k_nearest_unbounded(&self, g: &[f64; 3], k: usize) -> BinaryHeap<u64> {
-        let want = k.min(self.len());
-        // Distance (cells) from g to the farthest corner of the grid's box.
-        let mut far_sq = 0.0;
-        for a in 0..3 {
-            let e = self.extent[a] as f64;
-            let v = g[a].abs().max((g[a] - e).abs());
-            far_sq += v * v;
-        }
-        let mut radius_cells = 1.0f64;
-        loop {
-            let all = radius_cells * radius_cells >= far_sq;
-            let bound = if all {
-                f32::INFINITY
-            } else {
-                (radius_cells * radius_cells * STEPS * STEPS) as f32
-            };
-            let heap = self.k_nearest_bounded(g, k, bound);
-            if heap.len() >= want || all {
-                return heap;
-            }
-            radius_cells *= 4.0;
-        }
-    }
-
     /// The nearest map point, whatever its distance (`None` for an empty map).
     /// Prefer [`nearest_within`](Self::nearest_within): unbounded queries far
     /// from any surface visit many cells.
@@ -869,7 +901,7 @@ impl MapIndex {
         if self.is_empty() {
             return None;
         }
-        self.sorted_neighbours(self.k_nearest_unbounded(&g, 1))
+        self.sorted_neighbours(self.k_nearest_bounded(&g, 1, f32::INFINITY))
             .into_iter()
             .next()
     }
@@ -883,7 +915,7 @@ impl MapIndex {
         if self.is_empty() || k == 0 {
             return Vec::new();
         }
-        self.sorted_neighbours(self.k_nearest_unbounded(&g, k))
+        self.sorted_neighbours(self.k_nearest_bounded(&g, k, f32::INFINITY))
     }
 
     /// The `k` nearest map points within `radius_m` (inclusive), nearest first
