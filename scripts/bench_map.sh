@@ -33,6 +33,7 @@ timed() {
     printf '%-34s wall %8s  user %7s s  peak RSS %6d MB\n' "$label" "$wall" "$user" $((rss / 1024))
 }
 
+echo "load: $(uptime)"
 echo "== generating $POINTS points into $RAW"
 "$BIN" bench-map generate --output "$RAW" --points "$POINTS"
 ls -l "$RAW"
@@ -44,3 +45,4 @@ echo "== prepare-map (defaults: --voxel 0.03 --normal-radius 0.15)"
 timed "prepare-map defaults" "$BIN" prepare-map --input "$RAW" --output "$WORK/map_default.ply"
 echo "== prepare-map --voxel 0 (normals for every point)"
 timed "prepare-map --voxel 0" "$BIN" prepare-map --input "$RAW" --output "$WORK/map_full.ply" --voxel 0
+echo "load: $(uptime)"

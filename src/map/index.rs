@@ -7,7 +7,8 @@
 //! * **cells** (default 0.2 m, [`IndexOptions::cell_size_m`]) hold the points,
 //!   stored contiguously per cell (compressed sparse rows) as 16-bit
 //!   coordinates relative to the cell's corner (cell / 65535: 3 µm for 0.2 m
-//!   cells), structure of arrays, plus the point's index in the cloud;
+//!   cells), x, y and z runs one after the other per cell, plus the point's
+//!   index in the cloud;
 //! * **blocks** of 8 x 8 x 8 cells, found through a small open-addressing hash
 //!   table, each with a 512-bit occupancy mask and the index of its first cell
 //!   per z-layer, so a cell's position is a popcount away and empty space is
@@ -186,6 +187,18 @@ impl BlockTable {
     }
 }
 
+/// `floor(x)` as an integer, saturating (`as`); without the libm call that
+/// `f64::floor` is on baseline x86-64.
+#[inline]
+fn floor_i64(x: f64) -> i64 {
+    let t = x as i64;
+    if (t as f64) > x {
+        t.saturating_sub(1)
+    } else {
+        t
+    }
+}
+
 /// Nearest-neighbour index of a [`PointCloud`] (see the module doc). Holds no
 /// reference to the cloud; results are point indices into it.
 pub struct MapIndex {
@@ -203,10 +216,11 @@ pub struct MapIndex {
     /// `cell_start[c]..cell_start[c + 1]` is cell `c`'s range in the point arrays.
     cell_start: Vec<u32>,
     /// Point coordinates relative to their cell's corner, in steps of
-    /// `cell_size_m / 65535`.
-    xs: Vec<u16>,
-    ys: Vec<u16>,
-    zs: Vec<u16>,
+    /// `cell_size_m / 65535`, one block per cell: for the cell's points at
+    /// positions `start..start + n`, the x coordinates at
+    /// `3 * start..3 * start + n`, then the y, then the z (one contiguous
+    /// run of memory a cell, vectorisable).
+    coords: Vec<u16>,
     /// Index in the cloud of each stored point (increasing within a cell).
     point_idx: Vec<u32>,
 }
@@ -252,7 +266,8 @@ trait Search {
     fn scan(&mut self, index: &MapIndex, id: u32, c: [i64; 3], g: &[f64; 3]);
 }
 
-/// Single nearest point within `bound`.
+/// Single nearest point within `bound`; `best.idx` is the point's position
+/// in the index (its cloud index is read once, at the end).
 struct NearestSearch {
     bound: f32,
     best: Option<Best>,
@@ -266,18 +281,18 @@ impl Search for NearestSearch {
 
     #[inline]
     fn scan(&mut self, index: &MapIndex, id: u32, c: [i64; 3], g: &[f64; 3]) {
-        let range = index.cell_range(id);
-        let (d, pos) = index.cell_min(range, MapIndex::local_query(g, c));
+        let (d, pos) = index.cell_min(id, MapIndex::local_query(g, c));
         if !(d <= self.bound) {
             return;
         }
-        let idx = index.point_idx[pos];
         let better = match self.best {
             None => true,
-            Some(b) => d < b.d || (d == b.d && idx < b.idx),
+            Some(b) => {
+                d < b.d || (d == b.d && index.point_idx[pos] < index.point_idx[b.idx as usize])
+            }
         };
         if better {
-            self.best = Some(Best { d, idx });
+            self.best = Some(Best { d, idx: pos as u32 });
         }
     }
 }
@@ -301,15 +316,16 @@ impl Search for KSearch {
     fn scan(&mut self, index: &MapIndex, id: u32, c: [i64; 3], g: &[f64; 3]) {
         let q = MapIndex::local_query(g, c);
         let mut lim = self.limit();
-        for pos in index.cell_range(id) {
-            let dx = q[0] - f32::from(index.xs[pos]);
-            let dy = q[1] - f32::from(index.ys[pos]);
-            let dz = q[2] - f32::from(index.zs[pos]);
+        let (xs, ys, zs, start) = index.cell_coords(id);
+        for (k, ((x, y), z)) in xs.iter().zip(ys).zip(zs).enumerate() {
+            let dx = q[0] - f32::from(*x);
+            let dy = q[1] - f32::from(*y);
+            let dz = q[2] - f32::from(*z);
             let d = dx * dx + dy * dy + dz * dz;
             if !(d <= lim) {
                 continue;
             }
-            let key = heap_key(d, index.point_idx[pos]);
+            let key = heap_key(d, index.point_idx[start + k]);
             if self.heap.len() < self.k {
                 self.heap.push(key);
             } else if self.heap.peek().is_some_and(|&worst| key < worst) {
@@ -370,9 +386,9 @@ impl MapIndex {
         let inv = 1.0 / s;
         let cell_of = |p: &[f32; 3]| -> [i64; 3] {
             [
-                (f64::from(p[0]) * inv).floor() as i64,
-                (f64::from(p[1]) * inv).floor() as i64,
-                (f64::from(p[2]) * inv).floor() as i64,
+                floor_i64(f64::from(p[0]) * inv),
+                floor_i64(f64::from(p[1]) * inv),
+                floor_i64(f64::from(p[2]) * inv),
             ]
         };
         let (min_cell, max_cell) = cloud
@@ -465,41 +481,52 @@ impl MapIndex {
         cell_start.push(n as u32);
         let table = BlockTable::new(&block_keys);
 
-        let mut xs = vec![0u16; n];
-        let mut ys = vec![0u16; n];
-        let mut zs = vec![0u16; n];
-        let mut point_idx = vec![0u32; n];
-        const CHUNK: usize = 1 << 15;
+        let point_idx: Vec<u32> = pairs.par_iter().map(|&(_, i)| i).collect();
+        // Groups of whole cells of about 32k points, quantised in parallel.
+        let mut groups = Vec::new();
+        let mut group_start = 0usize;
+        for c in 0..cell_start.len() - 1 {
+            let end = cell_start[c + 1] as usize;
+            if end - group_start >= 1 << 15 || c + 2 == cell_start.len() {
+                groups.push((group_start, c + 1));
+                group_start = c + 1;
+            }
+        }
         let step = s / STEPS;
-        xs.par_chunks_mut(CHUNK)
-            .zip(ys.par_chunks_mut(CHUNK))
-            .zip(zs.par_chunks_mut(CHUNK))
-            .zip(point_idx.par_chunks_mut(CHUNK))
-            .zip(pairs.par_chunks(CHUNK))
-            .for_each(|((((x, y), z), idx), pairs)| {
-                for (k, &(key, i)) in pairs.iter().enumerate() {
-                    let b = unpack_block(key >> 9);
-                    let local = [
-                        (key & 7) as i64,
-                        ((key >> 3) & 7) as i64,
-                        ((key >> 6) & 7) as i64,
-                    ];
-                    let p = cloud.points[i as usize];
-                    let mut q = [0u16; 3];
-                    for a in 0..3 {
-                        let cell = (b[a] << BLOCK_SHIFT) + local[a] + min_cell[a];
-                        let steps = (f64::from(p[a]) - cell as f64 * s) / step;
-                        // Within [0, 65535] up to rounding: `as` saturates,
-                        // +0.5 rounds.
-                        q[a] = (steps + 0.5).clamp(0.0, STEPS) as u16;
+        let segments: Vec<Vec<u16>> = groups
+            .par_iter()
+            .map(|&(c0, c1)| {
+                let first = cell_start[c0] as usize;
+                let mut out = vec![0u16; 3 * (cell_start[c1] as usize - first)];
+                for c in c0..c1 {
+                    let (start, end) = (cell_start[c] as usize, cell_start[c + 1] as usize);
+                    let count = end - start;
+                    let base = 3 * (start - first);
+                    for (k, &(key, i)) in pairs[start..end].iter().enumerate() {
+                        let b = unpack_block(key >> 9);
+                        let local = [
+                            (key & 7) as i64,
+                            ((key >> 3) & 7) as i64,
+                            ((key >> 6) & 7) as i64,
+                        ];
+                        let p = cloud.points[i as usize];
+                        for a in 0..3 {
+                            let cell = (b[a] << BLOCK_SHIFT) + local[a] + min_cell[a];
+                            let steps = (f64::from(p[a]) - cell as f64 * s) / step;
+                            // Within [0, 65535] up to rounding: `as`
+                            // saturates, +0.5 rounds.
+                            out[base + a * count + k] = (steps + 0.5).clamp(0.0, STEPS) as u16;
+                        }
                     }
-                    x[k] = q[0];
-                    y[k] = q[1];
-                    z[k] = q[2];
-                    idx[k] = i;
                 }
-            });
+                out
+            })
+            .collect();
         drop(pairs);
+        let mut coords = Vec::with_capacity(3 * n);
+        for segment in segments {
+            coords.extend_from_slice(&segment);
+        }
         Ok(Self {
             origin: cloud.origin,
             cell_size_m: s,
@@ -509,9 +536,7 @@ impl MapIndex {
             block_keys,
             blocks,
             cell_start,
-            xs,
-            ys,
-            zs,
+            coords,
             point_idx,
         })
     }
@@ -541,7 +566,7 @@ impl MapIndex {
             + self.block_keys.capacity() * 8
             + self.blocks.capacity() * std::mem::size_of::<Block>()
             + self.cell_start.capacity() * 4
-            + (self.xs.capacity() + self.ys.capacity() + self.zs.capacity()) * 2
+            + self.coords.capacity() * 2
             + self.point_idx.capacity() * 4
     }
 
@@ -708,48 +733,64 @@ impl MapIndex {
         self.cell_start[id as usize] as usize..self.cell_start[id as usize + 1] as usize
     }
 
-    /// Smallest squared distance (squared steps) from `q` (cell-local steps)
-    /// to a point of `range`, and the first position where it occurs.
+    /// The x, y and z runs of cell `id` and its first position.
     #[inline]
-    fn cell_min(&self, range: std::ops::Range<usize>, q: [f32; 3]) -> (f32, usize) {
-        let (xs, ys, zs) = (
-            &self.xs[range.clone()],
-            &self.ys[range.clone()],
-            &self.zs[range.clone()],
-        );
+    fn cell_coords(&self, id: u32) -> (&[u16], &[u16], &[u16], usize) {
+        let range = self.cell_range(id);
+        let n = range.len();
+        let run = &self.coords[3 * range.start..3 * range.end];
+        let (xs, rest) = run.split_at(n);
+        let (ys, zs) = rest.split_at(n);
+        (xs, ys, zs, range.start)
+    }
+
+    /// Smallest squared distance (squared steps) from `q` (cell-local steps)
+    /// to a point of cell `id`, and the first position where it occurs.
+    #[inline]
+    fn cell_min(&self, id: u32, q: [f32; 3]) -> (f32, usize) {
+        let (xs, ys, zs, start) = self.cell_coords(id);
         let dist = |x: u16, y: u16, z: u16| -> f32 {
             let dx = q[0] - f32::from(x);
             let dy = q[1] - f32::from(y);
             let dz = q[2] - f32::from(z);
             dx * dx + dy * dy + dz * dz
         };
-        // Lane-wise minimum over chunks of 8 (vectorised), then the rest.
+        // Lane-wise minimum and its first position over chunks of 8
+        // (vectorised), then the rest.
         const LANES: usize = 8;
         let mut acc = [f32::INFINITY; LANES];
+        let mut at = [0u32; LANES];
         let (cx, cy, cz) = (
             xs.chunks_exact(LANES),
             ys.chunks_exact(LANES),
             zs.chunks_exact(LANES),
         );
         let (rx, ry, rz) = (cx.remainder(), cy.remainder(), cz.remainder());
+        let mut base = 0u32;
         for ((x, y), z) in cx.zip(cy).zip(cz) {
             for l in 0..LANES {
                 let d = dist(x[l], y[l], z[l]);
-                acc[l] = if d < acc[l] { d } else { acc[l] };
+                let better = d < acc[l];
+                acc[l] = if better { d } else { acc[l] };
+                at[l] = if better { base + l as u32 } else { at[l] };
+            }
+            base += LANES as u32;
+        }
+        let (mut min, mut pos) = (f32::INFINITY, 0u32);
+        for l in 0..LANES {
+            if acc[l] < min || (acc[l] == min && at[l] < pos) {
+                min = acc[l];
+                pos = at[l];
             }
         }
-        let mut min = f32::INFINITY;
-        for a in acc {
-            min = if a < min { a } else { min };
-        }
-        for ((x, y), z) in rx.iter().zip(ry).zip(rz) {
+        for (k, ((x, y), z)) in rx.iter().zip(ry).zip(rz).enumerate() {
             let d = dist(*x, *y, *z);
-            min = if d < min { d } else { min };
+            if d < min {
+                min = d;
+                pos = base + k as u32;
+            }
         }
-        let pos = (0..xs.len())
-            .position(|i| dist(xs[i], ys[i], zs[i]) == min)
-            .unwrap_or(0);
-        (min, range.start + pos)
+        (min, start + pos as usize)
     }
 
     /// Visits the occupied cells around `g` nearest first, roughly: the own
@@ -758,11 +799,7 @@ impl MapIndex {
     /// (the limit may shrink while visiting). Cells whose box lies beyond the
     /// limit are not scanned.
     fn search_growing<S: Search>(&self, g: &[f64; 3], search: &mut S) {
-        let own = [
-            g[0].floor() as i64,
-            g[1].floor() as i64,
-            g[2].floor() as i64,
-        ];
+        let own = [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])];
         if let Some(id) = self.cell_id(own) {
             search.scan(self, id, own, g);
         }
@@ -776,14 +813,14 @@ impl MapIndex {
             };
             // `as` saturates for infinite reaches; clamped to the grid.
             let lo = [
-                ((g[0] - reach).floor() as i64).max(0),
-                ((g[1] - reach).floor() as i64).max(0),
-                ((g[2] - reach).floor() as i64).max(0),
+                (floor_i64(g[0] - reach)).max(0),
+                (floor_i64(g[1] - reach)).max(0),
+                (floor_i64(g[2] - reach)).max(0),
             ];
             let hi = [
-                ((g[0] + reach).floor() as i64).min(self.extent[0] - 1),
-                ((g[1] + reach).floor() as i64).min(self.extent[1] - 1),
-                ((g[2] + reach).floor() as i64).min(self.extent[2] - 1),
+                (floor_i64(g[0] + reach)).min(self.extent[0] - 1),
+                (floor_i64(g[1] + reach)).min(self.extent[1] - 1),
+                (floor_i64(g[2] + reach)).min(self.extent[2] - 1),
             ];
             if (0..3).any(|a| lo[a] > hi[a]) {
                 return;
@@ -832,7 +869,7 @@ impl MapIndex {
         let mut search = NearestSearch { bound, best: None };
         self.search_growing(&g, &mut search);
         search.best.map(|b| Neighbour {
-            point_idx: b.idx,
+            point_idx: self.point_idx[b.idx as usize],
             dist_sq: f64::from(b.d) * self.step_sq(),
         })
     }
@@ -945,14 +982,14 @@ impl MapIndex {
         };
         let reach = f64::from(bound).sqrt() / STEPS;
         let lo = [
-            (g[0] - reach).floor() as i64,
-            (g[1] - reach).floor() as i64,
-            (g[2] - reach).floor() as i64,
+            floor_i64(g[0] - reach),
+            floor_i64(g[1] - reach),
+            floor_i64(g[2] - reach),
         ];
         let hi = [
-            (g[0] + reach).floor() as i64,
-            (g[1] + reach).floor() as i64,
-            (g[2] + reach).floor() as i64,
+            floor_i64(g[0] + reach),
+            floor_i64(g[1] + reach),
+            floor_i64(g[2] + reach),
         ];
         let mut found: Vec<u64> = Vec::new();
         if self.is_empty() {
@@ -963,13 +1000,14 @@ impl MapIndex {
                 return;
             }
             let q = Self::local_query(&g, c);
-            for pos in self.cell_range(id) {
-                let dx = q[0] - f32::from(self.xs[pos]);
-                let dy = q[1] - f32::from(self.ys[pos]);
-                let dz = q[2] - f32::from(self.zs[pos]);
+            let (xs, ys, zs, start) = self.cell_coords(id);
+            for (k, ((x, y), z)) in xs.iter().zip(ys).zip(zs).enumerate() {
+                let dx = q[0] - f32::from(*x);
+                let dy = q[1] - f32::from(*y);
+                let dz = q[2] - f32::from(*z);
                 let d = dx * dx + dy * dy + dz * dz;
                 if d <= bound {
-                    found.push(heap_key(d, self.point_idx[pos]));
+                    found.push(heap_key(d, self.point_idx[start + k]));
                 }
             }
         });
