@@ -56,6 +56,9 @@ pub enum BenchMapAction {
         /// Query radii (m).
         #[arg(long, value_delimiter = ',', default_value = "0.2,0.5,1.5")]
         radius: Vec<f64>,
+        /// Index cell size (m); automatic when not given.
+        #[arg(long)]
+        cell: Option<f64>,
     },
     /// Reads a cloud (and builds the map index) and reports the times.
     Load {
@@ -198,7 +201,8 @@ pub fn run(args: &BenchMapArgs) -> anyhow::Result<()> {
             queries,
             noise,
             radius,
-        } => bench_nn(*points, *queries, *noise, radius)?,
+            cell,
+        } => bench_nn(*points, *queries, *noise, radius, *cell)?,
         BenchMapAction::Load { input, index } => {
             let start = Instant::now();
             let (cloud, report) = read_point_cloud(input)?;
@@ -250,10 +254,17 @@ pub fn run(args: &BenchMapArgs) -> anyhow::Result<()> {
 }
 
 /// See [`BenchMapAction::Nn`].
-fn bench_nn(points: usize, queries: usize, noise_m: f64, radii: &[f64]) -> anyhow::Result<()> {
+fn bench_nn(
+    points: usize,
+    queries: usize,
+    noise_m: f64,
+    radii: &[f64],
+    cell_size_m: Option<f64>,
+) -> anyhow::Result<()> {
     let cloud = generate_building(points, true, 0.005, 1);
     let start = Instant::now();
-    let index = crate::map::index::MapIndex::build(&cloud)?;
+    let options = crate::map::index::IndexOptions { cell_size_m };
+    let index = crate::map::index::MapIndex::build_with_options(&cloud, &options)?;
     println!(
         "index of {} points: {:.2} s, {:.0} MB, {} cells of {} m",
         index.len(),

@@ -215,21 +215,21 @@ pub struct MapIndex {
     blocks: Vec<Block>,
     /// `cell_start[c]..cell_start[c + 1]` is cell `c`'s range in the point arrays.
     cell_start: Vec<u32>,
-    /// Point coordinates relative to their cell's corner, in steps of
-    /// `cell_size_m / 65535`, one block per cell: for the cell's points at
-    /// positions `start..start + n`, the x coordinates at
-    /// `3 * start..3 * start + n`, then the y, then the z (one contiguous
-    /// run of memory a cell, vectorisable).
-    coords: Vec<u16>,
-    /// Index in the cloud of each stored point (increasing within a cell).
-    point_idx: Vec<u32>,
+    /// One contiguous run per cell: for the cell's `n` points at positions
+    /// `start..start + n`, `data[5 * start..5 * (start + n)]` holds their x
+    /// coordinates, then the y, then the z (relative to the cell's corner, in
+    /// steps of `cell_size_m / 65535`), then the low and the high 16 bits of
+    /// their indices in the cloud (increasing within a cell). A query touches
+    /// one run of memory a cell; the coordinate runs vectorise.
+    data: Vec<u16>,
+    num_points: usize,
 }
 
 impl std::fmt::Debug for MapIndex {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("MapIndex")
             .field("origin", &self.origin)
-            .field("num_points", &self.point_idx.len())
+            .field("num_points", &self.num_points)
             .field("cell_size_m", &self.cell_size_m)
             .field("num_cells", &(self.cell_start.len().saturating_sub(1)))
             .field("num_blocks", &self.blocks.len())
@@ -238,11 +238,12 @@ impl std::fmt::Debug for MapIndex {
 }
 
 /// The best candidate so far of a single-nearest query: squared distance in
-/// squared quantisation steps, point index.
+/// squared quantisation steps, its cell and position in the index.
 #[derive(Clone, Copy)]
 struct Best {
     d: f32,
-    idx: u32,
+    cell: u32,
+    pos: u32,
 }
 
 /// Heap key of a k-nearest query: `(squared distance bits, point index)`;
@@ -266,8 +267,8 @@ trait Search {
     fn scan(&mut self, index: &MapIndex, id: u32, c: [i64; 3], g: &[f64; 3]);
 }
 
-/// Single nearest point within `bound`; `best.idx` is the point's position
-/// in the index (its cloud index is read once, at the end).
+/// Single nearest point within `bound` (its cloud index is read on ties and
+/// once at the end).
 struct NearestSearch {
     bound: f32,
     best: Option<Best>,
@@ -288,11 +289,17 @@ impl Search for NearestSearch {
         let better = match self.best {
             None => true,
             Some(b) => {
-                d < b.d || (d == b.d && index.point_idx[pos] < index.point_idx[b.idx as usize])
+                d < b.d
+                    || (d == b.d
+                        && index.point_index(id, pos) < index.point_index(b.cell, b.pos as usize))
             }
         };
         if better {
-            self.best = Some(Best { d, idx: pos as u32 });
+            self.best = Some(Best {
+                d,
+                cell: id,
+                pos: pos as u32,
+            });
         }
     }
 }
@@ -325,7 +332,7 @@ impl Search for KSearch {
             if !(d <= lim) {
                 continue;
             }
-            let key = heap_key(d, index.point_idx[start + k]);
+            let key = heap_key(d, index.point_index(id, start + k));
             if self.heap.len() < self.k {
                 self.heap.push(key);
             } else if self.heap.peek().is_some_and(|&worst| key < worst) {
@@ -481,7 +488,6 @@ impl MapIndex {
         cell_start.push(n as u32);
         let table = BlockTable::new(&block_keys);
 
-        let point_idx: Vec<u32> = pairs.par_iter().map(|&(_, i)| i).collect();
         // Groups of whole cells of about 32k points, quantised in parallel.
         let mut groups = Vec::new();
         let mut group_start = 0usize;
@@ -497,11 +503,11 @@ impl MapIndex {
             .par_iter()
             .map(|&(c0, c1)| {
                 let first = cell_start[c0] as usize;
-                let mut out = vec![0u16; 3 * (cell_start[c1] as usize - first)];
+                let mut out = vec![0u16; 5 * (cell_start[c1] as usize - first)];
                 for c in c0..c1 {
                     let (start, end) = (cell_start[c] as usize, cell_start[c + 1] as usize);
                     let count = end - start;
-                    let base = 3 * (start - first);
+                    let base = 5 * (start - first);
                     for (k, &(key, i)) in pairs[start..end].iter().enumerate() {
                         let b = unpack_block(key >> 9);
                         let local = [
@@ -517,15 +523,17 @@ impl MapIndex {
                             // saturates, +0.5 rounds.
                             out[base + a * count + k] = (steps + 0.5).clamp(0.0, STEPS) as u16;
                         }
+                        out[base + 3 * count + k] = i as u16;
+                        out[base + 4 * count + k] = (i >> 16) as u16;
                     }
                 }
                 out
             })
             .collect();
         drop(pairs);
-        let mut coords = Vec::with_capacity(3 * n);
+        let mut data = Vec::with_capacity(5 * n);
         for segment in segments {
-            coords.extend_from_slice(&segment);
+            data.extend_from_slice(&segment);
         }
         Ok(Self {
             origin: cloud.origin,
@@ -536,17 +544,17 @@ impl MapIndex {
             block_keys,
             blocks,
             cell_start,
-            coords,
-            point_idx,
+            data,
+            num_points: n,
         })
     }
 
     pub fn len(&self) -> usize {
-        self.point_idx.len()
+        self.num_points
     }
 
     pub fn is_empty(&self) -> bool {
-        self.point_idx.is_empty()
+        self.num_points == 0
     }
 
     /// Edge of a grid cell (m).
@@ -566,8 +574,7 @@ impl MapIndex {
             + self.block_keys.capacity() * 8
             + self.blocks.capacity() * std::mem::size_of::<Block>()
             + self.cell_start.capacity() * 4
-            + self.coords.capacity() * 2
-            + self.point_idx.capacity() * 4
+            + self.data.capacity() * 2
     }
 
     /// Squared length of a quantisation step (m²).
@@ -738,10 +745,19 @@ impl MapIndex {
     fn cell_coords(&self, id: u32) -> (&[u16], &[u16], &[u16], usize) {
         let range = self.cell_range(id);
         let n = range.len();
-        let run = &self.coords[3 * range.start..3 * range.end];
+        let run = &self.data[5 * range.start..5 * range.start + 3 * n];
         let (xs, rest) = run.split_at(n);
         let (ys, zs) = rest.split_at(n);
         (xs, ys, zs, range.start)
+    }
+
+    /// Index in the cloud of the point at position `pos` of cell `id`.
+    #[inline]
+    fn point_index(&self, id: u32, pos: usize) -> u32 {
+        let range = self.cell_range(id);
+        let (n, k) = (range.len(), pos - range.start);
+        let base = 5 * range.start;
+        u32::from(self.data[base + 3 * n + k]) | (u32::from(self.data[base + 4 * n + k]) << 16)
     }
 
     /// Smallest squared distance (squared steps) from `q` (cell-local steps)
@@ -869,7 +885,7 @@ impl MapIndex {
         let mut search = NearestSearch { bound, best: None };
         self.search_growing(&g, &mut search);
         search.best.map(|b| Neighbour {
-            point_idx: self.point_idx[b.idx as usize],
+            point_idx: self.point_index(b.cell, b.pos as usize),
             dist_sq: f64::from(b.d) * self.step_sq(),
         })
     }
@@ -889,19 +905,49 @@ impl MapIndex {
             return vec![None; n];
         }
         let order = spatial_order(points_in_map);
-        let answers: Vec<(u32, Option<Neighbour>)> = order
+        // Queries a few ahead have their cell's run prefetched.
+        const AHEAD: usize = 4;
+        let answers: Vec<Option<Neighbour>> = order
             .par_chunks(1024)
             .flat_map_iter(|chunk| {
-                chunk
-                    .iter()
-                    .map(|&i| (i, self.nearest_within(&points_in_map[i as usize], radius_m)))
+                (0..chunk.len()).map(move |k| {
+                    if let Some(&next) = chunk.get(k + AHEAD) {
+                        self.prefetch_cell_of(&points_in_map[next as usize]);
+                    }
+                    self.nearest_within(&points_in_map[chunk[k] as usize], radius_m)
+                })
             })
             .collect();
         let mut out = vec![None; n];
-        for (i, a) in answers {
+        for (&i, a) in order.iter().zip(answers) {
             out[i as usize] = a;
         }
         out
+    }
+
+    /// Hints the processor to fetch the start of the run of the cell holding
+    /// `point_in_map` (no effect on results).
+    #[inline]
+    fn prefetch_cell_of(&self, point_in_map: &Vector3<f64>) {
+        let Some(g) = self.to_grid(point_in_map) else {
+            return;
+        };
+        let own = [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])];
+        if let Some(id) = self.cell_id(own) {
+            let start = 5 * self.cell_start[id as usize] as usize;
+            #[cfg(target_arch = "x86_64")]
+            {
+                use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+                let p = self.data[start..].as_ptr().cast::<i8>();
+                // SAFETY: SSE is part of the x86-64 baseline, and a prefetch
+                // of a valid address has no effect but on caches.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(p) };
+            }
+            #[cfg(not(target_arch = "x86_64"))]
+            {
+                std::hint::black_box(self.data.get(start));
+            }
+        }
     }
 
     /// The `k` nearest points within `bound` (squared steps, inclusive; may
@@ -1007,7 +1053,7 @@ impl MapIndex {
                 let dz = q[2] - f32::from(*z);
                 let d = dx * dx + dy * dy + dz * dz;
                 if d <= bound {
-                    found.push(heap_key(d, self.point_idx[start + k]));
+                    found.push(heap_key(d, self.point_index(id, start + k)));
                 }
             }
         });
