@@ -685,9 +685,10 @@ fn bench_projection() {
             }
             times.sort_by(f64::total_cmp);
             println!(
-                "BENCH projection {} {w}x{h}, {} queries, {visible} points in view: \
+                "BENCH projection {} {w}x{h} f = {} px, {} queries, {visible} points in view: \
                  median {:.1} ms, best {:.1} ms ({threads} threads; {found} queries hit)",
                 cam.model.name(),
+                cam.params[0],
                 queries.len(),
                 times[times.len() / 2],
                 times[0]
