@@ -493,17 +493,27 @@ impl MapIndex {
         let mut group_start = 0usize;
         for c in 0..cell_start.len() - 1 {
             let end = cell_start[c + 1] as usize;
-            if end - group_start >= 1 << 15 || c + 2 == cell_start.len() {
+            if end - cell_start[group_start] as usize >= 1 << 15 || c + 2 == cell_start.len() {
                 groups.push((group_start, c + 1));
                 group_start = c + 1;
             }
         }
         let step = s / STEPS;
-        let segments: Vec<Vec<u16>> = groups
+        // The groups' runs, cut out of the final array (no copy).
+        let mut data = vec![0u16; 5 * n];
+        let mut runs: Vec<&mut [u16]> = Vec::with_capacity(groups.len());
+        let mut rest: &mut [u16] = &mut data;
+        for &(c0, c1) in &groups {
+            let len = 5 * (cell_start[c1] - cell_start[c0]) as usize;
+            let (run, tail) = rest.split_at_mut(len);
+            runs.push(run);
+            rest = tail;
+        }
+        groups
             .par_iter()
-            .map(|&(c0, c1)| {
+            .zip(runs.into_par_iter())
+            .for_each(|(&(c0, c1), out)| {
                 let first = cell_start[c0] as usize;
-                let mut out = vec![0u16; 5 * (cell_start[c1] as usize - first)];
                 for c in c0..c1 {
                     let (start, end) = (cell_start[c] as usize, cell_start[c + 1] as usize);
                     let count = end - start;
@@ -527,14 +537,8 @@ impl MapIndex {
                         out[base + 4 * count + k] = (i >> 16) as u16;
                     }
                 }
-                out
-            })
-            .collect();
+            });
         drop(pairs);
-        let mut data = Vec::with_capacity(5 * n);
-        for segment in segments {
-            data.extend_from_slice(&segment);
-        }
         Ok(Self {
             origin: cloud.origin,
             cell_size_m: s,
@@ -1100,7 +1104,7 @@ fn spatial_order(points: &[Vector3<f64>]) -> Vec<u32> {
             )
         })
         .collect();
-    keyed.sort_unstable();
+    keyed.par_sort_unstable();
     keyed.into_iter().map(|(_, i)| i).collect()
 }
 
