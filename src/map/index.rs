@@ -71,7 +71,7 @@ pub struct Neighbour {
 }
 
 /// Options of [`MapIndex::build_with_options`].
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct IndexOptions {
     /// Edge of a grid cell (m). Default `None`: automatic, 0.2 m (about
     /// 40-60 points a cell on a surface sampled every 2.5-3 cm; the mapper's
@@ -79,12 +79,6 @@ pub struct IndexOptions {
     /// size scaled to give about 32 points an occupied cell when the mean
     /// is below 8 or above 256 (sparser or denser maps).
     pub cell_size_m: Option<f64>,
-}
-
-impl Default for IndexOptions {
-    fn default() -> Self {
-        Self { cell_size_m: None }
-    }
 }
 
 /// Automatic cell size: the first try, and the bounds of the mean number of

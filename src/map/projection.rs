@@ -12,9 +12,19 @@
 //!    range (distance from the camera centre): a z-buffer evaluated at the
 //!    query pixels only. Ties are broken by the smaller point index.
 //!
-//! Parallel with rayon over chunks of cells; each chunk keeps its own best
-//! (range, index) per query and chunks are merged with the same total order,
-//! so the result does not depend on the number of threads or the schedule.
+//! The query pixels are bucketed in 8 px tiles. [`project_map_at_pixels`]
+//! visits the frustum's cells front to back (by their distance from the
+//! camera centre) and skips, exactly, what cannot change any answer: a cell
+//! whose nearest possible range exceeds the largest best range of every
+//! query tile its splats can reach (pinhole cameras: the box of its corners'
+//! projections, widened by the largest splat), and a point's test against a
+//! tile's queries when its range exceeds that tile's largest best range. Once
+//! the near surfaces have filled the queries, occluded cells cost one test
+//! each. Parallel over horizontal strips of tiles (each strip owns its
+//! queries); ties are broken by the point index, so the result does not
+//! depend on the number of threads, the schedule or the visiting order, and
+//! equals [`project_map_at_pixels_reference`] (every point of every frustum
+//! cell splatted) bit for bit.
 //!
 //! Pixel convention (COLMAP): the upper-left corner of the image is (0, 0), the
 //! centre of pixel (i, j) is (i + 0.5, j + 0.5).
@@ -519,7 +529,7 @@ impl Best {
 /// doc), or `None`. Query pixels outside the image get `None`.
 ///
 /// Visits the frustum's cells front to back and skips what cannot change the
-/// answer (see [`occlusion_culled_best`]); the result equals
+/// answer (see the module doc); the result equals
 /// [`project_map_at_pixels_reference`] exactly.
 pub fn project_map_at_pixels(
     cloud: &PointCloud,
