@@ -98,6 +98,9 @@ const KEY_AXIS_BITS: u32 = 18;
 const MAX_CELLS_PER_AXIS: i64 = 1 << (KEY_AXIS_BITS as i64 + BLOCK_SHIFT);
 /// Quantisation steps across a cell.
 const STEPS: f64 = 65535.0;
+/// Neighbour cells within this distance (cells) of a query are prefetched
+/// before its own cell is scanned.
+const NEIGHBOUR_PREFETCH_CELLS: f64 = 0.25;
 /// Empty slot of the block hash table (no valid key has all bits set).
 const EMPTY_KEY: u64 = u64::MAX;
 
@@ -814,7 +817,12 @@ impl MapIndex {
     /// limit are not scanned.
     fn search_growing<S: Search>(&self, g: &[f64; 3], search: &mut S) {
         let own = [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])];
-        if let Some(id) = self.cell_id(own) {
+        let own_id = self.cell_id(own);
+        if let Some(id) = own_id {
+            self.prefetch_cell(id);
+        }
+        self.prefetch_near_neighbours(g, own, NEIGHBOUR_PREFETCH_CELLS);
+        if let Some(id) = own_id {
             search.scan(self, id, own, g);
         }
         let mut done: i64 = 0;
@@ -905,17 +913,18 @@ impl MapIndex {
         let order = spatial_order(points_in_map);
         // Queries a few ahead have their cell's run prefetched.
         const AHEAD: usize = 4;
-        let answers: Vec<Option<Neighbour>> = order
-            .par_chunks(1024)
-            .flat_map_iter(|chunk| {
-                (0..chunk.len()).map(move |k| {
+        let mut answers: Vec<Option<Neighbour>> = vec![None; n];
+        answers
+            .par_chunks_mut(1024)
+            .zip(order.par_chunks(1024))
+            .for_each(|(out, chunk)| {
+                for (k, slot) in out.iter_mut().enumerate() {
                     if let Some(&next) = chunk.get(k + AHEAD) {
                         self.prefetch_cell_of(&points_in_map[next as usize]);
                     }
-                    self.nearest_within(&points_in_map[chunk[k] as usize], radius_m)
-                })
-            })
-            .collect();
+                    *slot = self.nearest_within(&points_in_map[chunk[k] as usize], radius_m);
+                }
+            });
         let mut out = vec![None; n];
         for (&i, a) in order.iter().zip(answers) {
             out[i as usize] = a;
@@ -932,18 +941,66 @@ impl MapIndex {
         };
         let own = [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])];
         if let Some(id) = self.cell_id(own) {
-            let start = 5 * self.cell_start[id as usize] as usize;
+            self.prefetch_cell(id);
+        }
+    }
+
+    /// Hints the processor to fetch the starts of the x, y and z runs of
+    /// cell `id` (no effect on results).
+    #[inline]
+    fn prefetch_cell(&self, id: u32) {
+        let range = self.cell_range(id);
+        let (start, n) = (5 * range.start, range.len());
+        for offset in [0, n, 2 * n] {
             #[cfg(target_arch = "x86_64")]
             {
                 use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-                let p = self.data[start..].as_ptr().cast::<i8>();
+                let p = self.data[start + offset..].as_ptr().cast::<i8>();
                 // SAFETY: SSE is part of the x86-64 baseline, and a prefetch
                 // of a valid address has no effect but on caches.
                 unsafe { _mm_prefetch::<_MM_HINT_T0>(p) };
             }
             #[cfg(not(target_arch = "x86_64"))]
             {
-                std::hint::black_box(self.data.get(start));
+                std::hint::black_box(self.data.get(start + offset));
+            }
+        }
+    }
+
+    /// Prefetches the occupied neighbours of cell `own` whose box lies within
+    /// `margin` cells of `g` (likely scanned next: their memory latency then
+    /// overlaps the own cell's).
+    #[inline]
+    fn prefetch_near_neighbours(&self, g: &[f64; 3], own: [i64; 3], margin: f64) {
+        let mut dir = [0i64; 3];
+        for a in 0..3 {
+            let f = g[a] - own[a] as f64;
+            dir[a] = if f < margin {
+                -1
+            } else if f > 1.0 - margin {
+                1
+            } else {
+                0
+            };
+        }
+        if dir == [0; 3] {
+            return;
+        }
+        for mask in 1..8u32 {
+            let mut c = own;
+            let mut valid = true;
+            for a in 0..3 {
+                if mask >> a & 1 == 1 {
+                    if dir[a] == 0 {
+                        valid = false;
+                    }
+                    c[a] += dir[a];
+                }
+            }
+            if valid {
+                if let Some(id) = self.cell_id(c) {
+                    self.prefetch_cell(id);
+                }
             }
         }
     }
