@@ -19,7 +19,7 @@
 //! so far: a handful of cache lines, whatever the map's size. Queries far from
 //! the map cost at most the blocks within the radius; unbounded queries
 //! ([`MapIndex::nearest`], [`MapIndex::k_nearest`]) widen the radius
-//! geometrically.
+//! geometrically (cubes of cells growing by half around the query).
 //!
 //! The index costs 10 bytes a point plus 4 bytes an occupied cell and ~100
 //! bytes an occupied block; the build sorts 16 bytes a point (parallel) and
@@ -811,10 +811,10 @@ impl MapIndex {
     }
 
     /// Visits the occupied cells around `g` nearest first, roughly: the own
-    /// cell, then cubes of half-width 1, 2, 4, ... cells around it (each cell
-    /// once), until the cube holds the ball of radius `sqrt(search.limit())`
-    /// (the limit may shrink while visiting). Cells whose box lies beyond the
-    /// limit are not scanned.
+    /// cell, then cubes of half-width 1, 2, 3, 4, 6, 9, ... cells around it
+    /// (growing by half; each cell once), until the cube holds the ball of
+    /// radius `sqrt(search.limit())` (the limit may shrink while visiting).
+    /// Cells whose box lies beyond the limit are not scanned.
     fn search_growing<S: Search>(&self, g: &[f64; 3], search: &mut S) {
         let own = [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])];
         let own_id = self.cell_id(own);
@@ -854,7 +854,7 @@ impl MapIndex {
             if needed <= done {
                 return;
             }
-            let next = needed.min((2 * done).max(1));
+            let next = needed.min(done + (done / 2).max(1));
             let box_lo = [
                 (own[0] - next).max(lo[0]),
                 (own[1] - next).max(lo[1]),
