@@ -9,5 +9,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export COLMAP_LIDAR_BENCH_POINTS="${1:-20000000}"
+echo "load: $(uptime)"
 cargo test --release --test tests -- --ignored --exact --nocapture --test-threads 1 \
     map::index::bench_index map::projection::bench_projection 2>&1 | grep -oE '(BENCH|panicked|error).*'
+echo "load: $(uptime)"

@@ -40,11 +40,32 @@ pub enum BenchMapAction {
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
+    /// Nearest-neighbour queries a second on one core, on a generated
+    /// building-like cloud: map points moved by Gaussian noise, in random
+    /// order, in a coherent (cell-sorted) order, and through the batch API.
+    Nn {
+        /// Number of map points.
+        #[arg(long, default_value_t = 20_000_000)]
+        points: usize,
+        /// Number of queries.
+        #[arg(long, default_value_t = 2_000_000)]
+        queries: usize,
+        /// Standard deviation of the queries' offsets from map points (m).
+        #[arg(long, default_value_t = 0.05)]
+        noise: f64,
+        /// Query radii (m).
+        #[arg(long, value_delimiter = ',', default_value = "0.2,0.5,1.5")]
+        radius: Vec<f64>,
+        /// Index cell size (m); automatic when not given.
+        #[arg(long)]
+        cell: Option<f64>,
+    },
     /// Reads a cloud (and builds the map index) and reports the times.
     Load {
         #[arg(long)]
         input: PathBuf,
-        /// Also build the nearest-neighbour index ([`crate::map::index::MapIndex`]).
+        /// Also build the nearest-neighbour index ([`crate::map::index::MapIndex`])
+        /// and the frustum grid ([`crate::map::grid::FrustumGrid`]).
         #[arg(long)]
         index: bool,
     },
@@ -175,6 +196,13 @@ pub fn run(args: &BenchMapArgs) -> anyhow::Result<()> {
                 start.elapsed().as_secs_f64() - generated
             );
         }
+        BenchMapAction::Nn {
+            points,
+            queries,
+            noise,
+            radius,
+            cell,
+        } => bench_nn(*points, *queries, *noise, radius, *cell)?,
         BenchMapAction::Load { input, index } => {
             let start = Instant::now();
             let (cloud, report) = read_point_cloud(input)?;
@@ -199,13 +227,98 @@ pub fn run(args: &BenchMapArgs) -> anyhow::Result<()> {
                     }
                 }
                 println!(
-                    "built the index of {} points in {built:.2} s ({found} self-queries found); \
-                     load + index {:.2} s",
+                    "built the index of {} points in {built:.2} s ({:.0} MB, {} cells of {} m; \
+                     {found} self-queries found)",
                     map_index.len(),
-                    loaded + built
+                    map_index.memory_bytes() as f64 / 1e6,
+                    map_index.num_cells(),
+                    map_index.cell_size_m(),
+                );
+                let start = Instant::now();
+                let grid = crate::map::grid::FrustumGrid::build(
+                    &cloud,
+                    &crate::map::grid::GridOptions::default(),
+                )?;
+                let gridded = start.elapsed().as_secs_f64();
+                println!(
+                    "built the frustum grid in {gridded:.2} s ({:.0} MB, {} cells); \
+                     load + index + grid {:.2} s",
+                    grid.memory_bytes() as f64 / 1e6,
+                    grid.num_cells(),
+                    loaded + built + gridded
                 );
             }
         }
     }
+    Ok(())
+}
+
+/// See [`BenchMapAction::Nn`].
+fn bench_nn(
+    points: usize,
+    queries: usize,
+    noise_m: f64,
+    radii: &[f64],
+    cell_size_m: Option<f64>,
+) -> anyhow::Result<()> {
+    let cloud = generate_building(points, true, 0.005, 1);
+    let start = Instant::now();
+    let options = crate::map::index::IndexOptions { cell_size_m };
+    let index = crate::map::index::MapIndex::build_with_options(&cloud, &options)?;
+    println!(
+        "index of {} points: {:.2} s, {:.0} MB, {} cells of {} m",
+        index.len(),
+        start.elapsed().as_secs_f64(),
+        index.memory_bytes() as f64 / 1e6,
+        index.num_cells(),
+        index.cell_size_m()
+    );
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let noise = Normal::new(0.0, noise_m.max(0.0))?;
+    let random: Vec<Vector3<f64>> = (0..queries)
+        .map(|_| {
+            let i = rng.gen_range(0..cloud.len().max(1));
+            cloud.point_in_map(i)
+                + Vector3::new(
+                    noise.sample(&mut rng),
+                    noise.sample(&mut rng),
+                    noise.sample(&mut rng),
+                )
+        })
+        .collect();
+    let mut coherent = random.clone();
+    coherent.sort_by_key(|q| {
+        let c = |v: f64| ((v / 0.5).floor() as i64 + (1 << 20)) as u64;
+        (c(q.x), c(q.y), c(q.z))
+    });
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+    pool.install(|| {
+        for &r in radii {
+            for (name, qs) in [("random order", &random), ("coherent order", &coherent)] {
+                let start = Instant::now();
+                let found = qs
+                    .iter()
+                    .filter(|q| index.nearest_within(q, r).is_some())
+                    .count();
+                let s = start.elapsed().as_secs_f64();
+                println!(
+                    "nearest_within r = {r} m, {name}: {:.2} M queries/s on one core ({found} found)",
+                    qs.len() as f64 / s / 1e6
+                );
+            }
+            let start = Instant::now();
+            let found = index
+                .nearest_within_batch(&random, r)
+                .iter()
+                .filter(|n| n.is_some())
+                .count();
+            let s = start.elapsed().as_secs_f64();
+            println!(
+                "nearest_within_batch r = {r} m (random order in): {:.2} M queries/s on one core \
+                 ({found} found)",
+                random.len() as f64 / s / 1e6
+            );
+        }
+    });
     Ok(())
 }

@@ -76,6 +76,39 @@ pub fn render_depth_image(
     let (w, h) = (camera.width as usize, camera.height as usize);
     let mut range_m = vec![f32::INFINITY; w * h];
     if w > 0 && h > 0 {
+        // Splats bucketed by the bands their rows reach (CSR, splat order
+        // kept within a band), so that a band visits only its own splats.
+        let bands = h.div_ceil(BAND_ROWS);
+        let band_range = |y: f64, hs: f64| -> Option<(usize, usize)> {
+            let (y0, y1) = (y - hs - 0.5, y + hs - 0.5);
+            if !(y1 >= 0.0 && y0 <= (h - 1) as f64) {
+                return None;
+            }
+            let b0 = (y0.max(0.0) as usize / BAND_ROWS).min(bands - 1);
+            let b1 = ((y1.max(0.0) as usize).min(h - 1) / BAND_ROWS).min(bands - 1);
+            Some((b0, b1))
+        };
+        let mut band_starts = vec![0usize; bands + 1];
+        for sp in &splats {
+            if let Some((b0, b1)) = band_range(sp.pixel.y, sp.half_size_px) {
+                for b in b0..=b1 {
+                    band_starts[b + 1] += 1;
+                }
+            }
+        }
+        for b in 0..bands {
+            band_starts[b + 1] += band_starts[b];
+        }
+        let mut fill = band_starts.clone();
+        let mut band_splats = vec![0u32; band_starts[bands]];
+        for (k, sp) in splats.iter().enumerate() {
+            if let Some((b0, b1)) = band_range(sp.pixel.y, sp.half_size_px) {
+                for b in b0..=b1 {
+                    band_splats[fill[b]] = k as u32;
+                    fill[b] += 1;
+                }
+            }
+        }
         range_m
             .par_chunks_mut(BAND_ROWS * w)
             .enumerate()
@@ -84,7 +117,8 @@ pub fn render_depth_image(
                 let nrows = rows.len() / w;
                 // Pixel centres of this band span [row0 + 0.5, row0 + nrows - 0.5].
                 let (band_y0, band_y1) = (row0 as f64 + 0.5, (row0 + nrows) as f64 - 0.5);
-                for s in &splats {
+                let mine = &band_splats[band_starts[band]..band_starts[band + 1]];
+                for s in mine.iter().map(|&k| &splats[k as usize]) {
                     let (y0, y1) = (s.pixel.y - s.half_size_px, s.pixel.y + s.half_size_px);
                     if y1 < band_y0 || y0 > band_y1 {
                         continue;

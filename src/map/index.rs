@@ -1,23 +1,41 @@
 //! Nearest-neighbour index of the LiDAR map, behind a small API of our own.
 //!
-//! A kiddo 6 immutable kd-tree (`f32`, 3D, items = point indices `u32`) holds
-//! the map points **rotated by a fixed generic rotation** (`index_from_local`).
-//! Building maps are made of floors and walls parallel to the axes, and
-//! kd-tree queries on such axis-aligned planar clouds are 17-35x slower than on
-//! generic clouds (many points share a split coordinate); a fixed rotation of
-//! the cloud inside the index removes the degeneracy. Distances are invariant
-//! under rotation, so callers never see the rotated frame: queries take points
-//! in the map frame (f64), the index subtracts the cloud's local origin once and
-//! rotates the offset.
+//! A sparse two-level voxel grid, built for the queries the mapper makes
+//! (nearest map point within a radius of 0.1-1.5 m of points near surfaces)
+//! on maps of tens of millions of points:
 //!
-//! Accuracy: coordinates inside the tree are f32 offsets from the local origin,
-//! so returned squared distances carry a relative error of about 1e-7 of the
-//! map's extent (0.1 mm for a map 1 km across). Use
-//! [`PointCloud::point_in_map`] for the exact point.
-use std::num::NonZeroUsize;
+//! * **cells** (default 0.2 m, [`IndexOptions::cell_size_m`]) hold the points,
+//!   stored contiguously per cell (compressed sparse rows) as 16-bit
+//!   coordinates relative to the cell's corner (cell / 65535: 3 µm for 0.2 m
+//!   cells), x, y and z runs one after the other per cell, plus the point's
+//!   index in the cloud;
+//! * **blocks** of 8 x 8 x 8 cells, found through a small open-addressing hash
+//!   table, each with a 512-bit occupancy mask and the index of its first cell
+//!   per z-layer, so a cell's position is a popcount away and empty space is
+//!   skipped a block or a mask word at a time.
+//!
+//! A query scans the query's own cell first (near a surface it holds the
+//! nearest point), then only the cells whose box lies within the best distance
+//! so far: a handful of cache lines, whatever the map's size. Queries far from
+//! the map cost at most the blocks within the radius; unbounded queries
+//! ([`MapIndex::nearest`], [`MapIndex::k_nearest`]) widen the radius
+//! geometrically (cubes of cells growing by half around the query).
+//!
+//! The index costs 10 bytes a point plus 4 bytes an occupied cell and ~100
+//! bytes an occupied block; the build sorts 16 bytes a point (parallel) and
+//! frees them.
+//!
+//! Results are exact for the stored coordinates and deterministic: the nearest
+//! by (squared distance, point index), whatever the visiting order. Accuracy:
+//! stored coordinates are within half a quantisation step per axis (1.5 µm
+//! for 0.2 m cells) of the cloud's f32 coordinates, and squared distances are
+//! computed in f32 relative to the cell, so returned distances carry an error
+//! below 1.4e-5 of the cell size (2.7 µm for 0.2 m cells), independent of the
+//! map's extent. Use [`PointCloud::point_in_map`] for the exact point.
+use std::collections::BinaryHeap;
 
-use kiddo::{ImmutableKdTree, SquaredEuclidean};
-use nalgebra::{Matrix3, Rotation3, Vector3};
+use nalgebra::Vector3;
+use rayon::prelude::*;
 
 use super::cloud::PointCloud;
 
@@ -28,8 +46,19 @@ pub enum IndexError {
     TooManyPoints(usize),
     #[error("map point {index} has a non-finite coordinate")]
     NonFinitePoint { index: usize },
-    #[error("building the kd-tree failed: {0}")]
+    #[error("building the index failed: {0}")]
     Construction(String),
+    #[error("index cell size must be finite and positive, got {0} m")]
+    BadCellSize(f64),
+    #[error(
+        "the map spans {cells} index cells of {cell_size_m} m along one axis; at most {max} are \
+         supported (use larger cells)"
+    )]
+    TooLarge {
+        cells: i64,
+        cell_size_m: f64,
+        max: i64,
+    },
 }
 
 /// One neighbour found by a query.
@@ -41,15 +70,155 @@ pub struct Neighbour {
     pub dist_sq: f64,
 }
 
-/// Nearest-neighbour index of a [`PointCloud`]. Holds no reference to the
-/// cloud; results are point indices into it.
+/// Options of [`MapIndex::build_with_options`].
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct IndexOptions {
+    /// Edge of a grid cell (m). Default `None`: automatic, 0.2 m (about
+    /// 40-60 points a cell on a surface sampled every 2.5-3 cm; the mapper's
+    /// query radii, 0.1-1.5 m, span a few cells), rebuilt once with a cell
+    /// size scaled to give about 32 points an occupied cell when the mean
+    /// is below 8 or above 256 (sparser or denser maps).
+    pub cell_size_m: Option<f64>,
+}
+
+/// Automatic cell size: the first try, and the bounds of the mean number of
+/// points an occupied cell outside which the index is rebuilt once.
+const AUTO_CELL_M: f64 = 0.2;
+const AUTO_MIN_MEAN: f64 = 8.0;
+const AUTO_MAX_MEAN: f64 = 256.0;
+const AUTO_TARGET_MEAN: f64 = 32.0;
+
+/// Cells per block edge is `1 << BLOCK_SHIFT` (8: 512 cells, one `u64` mask
+/// word per z-layer).
+const BLOCK_SHIFT: i64 = 3;
+const BLOCK_EDGE: i64 = 1 << BLOCK_SHIFT;
+/// Bits per axis of a packed block key.
+const KEY_AXIS_BITS: u32 = 18;
+/// Cells per axis the grid can span.
+const MAX_CELLS_PER_AXIS: i64 = 1 << (KEY_AXIS_BITS as i64 + BLOCK_SHIFT);
+/// Quantisation steps across a cell.
+const STEPS: f64 = 65535.0;
+/// Neighbour cells within this distance (cells) of a query are prefetched
+/// before its own cell is scanned.
+const NEIGHBOUR_PREFETCH_CELLS: f64 = 0.25;
+/// Empty slot of the block hash table (no valid key has all bits set).
+const EMPTY_KEY: u64 = u64::MAX;
+
+fn pack_block(b: [i64; 3]) -> u64 {
+    ((b[0] as u64) << (2 * KEY_AXIS_BITS)) | ((b[1] as u64) << KEY_AXIS_BITS) | (b[2] as u64)
+}
+
+fn unpack_block(key: u64) -> [i64; 3] {
+    let m = (1u64 << KEY_AXIS_BITS) - 1;
+    [
+        (key >> (2 * KEY_AXIS_BITS)) as i64,
+        ((key >> KEY_AXIS_BITS) & m) as i64,
+        (key & m) as i64,
+    ]
+}
+
+/// 8 x 8 x 8 cells: bit `x | y << 3` of word `z` is set when cell (x, y, z)
+/// of the block holds points; the cells of word `z` are numbered from
+/// `first_cell[z]` in bit order.
+#[derive(Clone, Copy, Debug)]
+struct Block {
+    occupied: [u64; 8],
+    first_cell: [u32; 8],
+}
+
+impl Block {
+    #[inline]
+    fn cell_id(&self, z: usize, bit: u32) -> u32 {
+        self.first_cell[z] + (self.occupied[z] & ((1u64 << bit) - 1)).count_ones()
+    }
+}
+
+/// Open-addressing hash table (linear probing) from block keys to block ids.
+#[derive(Clone, Debug)]
+struct BlockTable {
+    keys: Vec<u64>,
+    ids: Vec<u32>,
+    shift: u32,
+}
+
+impl BlockTable {
+    fn new(block_keys: &[u64]) -> Self {
+        let capacity = (2 * block_keys.len()).next_power_of_two().max(2);
+        let shift = 64 - capacity.trailing_zeros();
+        let mut table = Self {
+            keys: vec![EMPTY_KEY; capacity],
+            ids: vec![0; capacity],
+            shift,
+        };
+        let mask = capacity - 1;
+        for (id, &key) in block_keys.iter().enumerate() {
+            let mut s = table.slot(key);
+            while table.keys[s] != EMPTY_KEY {
+                s = (s + 1) & mask;
+            }
+            table.keys[s] = key;
+            table.ids[s] = id as u32;
+        }
+        table
+    }
+
+    #[inline]
+    fn slot(&self, key: u64) -> usize {
+        (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> self.shift) as usize
+    }
+
+    #[inline]
+    fn get(&self, key: u64) -> Option<u32> {
+        let mask = self.keys.len() - 1;
+        let mut s = self.slot(key);
+        loop {
+            let k = self.keys[s];
+            if k == key {
+                return Some(self.ids[s]);
+            }
+            if k == EMPTY_KEY {
+                return None;
+            }
+            s = (s + 1) & mask;
+        }
+    }
+}
+
+/// `floor(x)` as an integer, saturating (`as`); without the libm call that
+/// `f64::floor` is on baseline x86-64.
+#[inline]
+fn floor_i64(x: f64) -> i64 {
+    let t = x as i64;
+    if (t as f64) > x {
+        t.saturating_sub(1)
+    } else {
+        t
+    }
+}
+
+/// Nearest-neighbour index of a [`PointCloud`] (see the module doc). Holds no
+/// reference to the cloud; results are point indices into it.
 pub struct MapIndex {
     /// The cloud's local origin (map frame, metres).
     origin: Vector3<f64>,
-    /// Fixed generic rotation applied to local offsets before they enter the tree.
-    index_from_local: Matrix3<f64>,
-    /// `None` for an empty map (kiddo does not build empty trees).
-    tree: Option<ImmutableKdTree<f32, 3>>,
+    cell_size_m: f64,
+    /// Integer coordinates (cells from the cloud's origin) of grid cell 0.
+    min_cell: [i64; 3],
+    /// Cells spanned per axis (grid cells are `0..extent`).
+    extent: [i64; 3],
+    table: BlockTable,
+    /// Packed keys of the blocks, increasing; `blocks[i]` is block `block_keys[i]`.
+    block_keys: Vec<u64>,
+    blocks: Vec<Block>,
+    /// `cell_start[c]..cell_start[c + 1]` is cell `c`'s range in the point arrays.
+    cell_start: Vec<u32>,
+    /// One contiguous run per cell: for the cell's `n` points at positions
+    /// `start..start + n`, `data[5 * start..5 * (start + n)]` holds their x
+    /// coordinates, then the y, then the z (relative to the cell's corner, in
+    /// steps of `cell_size_m / 65535`), then the low and the high 16 bits of
+    /// their indices in the cloud (increasing within a cell). A query touches
+    /// one run of memory a cell; the coordinate runs vectorise.
+    data: Vec<u16>,
     num_points: usize,
 }
 
@@ -58,57 +227,325 @@ impl std::fmt::Debug for MapIndex {
         f.debug_struct("MapIndex")
             .field("origin", &self.origin)
             .field("num_points", &self.num_points)
+            .field("cell_size_m", &self.cell_size_m)
+            .field("num_cells", &(self.cell_start.len().saturating_sub(1)))
+            .field("num_blocks", &self.blocks.len())
             .finish()
     }
 }
 
-/// The fixed rotation applied inside the index: generic angles (no multiple of
-/// a simple fraction of pi), so no map axis stays aligned with a tree axis.
-fn generic_rotation() -> Matrix3<f64> {
-    Rotation3::from_euler_angles(0.371_4, 0.517_3, 0.834_2).into_inner()
+/// The best candidate so far of a single-nearest query: squared distance in
+/// squared quantisation steps, its cell and position in the index.
+#[derive(Clone, Copy)]
+struct Best {
+    d: f32,
+    cell: u32,
+    pos: u32,
+}
+
+/// Heap key of a k-nearest query: `(squared distance bits, point index)`;
+/// distances are non-negative, so their bit patterns order like their values.
+#[inline]
+fn heap_key(d: f32, idx: u32) -> u64 {
+    (u64::from(d.to_bits()) << 32) | u64::from(idx)
+}
+
+#[inline]
+fn key_dist(key: u64) -> f32 {
+    f32::from_bits((key >> 32) as u32)
+}
+
+/// A query run by [`MapIndex::search_growing`].
+trait Search {
+    /// Current bound on the squared distance of a useful point (squared
+    /// steps, inclusive).
+    fn limit(&self) -> f32;
+    /// Scans cell `id` (grid cell `c`) for the query `g`.
+    fn scan(&mut self, index: &MapIndex, id: u32, c: [i64; 3], g: &[f64; 3]);
+}
+
+/// Single nearest point within `bound` (its cloud index is read on ties and
+/// once at the end).
+struct NearestSearch {
+    bound: f32,
+    best: Option<Best>,
+}
+
+impl Search for NearestSearch {
+    #[inline]
+    fn limit(&self) -> f32 {
+        self.best.map_or(self.bound, |b| b.d)
+    }
+
+    #[inline]
+    fn scan(&mut self, index: &MapIndex, id: u32, c: [i64; 3], g: &[f64; 3]) {
+        let (d, pos) = index.cell_min(id, MapIndex::local_query(g, c));
+        if !(d <= self.bound) {
+            return;
+        }
+        let better = match self.best {
+            None => true,
+            Some(b) => {
+                d < b.d
+                    || (d == b.d
+                        && index.point_index(id, pos) < index.point_index(b.cell, b.pos as usize))
+            }
+        };
+        if better {
+            self.best = Some(Best {
+                d,
+                cell: id,
+                pos: pos as u32,
+            });
+        }
+    }
+}
+
+/// The `k` nearest points within `bound`, in a max-heap of [`heap_key`]s.
+struct KSearch {
+    k: usize,
+    bound: f32,
+    heap: BinaryHeap<u64>,
+}
+
+impl Search for KSearch {
+    #[inline]
+    fn limit(&self) -> f32 {
+        match self.heap.peek() {
+            Some(&worst) if self.heap.len() >= self.k => key_dist(worst),
+            _ => self.bound,
+        }
+    }
+
+    fn scan(&mut self, index: &MapIndex, id: u32, c: [i64; 3], g: &[f64; 3]) {
+        let q = MapIndex::local_query(g, c);
+        let mut lim = self.limit();
+        let (xs, ys, zs, start) = index.cell_coords(id);
+        for (k, ((x, y), z)) in xs.iter().zip(ys).zip(zs).enumerate() {
+            let dx = q[0] - f32::from(*x);
+            let dy = q[1] - f32::from(*y);
+            let dz = q[2] - f32::from(*z);
+            let d = dx * dx + dy * dy + dz * dz;
+            if !(d <= lim) {
+                continue;
+            }
+            let key = heap_key(d, index.point_index(id, start + k));
+            if self.heap.len() < self.k {
+                self.heap.push(key);
+            } else if self.heap.peek().is_some_and(|&worst| key < worst) {
+                self.heap.pop();
+                self.heap.push(key);
+            } else {
+                continue;
+            }
+            lim = self.limit();
+        }
+    }
 }
 
 impl MapIndex {
-    /// Builds the index of every point of `cloud`. Parallel (rayon) for large
-    /// maps; the tree does not depend on the number of threads.
+    /// Builds the index of every point of `cloud` with the default options.
+    /// Parallel (rayon); the index does not depend on the number of threads.
     pub fn build(cloud: &PointCloud) -> Result<Self, IndexError> {
+        Self::build_with_options(cloud, &IndexOptions::default())
+    }
+
+    /// Builds the index of every point of `cloud`.
+    pub fn build_with_options(
+        cloud: &PointCloud,
+        options: &IndexOptions,
+    ) -> Result<Self, IndexError> {
+        if let Some(s) = options.cell_size_m {
+            return Self::build_with_cell_size(cloud, s);
+        }
+        let first = Self::build_with_cell_size(cloud, AUTO_CELL_M)?;
+        let mean = first.len() as f64 / first.num_cells().max(1) as f64;
+        if first.is_empty() || (AUTO_MIN_MEAN..=AUTO_MAX_MEAN).contains(&mean) {
+            return Ok(first);
+        }
+        // Points a cell scale with the cell's area on surfaces.
+        let s = (AUTO_CELL_M * (AUTO_TARGET_MEAN / mean).sqrt()).clamp(0.01, 10.0);
+        drop(first);
+        match Self::build_with_cell_size(cloud, s) {
+            Err(IndexError::TooLarge { .. }) => Self::build_with_cell_size(cloud, AUTO_CELL_M),
+            other => other,
+        }
+    }
+
+    fn build_with_cell_size(cloud: &PointCloud, s: f64) -> Result<Self, IndexError> {
+        if !(s.is_finite() && s > 0.0) {
+            return Err(IndexError::BadCellSize(s));
+        }
         let n = cloud.len();
         if n >= u32::MAX as usize {
             return Err(IndexError::TooManyPoints(n));
         }
-        let index_from_local = generic_rotation();
-        let tree = if n == 0 {
-            None
-        } else {
-            let r = index_from_local;
-            let mut rotated = vec![[0f32; 3]; n];
-            {
-                use rayon::prelude::*;
-                rotated
-                    .par_chunks_mut(1 << 16)
-                    .zip(cloud.points.par_chunks(1 << 16))
-                    .for_each(|(dst, src)| {
-                        for (d, p) in dst.iter_mut().zip(src) {
-                            let v = Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-                            let q = r * v;
-                            *d = [q.x as f32, q.y as f32, q.z as f32];
-                        }
-                    });
-            }
-            if let Some(index) = rotated
-                .iter()
-                .position(|p| !p.iter().all(|c| c.is_finite()))
-            {
-                return Err(IndexError::NonFinitePoint { index });
-            }
-            let tree = ImmutableKdTree::<f32, 3>::new_from_slice_parallel(&rotated)
-                .map_err(|e| IndexError::Construction(e.to_string()))?;
-            Some(tree)
+        if let Some(index) = cloud
+            .points
+            .par_iter()
+            .position_first(|p| !p.iter().all(|c| c.is_finite()))
+        {
+            return Err(IndexError::NonFinitePoint { index });
+        }
+        let inv = 1.0 / s;
+        let cell_of = |p: &[f32; 3]| -> [i64; 3] {
+            [
+                floor_i64(f64::from(p[0]) * inv),
+                floor_i64(f64::from(p[1]) * inv),
+                floor_i64(f64::from(p[2]) * inv),
+            ]
         };
+        let (min_cell, max_cell) = cloud
+            .points
+            .par_iter()
+            .fold(
+                || ([i64::MAX; 3], [i64::MIN; 3]),
+                |(mut lo, mut hi), p| {
+                    let c = cell_of(p);
+                    for a in 0..3 {
+                        lo[a] = lo[a].min(c[a]);
+                        hi[a] = hi[a].max(c[a]);
+                    }
+                    (lo, hi)
+                },
+            )
+            .reduce(
+                || ([i64::MAX; 3], [i64::MIN; 3]),
+                |(a, b), (c, d)| {
+                    (
+                        [a[0].min(c[0]), a[1].min(c[1]), a[2].min(c[2])],
+                        [b[0].max(d[0]), b[1].max(d[1]), b[2].max(d[2])],
+                    )
+                },
+            );
+        let (min_cell, extent) = if n == 0 {
+            ([0; 3], [0; 3])
+        } else {
+            let extent = [
+                max_cell[0] - min_cell[0] + 1,
+                max_cell[1] - min_cell[1] + 1,
+                max_cell[2] - min_cell[2] + 1,
+            ];
+            if let Some(&cells) = extent.iter().find(|&&e| e > MAX_CELLS_PER_AXIS) {
+                return Err(IndexError::TooLarge {
+                    cells,
+                    cell_size_m: s,
+                    max: MAX_CELLS_PER_AXIS,
+                });
+            }
+            (min_cell, extent)
+        };
+        // (block key << 9 | cell bit in block, point index), sorted: blocks in
+        // key order, cells by (z, y, x) in a block, points by index in a cell.
+        let mut pairs: Vec<(u64, u32)> = cloud
+            .points
+            .par_iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let c = cell_of(p);
+                let g = [c[0] - min_cell[0], c[1] - min_cell[1], c[2] - min_cell[2]];
+                let block = pack_block([
+                    g[0] >> BLOCK_SHIFT,
+                    g[1] >> BLOCK_SHIFT,
+                    g[2] >> BLOCK_SHIFT,
+                ]);
+                let m = BLOCK_EDGE - 1;
+                let bit = ((g[2] & m) << 6) | ((g[1] & m) << 3) | (g[0] & m);
+                ((block << 9) | bit as u64, i as u32)
+            })
+            .collect();
+        pairs.par_sort_unstable();
+        let mut block_keys: Vec<u64> = Vec::new();
+        let mut blocks: Vec<Block> = Vec::new();
+        let mut cell_start: Vec<u32> = Vec::new();
+        let mut last_key = u64::MAX;
+        for (k, &(key, _)) in pairs.iter().enumerate() {
+            if key == last_key {
+                continue;
+            }
+            last_key = key;
+            let block_key = key >> 9;
+            if block_keys.last() != Some(&block_key) {
+                block_keys.push(block_key);
+                blocks.push(Block {
+                    occupied: [0; 8],
+                    first_cell: [0; 8],
+                });
+            }
+            let cell_id = cell_start.len() as u32;
+            cell_start.push(k as u32);
+            // A block was pushed above: `last` cannot fail.
+            let block = blocks.last_mut().expect("a block exists");
+            let (z, bit) = (((key >> 6) & 7) as usize, key & 63);
+            if block.occupied[z] == 0 {
+                block.first_cell[z] = cell_id;
+            }
+            block.occupied[z] |= 1u64 << bit;
+        }
+        cell_start.push(n as u32);
+        let table = BlockTable::new(&block_keys);
+
+        // Groups of whole cells of about 32k points, quantised in parallel.
+        let mut groups = Vec::new();
+        let mut group_start = 0usize;
+        for c in 0..cell_start.len() - 1 {
+            let end = cell_start[c + 1] as usize;
+            if end - cell_start[group_start] as usize >= 1 << 15 || c + 2 == cell_start.len() {
+                groups.push((group_start, c + 1));
+                group_start = c + 1;
+            }
+        }
+        let step = s / STEPS;
+        // The groups' runs, cut out of the final array (no copy).
+        let mut data = vec![0u16; 5 * n];
+        let mut runs: Vec<&mut [u16]> = Vec::with_capacity(groups.len());
+        let mut rest: &mut [u16] = &mut data;
+        for &(c0, c1) in &groups {
+            let len = 5 * (cell_start[c1] - cell_start[c0]) as usize;
+            let (run, tail) = rest.split_at_mut(len);
+            runs.push(run);
+            rest = tail;
+        }
+        groups
+            .par_iter()
+            .zip(runs.into_par_iter())
+            .for_each(|(&(c0, c1), out)| {
+                let first = cell_start[c0] as usize;
+                for c in c0..c1 {
+                    let (start, end) = (cell_start[c] as usize, cell_start[c + 1] as usize);
+                    let count = end - start;
+                    let base = 5 * (start - first);
+                    for (k, &(key, i)) in pairs[start..end].iter().enumerate() {
+                        let b = unpack_block(key >> 9);
+                        let local = [
+                            (key & 7) as i64,
+                            ((key >> 3) & 7) as i64,
+                            ((key >> 6) & 7) as i64,
+                        ];
+                        let p = cloud.points[i as usize];
+                        for a in 0..3 {
+                            let cell = (b[a] << BLOCK_SHIFT) + local[a] + min_cell[a];
+                            let steps = (f64::from(p[a]) - cell as f64 * s) / step;
+                            // Within [0, 65535] up to rounding: `as`
+                            // saturates, +0.5 rounds.
+                            out[base + a * count + k] = (steps + 0.5).clamp(0.0, STEPS) as u16;
+                        }
+                        out[base + 3 * count + k] = i as u16;
+                        out[base + 4 * count + k] = (i >> 16) as u16;
+                    }
+                }
+            });
+        drop(pairs);
         Ok(Self {
             origin: cloud.origin,
-            index_from_local,
-            tree,
+            cell_size_m: s,
+            min_cell,
+            extent,
+            table,
+            block_keys,
+            blocks,
+            cell_start,
+            data,
             num_points: n,
         })
     }
@@ -121,94 +558,502 @@ impl MapIndex {
         self.num_points == 0
     }
 
-    /// Query point in the tree's (rotated, local) frame.
-    fn to_index_frame(&self, point_in_map: &Vector3<f64>) -> [f32; 3] {
-        let q = self.index_from_local * (point_in_map - self.origin);
-        [q.x as f32, q.y as f32, q.z as f32]
+    /// Edge of a grid cell (m).
+    pub fn cell_size_m(&self) -> f64 {
+        self.cell_size_m
     }
 
-    /// The nearest map point within `radius_m` (inclusive) of `point_in_map`,
-    /// or `None` when there is none. Radius-bounded, so fast even far from the
-    /// map.
-    pub fn nearest_within(&self, point_in_map: &Vector3<f64>, radius_m: f64) -> Option<Neighbour> {
-        let tree = self.tree.as_ref()?;
+    /// Number of occupied cells.
+    pub fn num_cells(&self) -> usize {
+        self.cell_start.len().saturating_sub(1)
+    }
+
+    /// Heap bytes held by the index.
+    pub fn memory_bytes(&self) -> usize {
+        self.table.keys.capacity() * 8
+            + self.table.ids.capacity() * 4
+            + self.block_keys.capacity() * 8
+            + self.blocks.capacity() * std::mem::size_of::<Block>()
+            + self.cell_start.capacity() * 4
+            + self.data.capacity() * 2
+    }
+
+    /// Squared length of a quantisation step (m²).
+    fn step_sq(&self) -> f64 {
+        let step = self.cell_size_m / STEPS;
+        step * step
+    }
+
+    /// The query point in continuous grid-cell coordinates (`None` when not
+    /// finite).
+    fn to_grid(&self, point_in_map: &Vector3<f64>) -> Option<[f64; 3]> {
+        let l = point_in_map - self.origin;
+        let inv = 1.0 / self.cell_size_m;
+        let g = [
+            l.x * inv - self.min_cell[0] as f64,
+            l.y * inv - self.min_cell[1] as f64,
+            l.z * inv - self.min_cell[2] as f64,
+        ];
+        g.iter().all(|c| c.is_finite()).then_some(g)
+    }
+
+    /// A radius (m) as a squared distance in squared steps (inclusive bound);
+    /// `None` for a negative or NaN radius.
+    fn radius_steps_sq(&self, radius_m: f64) -> Option<f32> {
         if !(radius_m >= 0.0) {
             return None;
         }
-        let q = self.to_index_frame(point_in_map);
-        let radius_sq = (radius_m * radius_m) as f32;
-        // NonZero literal: 1 is not zero.
-        let one = NonZeroUsize::MIN;
-        let found = tree
-            .query(&q)
-            .nearest_n::<SquaredEuclidean<f32>>(one)
-            .within(radius_sq)
-            .execute();
-        found.first().map(|r| Neighbour {
-            point_idx: r.item,
-            dist_sq: f64::from(r.distance),
+        Some((radius_m * radius_m / self.step_sq()) as f32)
+    }
+
+    /// The id of the grid cell `c`, if occupied.
+    #[inline]
+    fn cell_id(&self, c: [i64; 3]) -> Option<u32> {
+        if (0..3).any(|a| c[a] < 0 || c[a] >= self.extent[a]) {
+            return None;
+        }
+        let b = [
+            c[0] >> BLOCK_SHIFT,
+            c[1] >> BLOCK_SHIFT,
+            c[2] >> BLOCK_SHIFT,
+        ];
+        let block = &self.blocks[self.table.get(pack_block(b))? as usize];
+        let m = BLOCK_EDGE - 1;
+        let (z, bit) = ((c[2] & m) as usize, ((c[1] & m) << 3 | (c[0] & m)) as u32);
+        (block.occupied[z] >> bit & 1 == 1).then(|| block.cell_id(z, bit))
+    }
+
+    /// Squared distance (squared steps) from `g` to the box of cell `c`.
+    #[inline]
+    fn box_dist_steps_sq(g: &[f64; 3], c: [i64; 3]) -> f32 {
+        let mut d = 0.0;
+        for a in 0..3 {
+            let lo = c[a] as f64;
+            let v = if g[a] < lo {
+                lo - g[a]
+            } else if g[a] > lo + 1.0 {
+                g[a] - lo - 1.0
+            } else {
+                0.0
+            };
+            d += v * v;
+        }
+        (d * (STEPS * STEPS)) as f32
+    }
+
+    /// Calls `f(cell id, cell)` for every occupied cell in the inclusive cell
+    /// box `[lo, hi]` (clamped to the grid), block by block.
+    #[inline]
+    fn for_each_cell_in_box(&self, lo: [i64; 3], hi: [i64; 3], mut f: impl FnMut(u32, [i64; 3])) {
+        let lo = [lo[0].max(0), lo[1].max(0), lo[2].max(0)];
+        let hi = [
+            hi[0].min(self.extent[0] - 1),
+            hi[1].min(self.extent[1] - 1),
+            hi[2].min(self.extent[2] - 1),
+        ];
+        if (0..3).any(|a| lo[a] > hi[a]) {
+            return;
+        }
+        let blo = [
+            lo[0] >> BLOCK_SHIFT,
+            lo[1] >> BLOCK_SHIFT,
+            lo[2] >> BLOCK_SHIFT,
+        ];
+        let bhi = [
+            hi[0] >> BLOCK_SHIFT,
+            hi[1] >> BLOCK_SHIFT,
+            hi[2] >> BLOCK_SHIFT,
+        ];
+        let span = (bhi[0] - blo[0] + 1) * (bhi[1] - blo[1] + 1) * (bhi[2] - blo[2] + 1);
+        let mut visit = |b: [i64; 3], block: &Block| {
+            let base = [
+                b[0] << BLOCK_SHIFT,
+                b[1] << BLOCK_SHIFT,
+                b[2] << BLOCK_SHIFT,
+            ];
+            let r = |a: usize| -> (i64, i64) {
+                (
+                    (lo[a] - base[a]).max(0),
+                    (hi[a] - base[a]).min(BLOCK_EDGE - 1),
+                )
+            };
+            let ((x0, x1), (y0, y1), (z0, z1)) = (r(0), r(1), r(2));
+            if x0 > x1 || y0 > y1 || z0 > z1 {
+                return;
+            }
+            let row = ((1u64 << (x1 - x0 + 1)) - 1) << x0;
+            let mut rect = 0u64;
+            for y in y0..=y1 {
+                rect |= row << (8 * y);
+            }
+            for z in z0..=z1 {
+                let occupied = block.occupied[z as usize];
+                let mut m = occupied & rect;
+                while m != 0 {
+                    let bit = m.trailing_zeros();
+                    m &= m - 1;
+                    let id = block.cell_id(z as usize, bit);
+                    f(
+                        id,
+                        [
+                            base[0] + i64::from(bit & 7),
+                            base[1] + i64::from(bit >> 3),
+                            base[2] + z,
+                        ],
+                    );
+                }
+            }
+        };
+        if span as usize > self.blocks.len() {
+            // Wider than the map's blocks: walk the blocks instead.
+            for (key, block) in self.block_keys.iter().zip(&self.blocks) {
+                let b = unpack_block(*key);
+                if (0..3).all(|a| b[a] >= blo[a] && b[a] <= bhi[a]) {
+                    visit(b, block);
+                }
+            }
+        } else {
+            for bx in blo[0]..=bhi[0] {
+                for by in blo[1]..=bhi[1] {
+                    for bz in blo[2]..=bhi[2] {
+                        if let Some(id) = self.table.get(pack_block([bx, by, bz])) {
+                            visit([bx, by, bz], &self.blocks[id as usize]);
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// The query relative to cell `c`'s corner, in steps.
+    #[inline]
+    fn local_query(g: &[f64; 3], c: [i64; 3]) -> [f32; 3] {
+        [
+            ((g[0] - c[0] as f64) * STEPS) as f32,
+            ((g[1] - c[1] as f64) * STEPS) as f32,
+            ((g[2] - c[2] as f64) * STEPS) as f32,
+        ]
+    }
+
+    /// Range of cell `id` in the point arrays.
+    #[inline]
+    fn cell_range(&self, id: u32) -> std::ops::Range<usize> {
+        self.cell_start[id as usize] as usize..self.cell_start[id as usize + 1] as usize
+    }
+
+    /// The x, y and z runs of cell `id` and its first position.
+    #[inline]
+    fn cell_coords(&self, id: u32) -> (&[u16], &[u16], &[u16], usize) {
+        let range = self.cell_range(id);
+        let n = range.len();
+        let run = &self.data[5 * range.start..5 * range.start + 3 * n];
+        let (xs, rest) = run.split_at(n);
+        let (ys, zs) = rest.split_at(n);
+        (xs, ys, zs, range.start)
+    }
+
+    /// Index in the cloud of the point at position `pos` of cell `id`.
+    #[inline]
+    fn point_index(&self, id: u32, pos: usize) -> u32 {
+        let range = self.cell_range(id);
+        let (n, k) = (range.len(), pos - range.start);
+        let base = 5 * range.start;
+        u32::from(self.data[base + 3 * n + k]) | (u32::from(self.data[base + 4 * n + k]) << 16)
+    }
+
+    /// Smallest squared distance (squared steps) from `q` (cell-local steps)
+    /// to a point of cell `id`, and the first position where it occurs.
+    #[inline]
+    fn cell_min(&self, id: u32, q: [f32; 3]) -> (f32, usize) {
+        let (xs, ys, zs, start) = self.cell_coords(id);
+        let dist = |x: u16, y: u16, z: u16| -> f32 {
+            let dx = q[0] - f32::from(x);
+            let dy = q[1] - f32::from(y);
+            let dz = q[2] - f32::from(z);
+            dx * dx + dy * dy + dz * dz
+        };
+        // Lane-wise minimum and its first position over chunks of 8
+        // (vectorised), then the rest.
+        const LANES: usize = 8;
+        let mut acc = [f32::INFINITY; LANES];
+        let mut at = [0u32; LANES];
+        let (cx, cy, cz) = (
+            xs.chunks_exact(LANES),
+            ys.chunks_exact(LANES),
+            zs.chunks_exact(LANES),
+        );
+        let (rx, ry, rz) = (cx.remainder(), cy.remainder(), cz.remainder());
+        let mut base = 0u32;
+        for ((x, y), z) in cx.zip(cy).zip(cz) {
+            for l in 0..LANES {
+                let d = dist(x[l], y[l], z[l]);
+                let better = d < acc[l];
+                acc[l] = if better { d } else { acc[l] };
+                at[l] = if better { base + l as u32 } else { at[l] };
+            }
+            base += LANES as u32;
+        }
+        let (mut min, mut pos) = (f32::INFINITY, 0u32);
+        for l in 0..LANES {
+            if acc[l] < min || (acc[l] == min && at[l] < pos) {
+                min = acc[l];
+                pos = at[l];
+            }
+        }
+        for (k, ((x, y), z)) in rx.iter().zip(ry).zip(rz).enumerate() {
+            let d = dist(*x, *y, *z);
+            if d < min {
+                min = d;
+                pos = base + k as u32;
+            }
+        }
+        (min, start + pos as usize)
+    }
+
+    /// Visits the occupied cells around `g` nearest first, roughly: the own
+    /// cell, then cubes of half-width 1, 2, 3, 4, 6, 9, ... cells around it
+    /// (growing by half; each cell once), until the cube holds the ball of
+    /// radius `sqrt(search.limit())` (the limit may shrink while visiting).
+    /// Cells whose box lies beyond the limit are not scanned.
+    fn search_growing<S: Search>(&self, g: &[f64; 3], search: &mut S) {
+        let own = [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])];
+        let own_id = self.cell_id(own);
+        if let Some(id) = own_id {
+            self.prefetch_cell(id);
+        }
+        self.prefetch_near_neighbours(g, own, NEIGHBOUR_PREFETCH_CELLS);
+        if let Some(id) = own_id {
+            search.scan(self, id, own, g);
+        }
+        let mut done: i64 = 0;
+        loop {
+            let limit = search.limit();
+            let reach = if limit.is_finite() {
+                f64::from(limit).sqrt() / STEPS
+            } else {
+                f64::INFINITY
+            };
+            // `as` saturates for infinite reaches; clamped to the grid.
+            let lo = [
+                (floor_i64(g[0] - reach)).max(0),
+                (floor_i64(g[1] - reach)).max(0),
+                (floor_i64(g[2] - reach)).max(0),
+            ];
+            let hi = [
+                (floor_i64(g[0] + reach)).min(self.extent[0] - 1),
+                (floor_i64(g[1] + reach)).min(self.extent[1] - 1),
+                (floor_i64(g[2] + reach)).min(self.extent[2] - 1),
+            ];
+            if (0..3).any(|a| lo[a] > hi[a]) {
+                return;
+            }
+            let needed = (0..3)
+                .map(|a| (own[a] - lo[a]).max(hi[a] - own[a]))
+                .max()
+                .unwrap_or(0);
+            if needed <= done {
+                return;
+            }
+            let next = needed.min(done + (done / 2).max(1));
+            let box_lo = [
+                (own[0] - next).max(lo[0]),
+                (own[1] - next).max(lo[1]),
+                (own[2] - next).max(lo[2]),
+            ];
+            let box_hi = [
+                (own[0] + next).min(hi[0]),
+                (own[1] + next).min(hi[1]),
+                (own[2] + next).min(hi[2]),
+            ];
+            self.for_each_cell_in_box(box_lo, box_hi, |id, c| {
+                let cheb = (0..3).map(|a| (c[a] - own[a]).abs()).max().unwrap_or(0);
+                if cheb <= done {
+                    // Visited by an earlier cube.
+                    return;
+                }
+                if Self::box_dist_steps_sq(g, c) > search.limit() {
+                    return;
+                }
+                search.scan(self, id, c, g);
+            });
+            done = next;
+        }
+    }
+
+    /// The nearest map point within `radius_m` (inclusive) of `point_in_map`,
+    /// or `None` when there is none. Ties go to the smaller point index.
+    pub fn nearest_within(&self, point_in_map: &Vector3<f64>, radius_m: f64) -> Option<Neighbour> {
+        if self.is_empty() {
+            return None;
+        }
+        let bound = self.radius_steps_sq(radius_m)?;
+        let g = self.to_grid(point_in_map)?;
+        let mut search = NearestSearch { bound, best: None };
+        self.search_growing(&g, &mut search);
+        search.best.map(|b| Neighbour {
+            point_idx: self.point_index(b.cell, b.pos as usize),
+            dist_sq: f64::from(b.d) * self.step_sq(),
         })
     }
 
     /// [`nearest_within`](Self::nearest_within) for many query points at
     /// once: the answer for `points_in_map[i]` is at `i`. Queries run in a
-    /// space-filling-curve order (consecutive queries touch the same tree
-    /// nodes, so far fewer cache misses than in arbitrary order), in parallel
-    /// over chunks (rayon); the result does not depend on the thread count.
+    /// space-filling-curve order (consecutive queries touch the same cells, so
+    /// far fewer cache misses than in arbitrary order), in parallel over
+    /// chunks (rayon); the result does not depend on the thread count.
     pub fn nearest_within_batch(
         &self,
         points_in_map: &[Vector3<f64>],
         radius_m: f64,
     ) -> Vec<Option<Neighbour>> {
-        use rayon::prelude::*;
         let n = points_in_map.len();
-        if self.tree.is_none() || n == 0 {
+        if self.is_empty() || n == 0 {
             return vec![None; n];
         }
         let order = spatial_order(points_in_map);
-        let answers: Vec<(u32, Option<Neighbour>)> = order
-            .par_chunks(1024)
-            .flat_map_iter(|chunk| {
-                chunk
-                    .iter()
-                    .map(|&i| (i, self.nearest_within(&points_in_map[i as usize], radius_m)))
-            })
-            .collect();
+        // Queries a few ahead have their cell's run prefetched.
+        const AHEAD: usize = 4;
+        let mut answers: Vec<Option<Neighbour>> = vec![None; n];
+        answers
+            .par_chunks_mut(1024)
+            .zip(order.par_chunks(1024))
+            .for_each(|(out, chunk)| {
+                for (k, slot) in out.iter_mut().enumerate() {
+                    if let Some(&next) = chunk.get(k + AHEAD) {
+                        self.prefetch_cell_of(&points_in_map[next as usize]);
+                    }
+                    *slot = self.nearest_within(&points_in_map[chunk[k] as usize], radius_m);
+                }
+            });
         let mut out = vec![None; n];
-        for (i, a) in answers {
+        for (&i, a) in order.iter().zip(answers) {
             out[i as usize] = a;
         }
         out
     }
 
+    /// Hints the processor to fetch the start of the run of the cell holding
+    /// `point_in_map` (no effect on results).
+    #[inline]
+    fn prefetch_cell_of(&self, point_in_map: &Vector3<f64>) {
+        let Some(g) = self.to_grid(point_in_map) else {
+            return;
+        };
+        let own = [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])];
+        if let Some(id) = self.cell_id(own) {
+            self.prefetch_cell(id);
+        }
+    }
+
+    /// Hints the processor to fetch the starts of the x, y and z runs of
+    /// cell `id` (no effect on results).
+    #[inline]
+    fn prefetch_cell(&self, id: u32) {
+        let range = self.cell_range(id);
+        let (start, n) = (5 * range.start, range.len());
+        for offset in [0, n, 2 * n] {
+            #[cfg(target_arch = "x86_64")]
+            {
+                use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+                let p = self.data[start + offset..].as_ptr().cast::<i8>();
+                // SAFETY: SSE is part of the x86-64 baseline, and a prefetch
+                // of a valid address has no effect but on caches.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(p) };
+            }
+            #[cfg(not(target_arch = "x86_64"))]
+            {
+                std::hint::black_box(self.data.get(start + offset));
+            }
+        }
+    }
+
+    /// Prefetches the occupied neighbours of cell `own` whose box lies within
+    /// `margin` cells of `g` (likely scanned next: their memory latency then
+    /// overlaps the own cell's).
+    #[inline]
+    fn prefetch_near_neighbours(&self, g: &[f64; 3], own: [i64; 3], margin: f64) {
+        let mut dir = [0i64; 3];
+        for a in 0..3 {
+            let f = g[a] - own[a] as f64;
+            dir[a] = if f < margin {
+                -1
+            } else if f > 1.0 - margin {
+                1
+            } else {
+                0
+            };
+        }
+        if dir == [0; 3] {
+            return;
+        }
+        for mask in 1..8u32 {
+            let mut c = own;
+            let mut valid = true;
+            for a in 0..3 {
+                if mask >> a & 1 == 1 {
+                    if dir[a] == 0 {
+                        valid = false;
+                    }
+                    c[a] += dir[a];
+                }
+            }
+            if valid {
+                if let Some(id) = self.cell_id(c) {
+                    self.prefetch_cell(id);
+                }
+            }
+        }
+    }
+
+    /// The `k` nearest points within `bound` (squared steps, inclusive; may
+    /// be infinite) of `g`, as heap keys (unsorted).
+    fn k_nearest_bounded(&self, g: &[f64; 3], k: usize, bound: f32) -> BinaryHeap<u64> {
+        let mut search = KSearch {
+            k,
+            bound,
+            heap: BinaryHeap::with_capacity(k.min(4096) + 1),
+        };
+        if k > 0 {
+            self.search_growing(g, &mut search);
+        }
+        search.heap
+    }
+
+    /// Heap keys to neighbours, nearest first (ties by point index).
+    fn sorted_neighbours(&self, heap: BinaryHeap<u64>) -> Vec<Neighbour> {
+        let step_sq = self.step_sq();
+        heap.into_sorted_vec()
+            .into_iter()
+            .map(|key| Neighbour {
+                point_idx: key as u32,
+                dist_sq: f64::from(key_dist(key)) * step_sq,
+            })
+            .collect()
+    }
+
     /// The nearest map point, whatever its distance (`None` for an empty map).
     /// Prefer [`nearest_within`](Self::nearest_within): unbounded queries far
-    /// from any surface visit many tree nodes.
+    /// from any surface visit many cells.
     pub fn nearest(&self, point_in_map: &Vector3<f64>) -> Option<Neighbour> {
-        let tree = self.tree.as_ref()?;
-        let q = self.to_index_frame(point_in_map);
-        let r = tree
-            .query(&q)
-            .nearest_one::<SquaredEuclidean<f32>>()
-            .execute();
-        Some(Neighbour {
-            point_idx: r.item,
-            dist_sq: f64::from(r.distance),
-        })
+        let g = self.to_grid(point_in_map)?;
+        if self.is_empty() {
+            return None;
+        }
+        self.sorted_neighbours(self.k_nearest_bounded(&g, 1, f32::INFINITY))
+            .into_iter()
+            .next()
     }
 
     /// The `k` nearest map points, nearest first (ties by point index). Fewer
     /// than `k` when the map is smaller.
     pub fn k_nearest(&self, point_in_map: &Vector3<f64>, k: usize) -> Vec<Neighbour> {
-        let (Some(tree), Some(k)) = (self.tree.as_ref(), NonZeroUsize::new(k)) else {
+        let Some(g) = self.to_grid(point_in_map) else {
             return Vec::new();
         };
-        let q = self.to_index_frame(point_in_map);
-        let found = tree
-            .query(&q)
-            .nearest_n::<SquaredEuclidean<f32>>(k)
-            .execute();
-        sorted_neighbours(found.into_iter().map(|r| (r.item, r.distance)))
+        if self.is_empty() || k == 0 {
+            return Vec::new();
+        }
+        self.sorted_neighbours(self.k_nearest_bounded(&g, k, f32::INFINITY))
     }
 
     /// The `k` nearest map points within `radius_m` (inclusive), nearest first
@@ -219,37 +1064,63 @@ impl MapIndex {
         k: usize,
         radius_m: f64,
     ) -> Vec<Neighbour> {
-        let (Some(tree), Some(k)) = (self.tree.as_ref(), NonZeroUsize::new(k)) else {
+        let (Some(g), Some(bound)) = (self.to_grid(point_in_map), self.radius_steps_sq(radius_m))
+        else {
             return Vec::new();
         };
-        if !(radius_m >= 0.0) {
+        if self.is_empty() || k == 0 {
             return Vec::new();
         }
-        let q = self.to_index_frame(point_in_map);
-        let found = tree
-            .query(&q)
-            .nearest_n::<SquaredEuclidean<f32>>(k)
-            .within((radius_m * radius_m) as f32)
-            .execute();
-        sorted_neighbours(found.into_iter().map(|r| (r.item, r.distance)))
+        self.sorted_neighbours(self.k_nearest_bounded(&g, k, bound))
     }
 
     /// Every map point within `radius_m` (inclusive) of `point_in_map`,
     /// nearest first (ties by point index).
     pub fn within_radius(&self, point_in_map: &Vector3<f64>, radius_m: f64) -> Vec<Neighbour> {
-        let Some(tree) = self.tree.as_ref() else {
+        let (Some(g), Some(bound)) = (self.to_grid(point_in_map), self.radius_steps_sq(radius_m))
+        else {
             return Vec::new();
         };
-        if !(radius_m >= 0.0) {
+        let reach = f64::from(bound).sqrt() / STEPS;
+        let lo = [
+            floor_i64(g[0] - reach),
+            floor_i64(g[1] - reach),
+            floor_i64(g[2] - reach),
+        ];
+        let hi = [
+            floor_i64(g[0] + reach),
+            floor_i64(g[1] + reach),
+            floor_i64(g[2] + reach),
+        ];
+        let mut found: Vec<u64> = Vec::new();
+        if self.is_empty() {
             return Vec::new();
         }
-        let q = self.to_index_frame(point_in_map);
-        let found = tree
-            .query(&q)
-            .within::<SquaredEuclidean<f32>>((radius_m * radius_m) as f32)
-            .unsorted()
-            .execute();
-        sorted_neighbours(found.into_iter().map(|r| (r.item, r.distance)))
+        self.for_each_cell_in_box(lo, hi, |id, c| {
+            if Self::box_dist_steps_sq(&g, c) > bound {
+                return;
+            }
+            let q = Self::local_query(&g, c);
+            let (xs, ys, zs, start) = self.cell_coords(id);
+            for (k, ((x, y), z)) in xs.iter().zip(ys).zip(zs).enumerate() {
+                let dx = q[0] - f32::from(*x);
+                let dy = q[1] - f32::from(*y);
+                let dz = q[2] - f32::from(*z);
+                let d = dx * dx + dy * dy + dz * dz;
+                if d <= bound {
+                    found.push(heap_key(d, self.point_index(id, start + k)));
+                }
+            }
+        });
+        found.sort_unstable();
+        let step_sq = self.step_sq();
+        found
+            .into_iter()
+            .map(|key| Neighbour {
+                point_idx: key as u32,
+                dist_sq: f64::from(key_dist(key)) * step_sq,
+            })
+            .collect()
     }
 }
 
@@ -284,20 +1155,8 @@ fn spatial_order(points: &[Vector3<f64>]) -> Vec<u32> {
             )
         })
         .collect();
-    keyed.sort_unstable();
+    keyed.par_sort_unstable();
     keyed.into_iter().map(|(_, i)| i).collect()
-}
-
-/// Sorts by (distance, index): deterministic whatever the tree's visiting order.
-fn sorted_neighbours(found: impl Iterator<Item = (u32, f32)>) -> Vec<Neighbour> {
-    let mut v: Vec<(f32, u32)> = found.map(|(i, d)| (d, i)).collect();
-    v.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-    v.into_iter()
-        .map(|(d, i)| Neighbour {
-            point_idx: i,
-            dist_sq: f64::from(d),
-        })
-        .collect()
 }
 
 #[cfg(test)]

@@ -12,9 +12,19 @@
 //!    range (distance from the camera centre): a z-buffer evaluated at the
 //!    query pixels only. Ties are broken by the smaller point index.
 //!
-//! Parallel with rayon over chunks of cells; each chunk keeps its own best
-//! (range, index) per query and chunks are merged with the same total order,
-//! so the result does not depend on the number of threads or the schedule.
+//! The query pixels are bucketed in 8 px tiles. [`project_map_at_pixels`]
+//! visits the frustum's cells front to back (by their distance from the
+//! camera centre) and skips, exactly, what cannot change any answer: a cell
+//! whose nearest possible range exceeds the largest best range of every
+//! query tile its splats can reach (pinhole cameras: the box of its corners'
+//! projections, widened by the largest splat), and a point's test against a
+//! tile's queries when its range exceeds that tile's largest best range. Once
+//! the near surfaces have filled the queries, occluded cells cost one test
+//! each. Parallel over horizontal strips of tiles (each strip owns its
+//! queries); ties are broken by the point index, so the result does not
+//! depend on the number of threads, the schedule or the visiting order, and
+//! equals [`project_map_at_pixels_reference`] (every point of every frustum
+//! cell splatted) bit for bit.
 //!
 //! Pixel convention (COLMAP): the upper-left corner of the image is (0, 0), the
 //! centre of pixel (i, j) is (i + 0.5, j + 0.5).
@@ -269,6 +279,8 @@ struct Setup<'a> {
     width: f64,
     height: f64,
     cells: Vec<u32>,
+    /// Camera centre relative to the cloud's origin (m).
+    centre_rel: Vector3<f64>,
 }
 
 /// Groups of consecutive cells of about this many points form one parallel task.
@@ -310,6 +322,7 @@ impl<'a> Setup<'a> {
             width: f64::from(camera.width),
             height: f64::from(camera.height),
             cells,
+            centre_rel: cam_from_world.camera_center() - cloud.origin,
         })
     }
 
@@ -347,14 +360,28 @@ impl<'a> Setup<'a> {
     ) {
         let step_cam = self.rotation * grid.cell_step_m();
         for &cell in &self.cells[task] {
-            let corner_cam = self.rotation * grid.cell_corner_rel(cell) + self.t_local;
-            let (idxs, locals) = grid.cell_points_local(cell);
-            for (&idx, q) in idxs.iter().zip(locals) {
-                let q = Vector3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2]));
-                let point_in_cam = corner_cam + step_cam * q;
-                if let Some(pp) = self.project_point(idx, &point_in_cam, options) {
-                    f(pp);
-                }
+            self.for_each_projected_in_cell(grid, cell, &step_cam, options, &mut f);
+        }
+    }
+
+    /// [`for_each_projected`](Self::for_each_projected) for one cell;
+    /// `step_cam` is `rotation * grid.cell_step_m()`.
+    #[inline]
+    fn for_each_projected_in_cell(
+        &self,
+        grid: &FrustumGrid,
+        cell: u32,
+        step_cam: &Matrix3<f64>,
+        options: &ProjectionOptions,
+        f: &mut impl FnMut(ProjectedPoint),
+    ) {
+        let corner_cam = self.rotation * grid.cell_corner_rel(cell) + self.t_local;
+        let (idxs, locals) = grid.cell_points_local(cell);
+        for (&idx, q) in idxs.iter().zip(locals) {
+            let q = Vector3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2]));
+            let point_in_cam = corner_cam + step_cam * q;
+            if let Some(pp) = self.project_point(idx, &point_in_cam, options) {
+                f(pp);
             }
         }
     }
@@ -500,6 +527,10 @@ impl Best {
 
 /// For each query pixel, the LiDAR point the camera sees there (see the module
 /// doc), or `None`. Query pixels outside the image get `None`.
+///
+/// Visits the frustum's cells front to back and skips what cannot change the
+/// answer (see the module doc); the result equals
+/// [`project_map_at_pixels_reference`] exactly.
 pub fn project_map_at_pixels(
     cloud: &PointCloud,
     grid: &FrustumGrid,
@@ -512,7 +543,28 @@ pub fn project_map_at_pixels(
     if query_pixels.is_empty() {
         return Ok(Vec::new());
     }
-    let tiles = QueryTiles::new(query_pixels, setup.width, setup.height, 8.0);
+    let tiles = QueryTiles::new(query_pixels, setup.width, setup.height, TILE_PX);
+    let best = occlusion_culled_best(&setup, grid, &tiles, options, query_pixels.len());
+    Ok(hits_from_best(cloud, &setup, best))
+}
+
+/// The straightforward form of [`project_map_at_pixels`], kept as the
+/// reference its optimised form is tested against: every point of the
+/// frustum's cells is projected and splatted onto the query pixels it covers.
+#[doc(hidden)]
+pub fn project_map_at_pixels_reference(
+    cloud: &PointCloud,
+    grid: &FrustumGrid,
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    query_pixels: &[Vector2<f64>],
+    options: &ProjectionOptions,
+) -> Result<Vec<Option<LidarHit>>, ProjectionError> {
+    let setup = Setup::new(cloud, grid, camera, cam_from_world, options)?;
+    if query_pixels.is_empty() {
+        return Ok(Vec::new());
+    }
+    let tiles = QueryTiles::new(query_pixels, setup.width, setup.height, TILE_PX);
     let n = query_pixels.len();
     let tasks = setup.tasks(grid);
     let best = tasks
@@ -546,9 +598,271 @@ pub fn project_map_at_pixels(
                 a
             },
         );
+    Ok(hits_from_best(cloud, &setup, best))
+}
+
+/// Edge of the square tiles bucketing the query pixels (px).
+const TILE_PX: f64 = 8.0;
+/// Edge of a super-tile, in tiles.
+const SUPER: i64 = 8;
+
+/// A frustum cell in visiting order: the smallest range any of its points can
+/// have, and (pinhole cameras) the pixel box its points' splats can reach.
+struct CellVisit {
+    min_range_m: f64,
+    cell: u32,
+    /// `[x0, x1, y0, y1]` (px), `None` when unknown (then the whole image).
+    splat_box_px: Option<[f64; 4]>,
+}
+
+/// Visiting order and bounds of the frustum's cells (front to back).
+fn cells_front_to_back(
+    setup: &Setup,
+    grid: &FrustumGrid,
+    options: &ProjectionOptions,
+) -> Vec<CellVisit> {
+    let s = grid.cell_size_m();
+    let pinhole = match setup.projector {
+        Projector::Pinhole { fx, fy, cx, cy } => Some((fx, fy, cx, cy)),
+        Projector::Model { .. } => None,
+    };
+    let mut visits: Vec<CellVisit> = setup
+        .cells
+        .par_iter()
+        .map(|&cell| {
+            let lo = grid.cell_corner_rel(cell);
+            let mut d_sq = 0.0;
+            for a in 0..3 {
+                let c = setup.centre_rel[a];
+                let v = if c < lo[a] {
+                    lo[a] - c
+                } else if c > lo[a] + s {
+                    c - lo[a] - s
+                } else {
+                    0.0
+                };
+                d_sq += v * v;
+            }
+            // Margin for the rounding of the points' camera coordinates.
+            let min_range_m = (d_sq.sqrt() - 1e-6 * (1.0 + s)).max(0.0);
+            let splat_box_px = pinhole.and_then(|(fx, fy, cx, cy)| {
+                let mut b = [
+                    f64::INFINITY,
+                    f64::NEG_INFINITY,
+                    f64::INFINITY,
+                    f64::NEG_INFINITY,
+                ];
+                let mut min_z = f64::INFINITY;
+                for k in 0..8 {
+                    let corner = lo
+                        + Vector3::new(
+                            if k & 1 == 0 { 0.0 } else { s },
+                            if k & 2 == 0 { 0.0 } else { s },
+                            if k & 4 == 0 { 0.0 } else { s },
+                        );
+                    let p = setup.rotation * corner + setup.t_local;
+                    if !(p.z > 1e-3) {
+                        // Straddles the camera plane: no finite box.
+                        return None;
+                    }
+                    min_z = min_z.min(p.z);
+                    let (u, v) = (fx * p.x / p.z + cx, fy * p.y / p.z + cy);
+                    b = [b[0].min(u), b[1].max(u), b[2].min(v), b[3].max(v)];
+                }
+                // Projection keeps convexity in front of the camera: the
+                // cell's points project inside the corners' box; their splats
+                // are at most the splat at the smallest depth kept.
+                let h = options
+                    .splat
+                    .half_size_px(min_z.max(options.min_depth_m), setup.focal_px)
+                    + 1.0;
+                Some([b[0] - h, b[1] + h, b[2] - h, b[3] + h])
+            });
+            CellVisit {
+                min_range_m,
+                cell,
+                splat_box_px,
+            }
+        })
+        .collect();
+    visits.sort_by(|a, b| {
+        a.min_range_m
+            .total_cmp(&b.min_range_m)
+            .then(a.cell.cmp(&b.cell))
+    });
+    visits
+}
+
+/// The z-buffer at the query pixels with culling, equal to the reference's:
+///
+/// * cells are visited front to back; each tile of query pixels keeps the
+///   largest best range of its queries (`+inf` while one has no point yet;
+///   `-1` for tiles without queries), each super-tile of 8 x 8 tiles an upper
+///   bound of its tiles' values;
+/// * a cell is skipped when its smallest possible range exceeds the bound of
+///   every super-tile its splat box reaches (nothing in it can win anywhere);
+///   a point is tested against the queries of a tile only when its range does
+///   not exceed the tile's value.
+///
+/// Both tests only skip points that cannot beat (or tie with) a query's best,
+/// so the result is the reference's. Parallel over horizontal strips of tiles
+/// (each strip owns its queries and sees every cell): the result does not
+/// depend on the number of threads.
+fn occlusion_culled_best(
+    setup: &Setup,
+    grid: &FrustumGrid,
+    tiles: &QueryTiles,
+    options: &ProjectionOptions,
+    n: usize,
+) -> Vec<Best> {
+    let visits = cells_front_to_back(setup, grid, options);
+    let strips = (rayon::current_num_threads() as i64)
+        .clamp(1, 16)
+        .min(tiles.tiles_y);
+    let rows_per_strip = (tiles.tiles_y + strips - 1) / strips;
+    let step_cam = setup.rotation * grid.cell_step_m();
+    let per_strip: Vec<Vec<(u32, Best)>> = (0..strips)
+        .into_par_iter()
+        .map(|strip| {
+            let ty_lo = strip * rows_per_strip;
+            let ty_hi = ((strip + 1) * rows_per_strip).min(tiles.tiles_y);
+            strip_best(
+                setup, grid, tiles, options, &visits, &step_cam, ty_lo, ty_hi,
+            )
+        })
+        .collect();
+    let mut best = vec![Best::NONE; n];
+    for (q, b) in per_strip.into_iter().flatten() {
+        best[q as usize] = b;
+    }
+    best
+}
+
+/// The best point of every query in tile rows `ty_lo..ty_hi`, as
+/// `(query index, best)`.
+#[allow(clippy::too_many_arguments)]
+fn strip_best(
+    setup: &Setup,
+    grid: &FrustumGrid,
+    tiles: &QueryTiles,
+    options: &ProjectionOptions,
+    visits: &[CellVisit],
+    step_cam: &Matrix3<f64>,
+    ty_lo: i64,
+    ty_hi: i64,
+) -> Vec<(u32, Best)> {
+    let tx_n = tiles.tiles_x;
+    let ntiles = (tiles.tiles_x * tiles.tiles_y) as usize;
+    // Best per slot (queries in tile order).
+    let mut best = vec![Best::NONE; tiles.queries.len()];
+    let mut tile_max = vec![-1.0f64; ntiles];
+    for ty in ty_lo..ty_hi {
+        for tx in 0..tx_n {
+            let t = (ty * tx_n + tx) as usize;
+            if tiles.starts[t] < tiles.starts[t + 1] {
+                tile_max[t] = f64::INFINITY;
+            }
+        }
+    }
+    let sx_n = (tiles.tiles_x + SUPER - 1) / SUPER;
+    let sy_n = (tiles.tiles_y + SUPER - 1) / SUPER;
+    let mut super_max = vec![-1.0f64; (sx_n * sy_n) as usize];
+    let mut super_dirty = vec![true; super_max.len()];
+    let refresh =
+        |sx: i64, sy: i64, tile_max: &[f64], super_max: &mut [f64], dirty: &mut [bool]| {
+            let k = (sy * sx_n + sx) as usize;
+            if dirty[k] {
+                let mut m = -1.0f64;
+                for ty in (sy * SUPER).max(ty_lo)..((sy + 1) * SUPER).min(ty_hi) {
+                    for tx in sx * SUPER..((sx + 1) * SUPER).min(tx_n) {
+                        m = m.max(tile_max[(ty * tx_n + tx) as usize]);
+                    }
+                }
+                super_max[k] = m;
+                dirty[k] = false;
+            }
+            super_max[k]
+        };
+    let strip_y0 = ty_lo as f64 * tiles.tile_px;
+    let strip_y1 = ty_hi as f64 * tiles.tile_px;
+    for visit in visits {
+        // Pixel box the cell's splats can reach, within the strip.
+        let [x0, x1, y0, y1] = visit
+            .splat_box_px
+            .unwrap_or([0.0, setup.width, 0.0, setup.height]);
+        let (y0, y1) = (y0.max(strip_y0), y1.min(strip_y1));
+        let (x0, x1) = (x0.max(0.0), x1.min(setup.width));
+        if !(y0 <= y1 && x0 <= x1) {
+            continue;
+        }
+        let sx0 = ((x0 / tiles.tile_px) as i64 / SUPER).clamp(0, sx_n - 1);
+        let sx1 = ((x1 / tiles.tile_px) as i64 / SUPER).clamp(0, sx_n - 1);
+        let sy0 = ((y0 / tiles.tile_px) as i64 / SUPER).clamp(0, sy_n - 1);
+        let sy1 = ((y1 / tiles.tile_px) as i64 / SUPER).clamp(0, sy_n - 1);
+        let mut reach = -1.0f64;
+        for sy in sy0..=sy1 {
+            for sx in sx0..=sx1 {
+                reach = reach.max(refresh(sx, sy, &tile_max, &mut super_max, &mut super_dirty));
+            }
+        }
+        if visit.min_range_m > reach {
+            continue;
+        }
+        setup.for_each_projected_in_cell(grid, visit.cell, step_cam, options, &mut |pp| {
+            let h = pp.half_size_px;
+            let (x0, x1) = (pp.pixel.x - h, pp.pixel.x + h);
+            let (y0, y1) = (pp.pixel.y - h, pp.pixel.y + h);
+            // Same tile range as `QueryTiles::for_each_covered`, clipped to
+            // the strip.
+            let tx0 = ((x0 / tiles.tile_px) as i64).max(0);
+            let tx1 = ((x1 / tiles.tile_px) as i64).min(tx_n - 1);
+            let ty0 = ((y0 / tiles.tile_px) as i64).max(ty_lo);
+            let ty1 = ((y1 / tiles.tile_px) as i64).min(ty_hi - 1);
+            let cand = Best {
+                range_m: pp.range_m,
+                point_idx: pp.point_idx,
+            };
+            for ty in ty0..=ty1 {
+                for tx in tx0..=tx1 {
+                    let t = (ty * tx_n + tx) as usize;
+                    if !(cand.range_m <= tile_max[t]) {
+                        continue;
+                    }
+                    let slots = tiles.starts[t] as usize..tiles.starts[t + 1] as usize;
+                    let mut changed = false;
+                    for slot in slots.clone() {
+                        let [qx, qy] = tiles.pixels[slot];
+                        if qx >= x0 && qx <= x1 && qy >= y0 && qy <= y1 {
+                            let b = &mut best[slot];
+                            if cand.is_better_than(b) {
+                                *b = cand;
+                                changed = true;
+                            }
+                        }
+                    }
+                    if changed {
+                        let mut m = -1.0f64;
+                        for slot in slots {
+                            m = m.max(best[slot].range_m);
+                        }
+                        tile_max[t] = m;
+                        super_dirty[((ty / SUPER) * sx_n + tx / SUPER) as usize] = true;
+                    }
+                }
+            }
+        });
+    }
+    let first = tiles.starts[(ty_lo * tx_n) as usize] as usize;
+    let last = tiles.starts[(ty_hi * tx_n) as usize] as usize;
+    (first..last)
+        .map(|slot| (tiles.queries[slot], best[slot]))
+        .collect()
+}
+
+/// The hits of the best (range, point) per query, with exact coordinates.
+fn hits_from_best(cloud: &PointCloud, setup: &Setup, best: Vec<Best>) -> Vec<Option<LidarHit>> {
     let rotation = setup.rotation;
-    Ok(best
-        .into_iter()
+    best.into_iter()
         .map(|b| {
             if b.point_idx == u32::MAX {
                 return None;
@@ -571,7 +885,7 @@ pub fn project_map_at_pixels(
                 depth_m: point_in_cam.z,
             })
         })
-        .collect())
+        .collect()
 }
 
 /// Every map point the camera sees (depth range, splat reaching the image),

@@ -3,7 +3,7 @@
 //! boxes sampled on a regular lattice: many exact ties, the kd-tree's worst
 //! case). Also the benchmark of the index (`#[ignore]`, see
 //! `scripts/bench_projection.sh`).
-use colmap_lidar::map::index::MapIndex;
+use colmap_lidar::map::index::{IndexOptions, MapIndex};
 use colmap_lidar::map::PointCloud;
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
@@ -194,7 +194,11 @@ pub fn random_queries(cloud: &PointCloud, n: usize, seed: u64) -> Vec<Vector3<f6
 }
 
 fn check_against_oracle(cloud: &PointCloud, seed: u64) {
-    let index = MapIndex::build(cloud).unwrap();
+    check_against_oracle_with(cloud, seed, &IndexOptions::default());
+}
+
+fn check_against_oracle_with(cloud: &PointCloud, seed: u64, options: &IndexOptions) {
+    let index = MapIndex::build_with_options(cloud, options).unwrap();
     assert_eq!(index.len(), cloud.len());
     let mut found_some = 0;
     let mut found_none = 0;
@@ -282,6 +286,91 @@ fn index_matches_brute_force_on_building_cloud() {
 }
 
 #[test]
+fn index_matches_brute_force_with_small_and_large_cells() {
+    // Cells much smaller than the radii (many cells and blocks visited) and
+    // larger than them (many points a cell).
+    let cloud = building_cloud(20_000, 0.005, 4);
+    for cell_size_m in [0.03, 0.7, 3.0] {
+        check_against_oracle_with(
+            &cloud,
+            14,
+            &IndexOptions {
+                cell_size_m: Some(cell_size_m),
+            },
+        );
+    }
+    assert!(MapIndex::build_with_options(
+        &cloud,
+        &IndexOptions {
+            cell_size_m: Some(0.0)
+        }
+    )
+    .is_err());
+    // 2^21 cells along an axis at most.
+    let wide = cloud_from(vec![[0.0, 0.0, 0.0], [5000.0, 0.0, 0.0]]);
+    assert!(MapIndex::build_with_options(
+        &wide,
+        &IndexOptions {
+            cell_size_m: Some(0.001)
+        }
+    )
+    .is_err());
+    assert!(MapIndex::build_with_options(
+        &wide,
+        &IndexOptions {
+            cell_size_m: Some(0.01)
+        }
+    )
+    .is_ok());
+}
+
+/// Every query's nearest point equals the brute-force nearest up to the
+/// quantisation of the stored coordinates (cell / 65535 per axis): its
+/// distance is within sqrt(3)/2 step (plus f32 rounding) of the true nearest
+/// distance.
+#[test]
+fn nearest_within_agrees_with_brute_force_far_and_near() {
+    let cloud = building_cloud(30_000, 0.0, 5);
+    let index = MapIndex::build(&cloud).unwrap();
+    let tol = 1e-6 + 0.9 * 3f64.sqrt() * index.cell_size_m() / 65535.0;
+    let mut rng = ChaCha8Rng::seed_from_u64(15);
+    let mut checked = 0;
+    for k in 0..400 {
+        let q = if k % 4 == 0 {
+            // Well outside the map.
+            cloud.origin
+                + Vector3::new(
+                    rng.gen_range(-30.0..90.0),
+                    rng.gen_range(-30.0..70.0),
+                    rng.gen_range(-10.0..20.0),
+                )
+        } else {
+            cloud.point_in_map(rng.gen_range(0..cloud.len()))
+                + Vector3::new(
+                    rng.gen_range(-0.05..0.05),
+                    rng.gen_range(-0.05..0.05),
+                    rng.gen_range(-0.05..0.05),
+                )
+        };
+        let all = oracle(&cloud, &q);
+        let n = index.nearest(&q).unwrap();
+        assert!((dist(&cloud, n.point_idx as usize, &q) - all[0].0).abs() < tol);
+        assert!((n.dist_sq.sqrt() - all[0].0).abs() < tol);
+        for radius in [0.1, 0.5, 1.5] {
+            let got = index.nearest_within(&q, radius);
+            if all[0].0 < radius - tol {
+                let g = got.expect("a point within the radius");
+                assert!((dist(&cloud, g.point_idx as usize, &q) - all[0].0).abs() < tol);
+                checked += 1;
+            } else if all[0].0 > radius + tol {
+                assert!(got.is_none());
+            }
+        }
+    }
+    assert!(checked > 300, "{checked}");
+}
+
+#[test]
 fn ties_and_empty_results() {
     // Integer lattice 6 x 6 x 6: the centre of a unit cube has 8 neighbours
     // at exactly the same distance, the next ones much farther.
@@ -313,7 +402,9 @@ fn ties_and_empty_results() {
         cube
     );
     let n = index.nearest_within(&q, 1.0).unwrap();
-    assert!(cube.contains(&n.point_idx));
+    // Exact ties go to the smaller index.
+    assert_eq!(Some(&n.point_idx), cube.iter().next());
+    assert_eq!(index.nearest(&q).unwrap(), n);
     // Deterministic: the same answer every time.
     for _ in 0..3 {
         assert_eq!(index.nearest_within(&q, 1.0).unwrap(), n);
@@ -410,75 +501,142 @@ fn bench_index() {
         cloud.len()
     );
     println!(
-        "BENCH load {load_s:.2} s + kd-tree {index_s:.2} s + grid {grid_s:.2} s = {:.2} s \
+        "BENCH load {load_s:.2} s + index {index_s:.2} s + grid {grid_s:.2} s = {:.2} s \
          ({} threads)",
         load_s + index_s + grid_s,
         rayon::current_num_threads()
     );
     println!(
-        "BENCH memory: cloud {:.0} MB, kd-tree {:.0} MB, grid {:.0} MB ({} cells); \
-         peak RSS during load + index {:.0} MB (process baseline {rss0:.0} MB)",
+        "BENCH memory: cloud {:.0} MB, index {:.0} MB (RSS +{:.0} MB, {} cells of {} m), \
+         grid {:.0} MB ({} cells); peak RSS during load + index {:.0} MB (process baseline \
+         {rss0:.0} MB)",
         rss_cloud - rss0,
+        index.memory_bytes() as f64 / 1e6,
         rss_index - rss_cloud,
+        index.num_cells(),
+        index.cell_size_m(),
         grid.memory_bytes() as f64 / 1e6,
         grid.num_cells(),
         peak
     );
 
-    // Queries: half within 0.3 m of a map point, half anywhere in the box.
-    let queries = random_queries(&cloud, 2_000_000, 8);
+    // Query sets (2 M each), timed on one core:
+    // * "near surface": map points moved by 5 cm (Gaussian, per axis), as the
+    //   mapper's triangulated points, in random order and in a coherent order
+    //   (sorted along a space-filling curve, as a sweep over the map would be);
+    // * "mixed": half within 0.3 m of a map point, half anywhere in the box.
+    let near = noisy_map_points(&cloud, 2_000_000, 0.05, 9);
+    let mixed = random_queries(&cloud, 2_000_000, 8);
+    let coherent = {
+        let mut keyed: Vec<(u64, Vector3<f64>)> = near
+            .iter()
+            .map(|q| {
+                let l = q - cloud.origin;
+                let c = |v: f64| ((v / 0.5).floor() as i64 + 4096) as u64;
+                (c(l.x) << 26 | c(l.y) << 13 | c(l.z), *q)
+            })
+            .collect();
+        keyed.sort_by_key(|k| k.0);
+        keyed.into_iter().map(|k| k.1).collect::<Vec<_>>()
+    };
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
         .unwrap();
     pool.install(|| {
-        for radius in [0.2, 1.0, 1.5] {
+        for (name, queries) in [
+            ("near surface, random order", &near),
+            ("near surface, coherent order", &coherent),
+            ("mixed, random order", &mixed),
+        ] {
+            for radius in [0.2, 0.5, 1.0, 1.5] {
+                let t = Instant::now();
+                let found = queries
+                    .iter()
+                    .filter(|q| index.nearest_within(q, radius).is_some())
+                    .count();
+                let s = t.elapsed().as_secs_f64();
+                println!(
+                    "BENCH nearest_within(r = {radius} m), {name}: {:.2} M queries/s on one core \
+                     ({found} of {} found)",
+                    queries.len() as f64 / s / 1e6,
+                    queries.len()
+                );
+            }
+        }
+        for (name, queries) in [("near surface", &near), ("mixed", &mixed)] {
+            for radius in [0.2, 1.0] {
+                let t = Instant::now();
+                let found = index
+                    .nearest_within_batch(queries, radius)
+                    .iter()
+                    .filter(|n| n.is_some())
+                    .count();
+                let s = t.elapsed().as_secs_f64();
+                println!(
+                    "BENCH nearest_within_batch(r = {radius} m), {name}: {:.2} M queries/s on \
+                     one core ({found} found; queries sorted in z-order inside)",
+                    queries.len() as f64 / s / 1e6
+                );
+            }
+        }
+        for (name, queries) in [("near surface", &near), ("mixed", &mixed)] {
             let t = Instant::now();
-            let found = queries
+            let sum: f64 = queries[..500_000]
                 .iter()
-                .filter(|q| index.nearest_within(q, radius).is_some())
-                .count();
+                .map(|q| index.nearest(q).map_or(0.0, |n| n.dist_sq))
+                .sum();
             let s = t.elapsed().as_secs_f64();
             println!(
-                "BENCH nearest_within(r = {radius} m): {:.2} M queries/s on one core \
-                 ({found} of {} found)",
-                queries.len() as f64 / s / 1e6,
-                queries.len()
+                "BENCH nearest (unbounded), {name}: {:.2} M queries/s on one core \
+                 (checksum {sum:.1})",
+                0.5 / s
             );
-        }
-        for radius in [0.2, 1.0] {
             let t = Instant::now();
-            let found = index
-                .nearest_within_batch(&queries, radius)
+            let total: usize = queries[..200_000]
                 .iter()
-                .filter(|n| n.is_some())
-                .count();
+                .map(|q| index.k_nearest(q, 10).len())
+                .sum();
             let s = t.elapsed().as_secs_f64();
             println!(
-                "BENCH nearest_within_batch(r = {radius} m): {:.2} M queries/s on one core \
-                 ({found} found; queries in z-order)",
-                queries.len() as f64 / s / 1e6
+                "BENCH k_nearest(10), {name}: {:.2} M queries/s on one core ({total} results)",
+                0.2 / s
+            );
+            let t = Instant::now();
+            let total: usize = queries[..200_000]
+                .iter()
+                .map(|q| index.within_radius(q, 0.1).len())
+                .sum();
+            let s = t.elapsed().as_secs_f64();
+            println!(
+                "BENCH within_radius(0.1 m), {name}: {:.2} M queries/s on one core \
+                 ({total} results)",
+                0.2 / s
             );
         }
-        let t = Instant::now();
-        let sum: f64 = queries[..500_000]
-            .iter()
-            .map(|q| index.nearest(q).map_or(0.0, |n| n.dist_sq))
-            .sum();
-        let s = t.elapsed().as_secs_f64();
-        println!(
-            "BENCH nearest (unbounded): {:.2} M queries/s on one core (checksum {sum:.1})",
-            0.5 / s
-        );
-        let t = Instant::now();
-        let total: usize = queries[..200_000]
-            .iter()
-            .map(|q| index.k_nearest(q, 10).len())
-            .sum();
-        let s = t.elapsed().as_secs_f64();
-        println!(
-            "BENCH k_nearest(10): {:.2} M queries/s on one core ({total} results)",
-            0.2 / s
-        );
     });
+}
+
+/// `n` map points (chosen at random) moved by Gaussian noise of `sigma_m` per axis.
+pub fn noisy_map_points(
+    cloud: &PointCloud,
+    n: usize,
+    sigma_m: f64,
+    seed: u64,
+) -> Vec<Vector3<f64>> {
+    use rand_distr::{Distribution, Normal};
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    // sigma_m is a valid standard deviation.
+    let noise = Normal::new(0.0, sigma_m).unwrap();
+    (0..n)
+        .map(|_| {
+            let i = rng.gen_range(0..cloud.len());
+            cloud.point_in_map(i)
+                + Vector3::new(
+                    noise.sample(&mut rng),
+                    noise.sample(&mut rng),
+                    noise.sample(&mut rng),
+                )
+        })
+        .collect()
 }

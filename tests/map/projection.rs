@@ -7,7 +7,8 @@ use std::collections::BTreeSet;
 use colmap_lidar::map::depth_image::{colourise, render_depth_image, write_png};
 use colmap_lidar::map::grid::{Frustum, FrustumGrid, GridOptions};
 use colmap_lidar::map::projection::{
-    project_map_at_pixels, LidarHit, ProjectionOptions, SplatOptions,
+    project_map_at_pixels, project_map_at_pixels_reference, LidarHit, ProjectionOptions,
+    SplatOptions,
 };
 use colmap_lidar::map::PointCloud;
 use colmap_lidar::scene::camera::{Camera, CameraModel};
@@ -416,6 +417,99 @@ fn projection_is_deterministic_across_threads() {
     assert_eq!(depth(1), depth(2));
 }
 
+/// The culled projection (front-to-back cells, tile and super-tile bounds,
+/// strips) against the straightforward reference, bit for bit (same point,
+/// same range and depth) on random scenes: planes and clutter, every camera
+/// model, random poses, cell sizes, depth ranges and splats, query pixels
+/// anywhere (also outside the image, duplicated, on tile edges), 1 to 3 threads.
+#[test]
+fn culled_projection_equals_reference_on_random_scenes() {
+    let (planes, _, _) = planes_scene(0.1);
+    let mut cameras = cameras_all_models();
+    cameras.push(wide_fisheye());
+    let mut hits_total = 0;
+    for seed in 0..4u64 {
+        let mut rng = ChaCha8Rng::seed_from_u64(100 + seed);
+        let mut cloud = planes.clone();
+        let normals = cloud.normals.as_mut().unwrap();
+        for _ in 0..20_000 {
+            cloud.points.push([
+                rng.gen_range(-5.0..30.0),
+                rng.gen_range(-15.0..15.0),
+                rng.gen_range(-1.0..6.0),
+            ]);
+            normals.push([0.0, 0.0, 1.0]);
+        }
+        // Exact duplicates: ties broken by index.
+        for k in 0..500 {
+            let p = cloud.points[k * 37];
+            cloud.points.push(p);
+            normals.push([0.0, 0.0, 1.0]);
+        }
+        let cell_size_m = [0.5, 1.0, 2.0, 4.0][seed as usize];
+        let grid = FrustumGrid::build(&cloud, &GridOptions { cell_size_m }).unwrap();
+        for (k, cam) in cameras.iter().enumerate() {
+            let centre = utm_origin()
+                + Vector3::new(
+                    rng.gen_range(-3.0..8.0),
+                    rng.gen_range(-5.0..5.0),
+                    rng.gen_range(0.5..3.0),
+                );
+            let pose = camera_pose(
+                centre,
+                rng.gen_range(-0.3..0.3),
+                rng.gen_range(-0.4..0.4),
+                rng.gen_range(-1.0..1.0),
+            );
+            let mut options = if k % 2 == 0 {
+                ProjectionOptions::default()
+            } else {
+                test_options(0.1)
+            };
+            options.min_depth_m = rng.gen_range(0.1..1.5);
+            options.max_depth_m = rng.gen_range(5.0..40.0);
+            let (w, h) = (cam.width as f64, cam.height as f64);
+            let mut queries: Vec<Vector2<f64>> = (0..2000)
+                .map(|_| {
+                    Vector2::new(
+                        rng.gen_range(-20.0..w + 20.0),
+                        rng.gen_range(-20.0..h + 20.0),
+                    )
+                })
+                .collect();
+            for i in 0..100 {
+                queries.push(queries[i]);
+                queries.push(Vector2::new((8 * (i % 50)) as f64, (8 * (i % 37)) as f64));
+            }
+            let reference =
+                project_map_at_pixels_reference(&cloud, &grid, cam, &pose, &queries, &options)
+                    .unwrap();
+            for threads in [1, 2, 3] {
+                let fast = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap()
+                    .install(|| {
+                        project_map_at_pixels(&cloud, &grid, cam, &pose, &queries, &options)
+                            .unwrap()
+                    });
+                for (i, (f, r)) in fast.iter().zip(&reference).enumerate() {
+                    assert_eq!(
+                        f,
+                        r,
+                        "{} seed {seed}, {threads} threads, query {i} {:?}",
+                        cam.model.name(),
+                        queries[i]
+                    );
+                }
+                assert_eq!(fast.len(), reference.len());
+            }
+            hits_total += reference.iter().filter(|h| h.is_some()).count();
+        }
+    }
+    assert!(hits_total > 20_000, "{hits_total} hits");
+}
+
 #[test]
 fn ties_go_to_the_smaller_index() {
     // Two copies of the same point, and a third farther behind.
@@ -551,12 +645,25 @@ fn bench_projection() {
     );
     let (w, h) = (1152u32, 864u32);
     let cams = [
-        camera(CameraModel::Pinhole, w, h, vec![800.0, 800.0, 576.0, 432.0]),
+        // A 33-degree lens: about 2 million of the 20 million points in view
+        // (the issue's case); then a 45-degree one with about 4 million.
+        camera(
+            CameraModel::Pinhole,
+            w,
+            h,
+            vec![1950.0, 1950.0, 576.0, 432.0],
+        ),
         camera(
             CameraModel::OpenCv,
             w,
             h,
-            vec![800.0, 800.0, 576.0, 432.0, -0.1, 0.02, 0.0005, -0.0005],
+            vec![1950.0, 1950.0, 576.0, 432.0, -0.1, 0.02, 0.0005, -0.0005],
+        ),
+        camera(
+            CameraModel::Pinhole,
+            w,
+            h,
+            vec![1400.0, 1400.0, 576.0, 432.0],
         ),
     ];
     let options = ProjectionOptions::default();
@@ -585,14 +692,27 @@ fn bench_projection() {
             }
             times.sort_by(f64::total_cmp);
             println!(
-                "BENCH projection {} {w}x{h}, {} queries, {visible} points in view: \
+                "BENCH projection {} {w}x{h} f = {} px, {} queries, {visible} points in view: \
                  median {:.1} ms, best {:.1} ms ({threads} threads; {found} queries hit)",
                 cam.model.name(),
+                cam.params[0],
                 queries.len(),
                 times[times.len() / 2],
                 times[0]
             );
         }
+        let t = Instant::now();
+        let reference =
+            project_map_at_pixels_reference(&cloud, &grid, cam, &pose, &queries, &options).unwrap();
+        println!(
+            "BENCH reference (unculled) projection {}: {:.1} ms ({} threads); culled result \
+             equal: {}",
+            cam.model.name(),
+            t.elapsed().as_secs_f64() * 1e3,
+            rayon::current_num_threads(),
+            reference
+                == project_map_at_pixels(&cloud, &grid, cam, &pose, &queries, &options).unwrap()
+        );
         let t = Instant::now();
         let depth = render_depth_image(&cloud, &grid, cam, &pose, &options).unwrap();
         println!(
