@@ -37,9 +37,9 @@ step "inspect the database"
 "$bin" inspect --database "$db"
 
 step "map: structure-from-motion inside the LiDAR map"
-init_pose=$(awk '$1 == "perturbed:" {print $2","$3","$4","$5","$6","$7}' "$out/scene/init_pose.txt")
+init_pose=$(awk '$1 == "perturbed:" {print $2}' "$out/scene/init_pose.txt")
 "$bin" map --database "$db" --lidar "$out/scene/lidar.ply" \
-  --init-pose "$init_pose" --output "$out/sparse/0"
+  --init-image frame_0000.jpg --init-pose "$init_pose" --output "$out/sparse/0"
 
 step "evaluate against ground truth (no alignment: poses must already be in the map frame)"
 "$bin" evaluate --model "$out/sparse/0" --reference "$out/scene/gt" --align none
