@@ -32,6 +32,13 @@
 //! computed in f32 relative to the cell, so returned distances carry an error
 //! below 1.4e-5 of the cell size (2.7 µm for 0.2 m cells), independent of the
 //! map's extent. Use [`PointCloud::point_in_map`] for the exact point.
+//!
+//! A second backend, a kiddo 6 immutable kd-tree of the same (dequantised)
+//! points rotated by a fixed generic rotation, is built lazily on first use
+//! when enabled with [`MapIndex::set_tree_min_radius_cells`] (off by
+//! default: slower than the grid in every measured case, see
+//! [`DEFAULT_TREE_MIN_RADIUS_CELLS`]). Its candidates are re-ranked with the
+//! grid's own distances, so both backends return identical results.
 use std::collections::BinaryHeap;
 use std::num::NonZeroUsize;
 use std::sync::OnceLock;
@@ -230,10 +237,14 @@ pub struct MapIndex {
     tree_min_radius_cells: f64,
 }
 
-/// Default of [`MapIndex::set_tree_min_radius_cells`]: radius-bounded queries
-/// with a radius above this many grid cells go to the kd-tree (measured on a
-/// building-like map: the grid is faster below, the tree above).
-pub const DEFAULT_TREE_MIN_RADIUS_CELLS: f64 = 4.0;
+/// Default of [`MapIndex::set_tree_min_radius_cells`]: the kd-tree is off.
+/// Measured on a 2 M point building-like map (one core, `bench_index`), the
+/// grid beat the tree (with its exact re-ranking) for every query type:
+/// unbounded nearest 1.60 vs 0.48 M/s near surfaces, 0.41 vs 0.18 M/s mixed;
+/// k_nearest(10) 0.66 vs 0.37 and 0.20 vs 0.14 M/s; nearest_within at 1-8
+/// cells 0.6-2.5 vs 0.2-0.55 M/s. Re-measure on 20 M point maps before
+/// lowering it.
+pub const DEFAULT_TREE_MIN_RADIUS_CELLS: f64 = f64::INFINITY;
 
 /// Relative and absolute (times the coordinates' magnitude) error bound used
 /// to widen kd-tree searches before the exact re-ranking: f32 rotated
@@ -1329,10 +1340,11 @@ impl MapIndex {
 
     /// The nearest map point, whatever its distance (`None` for an empty map).
     ///
-    /// Unbounded queries ([`nearest`](Self::nearest), [`k_nearest`](Self::k_nearest))
-    /// and bounded ones with a large radius (see
-    /// [`set_tree_min_radius_cells`](Self::set_tree_min_radius_cells)) are
-    /// answered by a kiddo kd-tree built on first use (about 17 bytes a
+    /// When enabled with
+    /// [`set_tree_min_radius_cells`](Self::set_tree_min_radius_cells) (off
+    /// by default), unbounded queries ([`nearest`](Self::nearest),
+    /// [`k_nearest`](Self::k_nearest)) and bounded ones with a large radius
+    /// are answered by a kiddo kd-tree built on first use (about 17 bytes a
     /// point more; [`memory_bytes`](Self::memory_bytes) counts it once
     /// built). Its candidates are re-ranked with the grid's own distances, so
     /// the results are those of the grid: sorted by (distance, point index).

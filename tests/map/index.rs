@@ -504,8 +504,8 @@ fn bench_index() {
     let load_s = t.elapsed().as_secs_f64();
     let rss_cloud = rss_mb();
     let t = Instant::now();
-    let index = MapIndex::build(&cloud).unwrap();
-    let index_s = t.elapsed().as_secs_f64();
+    let mut index = MapIndex::build(&cloud).unwrap();
+    let mut index_s = t.elapsed().as_secs_f64();
     let rss_index = rss_mb();
     let t = Instant::now();
     let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
@@ -630,6 +630,32 @@ fn bench_index() {
             );
         }
     });
+    println!(
+        "BENCH index memory with the kd-tree built: {:.0} MB",
+        index.memory_bytes() as f64 / 1e6
+    );
+    // The crossover: bounded queries through each backend.
+    for (backend, cells) in [("grid", f64::INFINITY), ("kd-tree", 0.0)] {
+        index.set_tree_min_radius_cells(cells);
+        pool.install(|| {
+            for (name, queries) in [("near surface", &near), ("mixed", &mixed)] {
+                for radius_cells in [1.0, 2.0, 4.0, 8.0] {
+                    let radius = radius_cells * index.cell_size_m();
+                    let t = Instant::now();
+                    let found = queries[..500_000]
+                        .iter()
+                        .filter(|q| index.nearest_within(q, radius).is_some())
+                        .count();
+                    let s = t.elapsed().as_secs_f64();
+                    println!(
+                        "BENCH {backend}: nearest_within({radius_cells} cells), {name}: {:.2} M \
+                         queries/s on one core ({found} found)",
+                        0.5 / s
+                    );
+                }
+            }
+        });
+    }
 }
 
 /// `n` map points (chosen at random) moved by Gaussian noise of `sigma_m` per axis.
