@@ -198,7 +198,22 @@ fn check_against_oracle(cloud: &PointCloud, seed: u64) {
 }
 
 fn check_against_oracle_with(cloud: &PointCloud, seed: u64, options: &IndexOptions) {
-    let index = MapIndex::build_with_options(cloud, options).unwrap();
+    // Default crossover, then each backend forced.
+    for tree_cells in [None, Some(0.0), Some(f64::INFINITY)] {
+        check_against_oracle_backend(cloud, seed, options, tree_cells);
+    }
+}
+
+fn check_against_oracle_backend(
+    cloud: &PointCloud,
+    seed: u64,
+    options: &IndexOptions,
+    tree_min_radius_cells: Option<f64>,
+) {
+    let mut index = MapIndex::build_with_options(cloud, options).unwrap();
+    if let Some(cells) = tree_min_radius_cells {
+        index.set_tree_min_radius_cells(cells);
+    }
     assert_eq!(index.len(), cloud.len());
     let mut found_some = 0;
     let mut found_none = 0;
@@ -489,8 +504,8 @@ fn bench_index() {
     let load_s = t.elapsed().as_secs_f64();
     let rss_cloud = rss_mb();
     let t = Instant::now();
-    let index = MapIndex::build(&cloud).unwrap();
-    let index_s = t.elapsed().as_secs_f64();
+    let mut index = MapIndex::build(&cloud).unwrap();
+    let mut index_s = t.elapsed().as_secs_f64();
     let rss_index = rss_mb();
     let t = Instant::now();
     let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
@@ -615,6 +630,32 @@ fn bench_index() {
             );
         }
     });
+    println!(
+        "BENCH index memory with the kd-tree built: {:.0} MB",
+        index.memory_bytes() as f64 / 1e6
+    );
+    // The crossover: bounded queries through each backend.
+    for (backend, cells) in [("grid", f64::INFINITY), ("kd-tree", 0.0)] {
+        index.set_tree_min_radius_cells(cells);
+        pool.install(|| {
+            for (name, queries) in [("near surface", &near), ("mixed", &mixed)] {
+                for radius_cells in [1.0, 2.0, 4.0, 8.0] {
+                    let radius = radius_cells * index.cell_size_m();
+                    let t = Instant::now();
+                    let found = queries[..500_000]
+                        .iter()
+                        .filter(|q| index.nearest_within(q, radius).is_some())
+                        .count();
+                    let s = t.elapsed().as_secs_f64();
+                    println!(
+                        "BENCH {backend}: nearest_within({radius_cells} cells), {name}: {:.2} M \
+                         queries/s on one core ({found} found)",
+                        0.5 / s
+                    );
+                }
+            }
+        });
+    }
 }
 
 /// `n` map points (chosen at random) moved by Gaussian noise of `sigma_m` per axis.
@@ -639,4 +680,107 @@ pub fn noisy_map_points(
                 )
         })
         .collect()
+}
+
+/// Every query answered by the grid alone and by the kd-tree alone (both
+/// forced) gives exactly the same neighbours, in the same order, with the
+/// same distances; on axis-aligned lattice clouds (exact ties, kiddo's worst
+/// case without the rotation), jittered ones and uniform ones.
+#[test]
+fn tree_and_grid_backends_agree_exactly() {
+    for (name, cloud) in [
+        ("lattice building", building_cloud(20_000, 0.0, 21)),
+        ("jittered building", building_cloud(20_000, 0.005, 22)),
+        ("uniform", uniform_cloud(20_000, 10.0, 23)),
+    ] {
+        let mut grid = MapIndex::build(&cloud).unwrap();
+        grid.set_tree_min_radius_cells(f64::INFINITY);
+        let mut tree = MapIndex::build(&cloud).unwrap();
+        tree.set_tree_min_radius_cells(0.0);
+        let mem_before = tree.memory_bytes();
+        assert!(!tree.has_tree(), "{name}: the tree is built lazily");
+        let queries = random_queries(&cloud, 300, 24);
+        for q in &queries {
+            assert_eq!(grid.nearest(q), tree.nearest(q), "{name}: nearest at {q:?}");
+            for k in [1, 5, 30] {
+                assert_eq!(
+                    grid.k_nearest(q, k),
+                    tree.k_nearest(q, k),
+                    "{name}: k = {k}"
+                );
+            }
+            for radius in [0.05, 0.3, 2.0] {
+                assert_eq!(
+                    grid.nearest_within(q, radius),
+                    tree.nearest_within(q, radius),
+                    "{name}: r = {radius}"
+                );
+                assert_eq!(
+                    grid.within_radius(q, radius),
+                    tree.within_radius(q, radius),
+                    "{name}: within r = {radius}"
+                );
+                assert_eq!(
+                    grid.k_nearest_within(q, 6, radius),
+                    tree.k_nearest_within(q, 6, radius),
+                    "{name}: k within r = {radius}"
+                );
+            }
+        }
+        assert!(tree.has_tree() && !grid.has_tree(), "{name}");
+        // The tree's points and items: at least 16 bytes a point.
+        assert!(
+            tree.memory_bytes() >= mem_before + 16 * cloud.len(),
+            "{name}: {} vs {mem_before}",
+            tree.memory_bytes()
+        );
+        assert_eq!(grid.memory_bytes(), mem_before);
+    }
+}
+
+/// On the 6 x 6 x 6 integer lattice (8 equidistant neighbours around a
+/// cube's centre: ties up to the grid's quantisation) the tree path returns
+/// the grid's answer, and the right set.
+#[test]
+fn tree_backend_on_lattice_ties() {
+    let mut points = Vec::new();
+    for x in 0..6 {
+        for y in 0..6 {
+            for z in 0..6 {
+                points.push([x as f32, y as f32, z as f32]);
+            }
+        }
+    }
+    let cloud = cloud_from(points);
+    let mut index = MapIndex::build(&cloud).unwrap();
+    index.set_tree_min_radius_cells(0.0);
+    let mut grid = MapIndex::build(&cloud).unwrap();
+    grid.set_tree_min_radius_cells(f64::INFINITY);
+    let q = cloud.origin + Vector3::new(2.5, 2.5, 2.5);
+    let cube: std::collections::BTreeSet<u32> = (0..cloud.len() as u32)
+        .filter(|&i| (dist(&cloud, i as usize, &q) - 0.75f64.sqrt()).abs() < 1e-9)
+        .collect();
+    assert_eq!(cube.len(), 8);
+    let k3 = index.k_nearest(&q, 3);
+    assert_eq!(k3, grid.k_nearest(&q, 3));
+    assert!(k3.iter().all(|n| cube.contains(&n.point_idx)));
+    assert_eq!(index.nearest(&q), grid.nearest(&q));
+    assert_eq!(index.nearest_within(&q, 1.0), grid.nearest_within(&q, 1.0));
+    let w = index.within_radius(&q, 1.0);
+    assert_eq!(w, grid.within_radius(&q, 1.0));
+    assert_eq!(
+        w.iter()
+            .map(|n| n.point_idx)
+            .collect::<std::collections::BTreeSet<_>>(),
+        cube
+    );
+    assert!(index.within_radius(&q, 0.8).is_empty());
+    assert!(index.k_nearest_within(&q, 2, 0.8).is_empty());
+    assert!(index.nearest_within(&q, 0.8).is_none());
+    // Far from the map: the unbounded query still answers.
+    let far = cloud.origin + Vector3::new(100.0, -50.0, 20.0);
+    assert_eq!(index.nearest(&far), grid.nearest(&far));
+    assert!(
+        (index.nearest(&far).unwrap().dist_sq.sqrt() - oracle(&cloud, &far)[0].0).abs() < TOL_M
+    );
 }
