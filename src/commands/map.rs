@@ -18,8 +18,7 @@ use crate::io::model::{write_model, ModelFormat};
 use crate::map::io::read_point_cloud;
 use crate::map::prepare::{estimate_normals, NormalOptions};
 use crate::map::PointCloud;
-use crate::scene::{ImageId, Rigid3};
-use crate::sfm::body_pose::BodyPoseDeg;
+use crate::scene::{BodyPose, ImageId, Rigid3};
 use crate::sfm::options::AssociationKind;
 use crate::sfm::{run_mapper, MapperOptions};
 
@@ -88,7 +87,7 @@ pub struct MapConfig {
     pub lidar: PathBuf,
     pub output: PathBuf,
     pub init_image: Option<String>,
-    pub init_pose: Option<BodyPoseDeg>,
+    pub init_pose: Option<BodyPose>,
     pub format: ModelFormat,
     pub options: MapperOptions,
 }
@@ -125,7 +124,7 @@ impl MapArgs {
             .init_pose
             .clone()
             .or(file.init_pose)
-            .map(|s| BodyPoseDeg::parse(&s).map_err(|e| anyhow::anyhow!("--init-pose {e}")))
+            .map(|s| BodyPose::parse_degrees(&s).map_err(|e| anyhow::anyhow!("--init-pose {e}")))
             .transpose()?;
         let format = match self.output_type.clone().or(file.output_type).as_deref() {
             None | Some("text") | Some("TXT") | Some("txt") => ModelFormat::Text,

@@ -13,7 +13,6 @@
 //!   point-to-plane terms from a pluggable associator;
 //! * [`filter`]: outlier filters; [`report`]: `report.json`.
 pub mod associate;
-pub mod body_pose;
 pub mod bundle;
 pub mod filter;
 pub mod geometry;

@@ -14,7 +14,7 @@
 //! `init_pose.txt` holds comment lines (`#`) and two data lines,
 //! `exact: x,y,z,roll_deg,pitch_deg,yaw_deg` and `perturbed: ...` (0.3 m and
 //! 3 deg off, seeded), in the map convention of method.md section 2, ready for
-//! `--init-pose` (see [`super::pose::BodyPose`]).
+//! `--init-pose` (see [`crate::scene::BodyPose`]).
 use std::fs;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -27,11 +27,11 @@ use rand_distr::StandardNormal;
 use serde::Serialize;
 
 use super::lidar::{sample_lidar, write_ply, LidarOptions};
-use super::pose::BodyPose;
 use super::render::{render, RayTable, RenderSettings};
 use super::scenes::{build_scene, trajectory, SceneKind};
 use super::{lens, SynthError};
 use crate::io::atomic::{write_dir_atomically, write_file_atomically};
+use crate::scene::BodyPose;
 use crate::scene::{Camera, CameraId, CameraModel, Rigid3};
 
 /// Everything that defines a generated scene.

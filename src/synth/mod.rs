@@ -16,14 +16,13 @@ pub mod generate;
 pub mod geometry;
 pub mod lens;
 pub mod lidar;
-pub mod pose;
 pub mod render;
 pub mod scenes;
 pub mod texture;
 
+pub use crate::scene::BodyPose;
 pub use colmap_harness::{make_database, HarnessOptions};
 pub use generate::{generate_scene, read_init_pose, SceneSummary, SynthOptions};
-pub use pose::BodyPose;
 pub use scenes::SceneKind;
 
 /// Errors of the scene generator and the harness.

@@ -19,8 +19,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::geometry::{Lighting, Quad, Scene, SolidBox};
-use super::pose::BodyPose;
 use super::texture::{hash64, Material, Texture};
+use crate::scene::BodyPose;
 
 /// The built-in scenes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]

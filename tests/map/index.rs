@@ -505,7 +505,7 @@ fn bench_index() {
     let rss_cloud = rss_mb();
     let t = Instant::now();
     let mut index = MapIndex::build(&cloud).unwrap();
-    let mut index_s = t.elapsed().as_secs_f64();
+    let index_s = t.elapsed().as_secs_f64();
     let rss_index = rss_mb();
     let t = Instant::now();
     let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();

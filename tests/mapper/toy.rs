@@ -8,8 +8,8 @@ use std::path::PathBuf;
 use colmap_lidar::commands::map::{run as run_map, MapArgs};
 use colmap_lidar::io::database::{DatabaseSnapshot, DbImage, TwoViewGeometry};
 use colmap_lidar::map::PointCloud;
+use colmap_lidar::scene::BodyPose;
 use colmap_lidar::scene::{Camera, CameraId, CameraModel, ImageId, Rigid3};
-use colmap_lidar::sfm::body_pose::BodyPoseDeg;
 use colmap_lidar::sfm::options::AssociationKind;
 use colmap_lidar::sfm::{run_mapper, MapperOptions};
 use nalgebra::{Vector2, Vector3};
@@ -24,7 +24,7 @@ pub struct Toy {
     pub db: DatabaseSnapshot,
     pub cloud: PointCloud,
     pub gt: BTreeMap<ImageId, Rigid3>,
-    pub init_pose: BodyPoseDeg,
+    pub init_pose: BodyPose,
 }
 
 fn origin() -> Vector3<f64> {
@@ -108,12 +108,12 @@ pub fn toy(num_images: usize, noise_px: f64, wrong: f64, seed: u64) -> Toy {
     let mut init_pose = None;
     for i in 0..num_images {
         let t = i as f64 / (num_images.max(2) - 1) as f64;
-        let body = BodyPoseDeg {
-            position_m: origin() + Vector3::new(-2.0 + 4.0 * t, -1.0 + 0.5 * (t * 6.0).sin(), 1.4),
-            roll_deg: 2.0 * (t * 5.0).cos(),
-            pitch_deg: -8.0 + 4.0 * (t * 3.0).sin(),
-            yaw_deg: 60.0 + 60.0 * t,
-        };
+        let body = BodyPose::from_degrees(
+            origin() + Vector3::new(-2.0 + 4.0 * t, -1.0 + 0.5 * (t * 6.0).sin(), 1.4),
+            2.0 * (t * 5.0).cos(),
+            -8.0 + 4.0 * (t * 3.0).sin(),
+            60.0 + 60.0 * t,
+        );
         if i == 0 {
             init_pose = Some(body);
         }
@@ -320,12 +320,7 @@ fn toy_bad_inputs_fail_clearly() {
     let scene = toy(6, 0.3, 0.0, 4);
     let options = MapperOptions::default();
     // Initial pose looking away from the room: outside it, facing away.
-    let away = BodyPoseDeg {
-        position_m: origin() + Vector3::new(0.0, -30.0, 1.5),
-        roll_deg: 0.0,
-        pitch_deg: 0.0,
-        yaw_deg: -90.0,
-    };
+    let away = BodyPose::from_degrees(origin() + Vector3::new(0.0, -30.0, 1.5), 0.0, 0.0, -90.0);
     let err = run_mapper(
         &scene.db,
         &scene.cloud,
@@ -617,7 +612,7 @@ fn options_file_and_command_line_merge() {
     assert_eq!(c.options.seed, 9);
     assert_eq!(c.options.register.max_error_px, 3.0);
     assert_eq!(c.format, colmap_lidar::io::model::ModelFormat::Binary);
-    assert_eq!(c.init_pose.unwrap().yaw_deg, 90.0);
+    assert!((c.init_pose.unwrap().to_degrees_array()[5] - 90.0).abs() < 1e-12);
     // Unknown keys and bad values are errors naming the problem.
     std::fs::write(&file, "[mapper.register]\nmax_eror_px = 3.0\n").unwrap();
     let err = format!("{:#}", args.config().unwrap_err());

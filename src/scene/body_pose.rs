@@ -7,9 +7,7 @@
 //! fixed in the body: `z_cam = x_body`, `x_cam = -y_body`, `y_cam = -z_body`.
 //! All zeros is a level camera at the origin looking along +x. With this
 //! convention a positive pitch tilts the optical axis down (towards -z).
-//!
-//! These functions are meant to be shared with the mapper (`--init-pose`); they
-//! live here until the lead moves them next to `Rigid3`.
+//! Used by `map --init-pose` and by the synthetic scenes (`init_pose.txt`).
 use nalgebra::{Matrix3, Rotation3, Vector3};
 
 use crate::scene::Rigid3;
@@ -47,6 +45,30 @@ impl BodyPose {
             pitch_rad: pitch_deg.to_radians(),
             yaw_rad: yaw_deg.to_radians(),
         }
+    }
+
+    /// Parses `x,y,z,roll,pitch,yaw` (metres, degrees), as on the command line.
+    pub fn parse_degrees(text: &str) -> Result<Self, String> {
+        let values: Vec<f64> = text
+            .split(',')
+            .map(|s| s.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| format!("`{text}`: expected six numbers x,y,z,roll,pitch,yaw"))?;
+        if values.len() != 6 {
+            return Err(format!(
+                "`{text}`: expected six numbers x,y,z,roll,pitch,yaw, got {}",
+                values.len()
+            ));
+        }
+        if values.iter().any(|v| !v.is_finite()) {
+            return Err(format!("`{text}`: every value must be finite"));
+        }
+        Ok(Self::from_degrees(
+            Vector3::new(values[0], values[1], values[2]),
+            values[3],
+            values[4],
+            values[5],
+        ))
     }
 
     /// `[x, y, z, roll_deg, pitch_deg, yaw_deg]`.
@@ -120,6 +142,16 @@ mod tests {
             .to_cam_from_world()
             .transform_point(&Vector3::new(1.0, 0.0, -1.0));
         assert!(p.x.abs() < 1e-12 && p.y.abs() < 1e-12 && p.z > 0.0);
+    }
+
+    #[test]
+    fn parse_degrees_reads_six_finite_numbers() {
+        let pose = BodyPose::parse_degrees("1, 2,3,0,-90,180").unwrap();
+        assert_eq!(pose.to_degrees_array(), [1.0, 2.0, 3.0, 0.0, -90.0, 180.0]);
+        assert!(BodyPose::parse_degrees("1,2,3").is_err());
+        assert!(BodyPose::parse_degrees("1,2,3,a,5,6").is_err());
+        assert!(BodyPose::parse_degrees("1,2,3,4,5,nan").is_err());
+        assert!(BodyPose::parse_degrees("1,2,3,4,5,6,").is_err());
     }
 
     #[test]
