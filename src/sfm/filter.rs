@@ -4,8 +4,9 @@ use std::collections::BTreeSet;
 
 use nalgebra::Vector3;
 
-use super::geometry::{reprojection_error_sq, triangulation_angle_rad};
+use super::geometry::reprojection_error_sq;
 use super::state::MapState;
+use crate::estimators::triangulation::triangulation_angle_deg;
 use crate::scene::{ImageId, Point3DId, TrackElement};
 
 /// Removes observations whose reprojection error exceeds `max_error_px` or
@@ -82,7 +83,9 @@ pub fn filter_small_angle_points(state: &mut MapState, min_angle_deg: f64) -> us
             let mut best: f64 = 0.0;
             for i in 0..centres.len() {
                 for j in i + 1..centres.len() {
-                    best = best.max(triangulation_angle_rad(&centres[i], &centres[j], &p.xyz));
+                    best = best.max(
+                        triangulation_angle_deg(&centres[i], &centres[j], &p.xyz).to_radians(),
+                    );
                 }
             }
             best < min_rad

@@ -6,9 +6,10 @@ use nalgebra::{Vector2, Vector3};
 use rand::seq::index::sample;
 use rand_chacha::ChaCha8Rng;
 
-use super::geometry::{p3p, refine_pose, reprojection_error_sq};
+use super::geometry::{refine_pose, reprojection_error_sq};
 use super::options::RegisterOptions;
 use super::state::MapState;
+use crate::estimators::p3p::p3p;
 use crate::scene::{Camera, ImageId, Point3DId, Rigid3, TrackElement};
 
 /// What an absolute-pose estimate gave.

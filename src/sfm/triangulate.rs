@@ -7,7 +7,13 @@ use std::collections::BTreeSet;
 
 use nalgebra::{Vector2, Vector3};
 
-use super::geometry::{reprojection_error_sq, triangulate_dlt, triangulation_angle_rad};
+use super::geometry::reprojection_error_sq;
+use crate::estimators::triangulation::{triangulate_dlt, triangulation_angle_deg};
+
+/// Angle (radians) at `point` between the rays to two camera centres.
+fn triangulation_angle_rad(c1: &Vector3<f64>, c2: &Vector3<f64>, point: &Vector3<f64>) -> f64 {
+    triangulation_angle_deg(c1, c2, point).to_radians()
+}
 use super::options::TriangulateOptions;
 use super::state::MapState;
 use crate::scene::{ImageId, Point3DId, Rigid3, TrackElement};
@@ -79,8 +85,10 @@ pub fn triangulate_views(
     let mut best: Option<Vec<usize>> = None;
     for i in 0..m {
         for j in i + 1..m {
-            let Some(xyz) = triangulate_dlt(&[(data[i].1, data[i].2), (data[j].1, data[j].2)])
-            else {
+            let Some(xyz) = triangulate_dlt(&[
+                (data[i].1, data[i].2.push(1.0)),
+                (data[j].1, data[j].2.push(1.0)),
+            ]) else {
                 continue;
             };
             if triangulation_angle_rad(&data[i].3, &data[j].3, &xyz) < min_angle {
@@ -97,7 +105,10 @@ pub fn triangulate_views(
         }
     }
     let inl = best?;
-    let sub: Vec<(Rigid3, Vector2<f64>)> = inl.iter().map(|&i| (data[i].1, data[i].2)).collect();
+    let sub: Vec<(Rigid3, Vector3<f64>)> = inl
+        .iter()
+        .map(|&i| (data[i].1, data[i].2.push(1.0)))
+        .collect();
     let xyz = triangulate_dlt(&sub)?;
     let inl: Vec<usize> = inl
         .into_iter()
