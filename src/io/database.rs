@@ -184,11 +184,14 @@ fn open_read_only(path: &Path) -> Result<Connection, DatabaseError> {
         .any(|p| p.exists());
     let abs = path.canonicalize().unwrap_or_else(|_| path.to_owned());
     let mut uri = String::from("file:");
-    for b in abs.to_string_lossy().bytes() {
-        // Percent-encode what URI syntax reserves.
-        match b {
-            b'?' | b'#' | b'%' => uri.push_str(&format!("%{b:02X}")),
-            _ => uri.push(b as char),
+    use std::os::unix::ffi::OsStrExt;
+    for &b in abs.as_os_str().as_bytes() {
+        // Percent-encode everything but unreserved ASCII and '/': SQLite decodes
+        // %XX, so spaces, '?', '#', '%' and non-ASCII bytes all survive.
+        if b.is_ascii_alphanumeric() || b"/-_.~".contains(&b) {
+            uri.push(b as char);
+        } else {
+            uri.push_str(&format!("%{b:02X}"));
         }
     }
     uri.push_str(if live {
