@@ -492,7 +492,7 @@ fn real_colmap_database_is_read_and_summarised() {
         Connection::open_with_flags(path, rusqlite::OpenFlags::SQLITE_OPEN_READ_ONLY).unwrap();
     let count = |sql: &str| -> i64 { conn.query_row(sql, [], |r| r.get(0)).unwrap() };
     assert_eq!(db.images.len() as i64, count("SELECT COUNT(*) FROM images"));
-    assert_eq!(db.images.len(), 16);
+    assert_eq!(db.images.len(), common::YARD_IMAGES);
     assert_eq!(db.cameras.len(), 1, "single camera");
     let total_kp: usize = db.keypoints.values().map(Vec::len).sum();
     assert_eq!(total_kp as i64, count("SELECT SUM(rows) FROM keypoints"));
@@ -575,7 +575,10 @@ fn real_colmap_database_is_read_and_summarised() {
         .unwrap();
     assert!(out.status.success());
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(text.contains("Images    16"), "{text}");
+    assert!(
+        text.contains(&format!("Images    {}", common::YARD_IMAGES)),
+        "{text}"
+    );
     assert!(
         text.contains(&format!("Keypoints {total_kp} in all")),
         "{text}"

@@ -275,12 +275,12 @@ fn synth_evaluate_command_on_ground_truth() {
 
 #[test]
 fn synth_colmap_harness_gives_features_and_matches() {
-    // The shared 16-image yard scene, rendered and run through COLMAP once.
+    // The shared yard scene, rendered and run through COLMAP once.
     let Some(scene) = crate::common::yard_db() else {
         return;
     };
     let snap = read_database(&scene.database).unwrap();
-    assert_eq!(snap.images.len(), 16);
+    assert_eq!(snap.images.len(), crate::common::YARD_IMAGES);
     let id_by_name: BTreeMap<String, _> = snap
         .images
         .values()
@@ -295,7 +295,7 @@ fn synth_colmap_harness_gives_features_and_matches() {
         .iter()
         .map(|g| ((g.image_id1, g.image_id2), g.inlier_matches.len()))
         .collect();
-    for i in 0..15 {
+    for i in 0..crate::common::YARD_IMAGES - 1 {
         let a = id_by_name[&format!("frame_{i:04}.jpg")];
         let b = id_by_name[&format!("frame_{:04}.jpg", i + 1)];
         let key = if a < b { (a, b) } else { (b, a) };

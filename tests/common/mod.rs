@@ -35,7 +35,10 @@ pub struct SceneDb {
     pub database: PathBuf,
 }
 
-/// The shared CI-sized yard scene (16 images, 640x480, seed 7) and its database,
+/// Images in the shared yard scene: "a few dozen", as a user's first run.
+pub const YARD_IMAGES: usize = 24;
+
+/// The shared CI-sized yard scene (`YARD_IMAGES` images, 640x480, seed 7) and its database,
 /// or `None` (with a loud message) when `colmap` is not installed.
 pub fn yard_db() -> Option<&'static SceneDb> {
     use colmap_lidar::synth::{
@@ -50,7 +53,7 @@ pub fn yard_db() -> Option<&'static SceneDb> {
         let scene = dir.path().join("yard");
         let options = SynthOptions {
             scene: SceneKind::Yard,
-            num_images: 16,
+            num_images: YARD_IMAGES,
             width: 640,
             height: 480,
             seed: 7,

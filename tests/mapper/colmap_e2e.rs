@@ -116,14 +116,14 @@ fn check_run(r: &Run) {
 
 #[test]
 fn yard_with_colmap_database() {
-    // The shared 16-image yard and its real COLMAP database (made once per run).
+    // The shared yard and its real COLMAP database (made once per run).
     let Some(shared) = crate::common::yard_db() else {
         return;
     };
     let scene = shared.scene.clone();
     let dir = tempfile::tempdir().unwrap();
     let a = map_scene(&scene, &dir.path().join("a"), |_| {});
-    print_run("yard (16 images)", &a);
+    print_run("yard (shared CI scene)", &a);
     check_run(&a);
     // Same inputs and seed: byte-identical model files.
     let b = map_scene(&scene, &dir.path().join("b"), |_| {});
