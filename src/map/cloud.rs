@@ -5,6 +5,7 @@
 //! resolution for maps up to several kilometres across, and a point costs 12
 //! bytes instead of 24. `origin + point` is the point in the map frame.
 use nalgebra::Vector3;
+use rayon::prelude::*;
 
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct PointCloud {
@@ -32,5 +33,40 @@ impl PointCloud {
     pub fn point_in_map(&self, i: usize) -> Vector3<f64> {
         let p = self.points[i];
         self.origin + Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))
+    }
+}
+
+/// Smallest and largest cell (per axis) of `points` under `cell_of`, in parallel.
+/// For an empty slice: `([i64::MAX; 3], [i64::MIN; 3])`.
+pub(crate) fn cell_bounds(
+    points: &[[f32; 3]],
+    cell_of: impl Fn(&[f32; 3]) -> [i64; 3] + Sync,
+) -> ([i64; 3], [i64; 3]) {
+    let empty = || ([i64::MAX; 3], [i64::MIN; 3]);
+    let merge = |(lo, hi): ([i64; 3], [i64; 3]), (l, h): ([i64; 3], [i64; 3])| {
+        (
+            [lo[0].min(l[0]), lo[1].min(l[1]), lo[2].min(l[2])],
+            [hi[0].max(h[0]), hi[1].max(h[1]), hi[2].max(h[2])],
+        )
+    };
+    points
+        .par_iter()
+        .fold(empty, |acc, p| {
+            let c = cell_of(p);
+            merge(acc, (c, c))
+        })
+        .reduce(empty, merge)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cell_bounds_of_a_hand_made_cloud() {
+        let pts = [[0.5f32, -1.5, 2.0], [3.2, 0.0, -0.1], [-0.2, 7.9, 1.0]];
+        let cell = |p: &[f32; 3]| p.map(|c| f64::from(c).floor() as i64);
+        assert_eq!(cell_bounds(&pts, cell), ([-1, -2, -1], [3, 7, 2]));
+        assert_eq!(cell_bounds(&[], cell), ([i64::MAX; 3], [i64::MIN; 3]));
     }
 }

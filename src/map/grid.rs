@@ -334,15 +334,7 @@ impl FrustumGrid {
                 (f64::from(p[2]) / s).floor() as i64,
             ]
         };
-        let mut min_cell = [i64::MAX; 3];
-        let mut max_cell = [i64::MIN; 3];
-        for p in &cloud.points {
-            let c = cell_of(p);
-            for a in 0..3 {
-                min_cell[a] = min_cell[a].min(c[a]);
-                max_cell[a] = max_cell[a].max(c[a]);
-            }
-        }
+        let (mut min_cell, max_cell) = super::cloud::cell_bounds(&cloud.points, cell_of);
         if n == 0 {
             min_cell = [0; 3];
         }

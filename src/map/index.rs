@@ -453,29 +453,7 @@ impl MapIndex {
                 floor_i64(f64::from(p[2]) * inv),
             ]
         };
-        let (min_cell, max_cell) = cloud
-            .points
-            .par_iter()
-            .fold(
-                || ([i64::MAX; 3], [i64::MIN; 3]),
-                |(mut lo, mut hi), p| {
-                    let c = cell_of(p);
-                    for a in 0..3 {
-                        lo[a] = lo[a].min(c[a]);
-                        hi[a] = hi[a].max(c[a]);
-                    }
-                    (lo, hi)
-                },
-            )
-            .reduce(
-                || ([i64::MAX; 3], [i64::MIN; 3]),
-                |(a, b), (c, d)| {
-                    (
-                        [a[0].min(c[0]), a[1].min(c[1]), a[2].min(c[2])],
-                        [b[0].max(d[0]), b[1].max(d[1]), b[2].max(d[2])],
-                    )
-                },
-            );
+        let (min_cell, max_cell) = super::cloud::cell_bounds(&cloud.points, cell_of);
         let (min_cell, extent) = if n == 0 {
             ([0; 3], [0; 3])
         } else {

@@ -257,29 +257,7 @@ impl CellGrid {
                 ((origin.z + f64::from(p[2])) / cell_m).floor() as i64,
             ]
         };
-        let (lo, hi) = cloud
-            .points
-            .par_iter()
-            .fold(
-                || ([i64::MAX; 3], [i64::MIN; 3]),
-                |(mut lo, mut hi), p| {
-                    let c = cell_of(p);
-                    for a in 0..3 {
-                        lo[a] = lo[a].min(c[a]);
-                        hi[a] = hi[a].max(c[a]);
-                    }
-                    (lo, hi)
-                },
-            )
-            .reduce(
-                || ([i64::MAX; 3], [i64::MIN; 3]),
-                |(l1, h1), (l2, h2)| {
-                    (
-                        [l1[0].min(l2[0]), l1[1].min(l2[1]), l1[2].min(l2[2])],
-                        [h1[0].max(h2[0]), h1[1].max(h2[1]), h1[2].max(h2[2])],
-                    )
-                },
-            );
+        let (lo, hi) = super::cloud::cell_bounds(&cloud.points, cell_of);
         // One spare cell on each side so that neighbour keys never wrap.
         let mut bits = [1u32; 3];
         for a in 0..3 {
