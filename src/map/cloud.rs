@@ -29,6 +29,13 @@ impl PointCloud {
         self.points.is_empty()
     }
 
+    /// Index of the first point with a NaN or infinite coordinate, if any.
+    pub fn first_non_finite_point(&self) -> Option<usize> {
+        self.points
+            .par_iter()
+            .position_first(|p| !p.iter().all(|c| c.is_finite()))
+    }
+
     /// Point `i` in the map frame (f64).
     pub fn point_in_map(&self, i: usize) -> Vector3<f64> {
         let p = self.points[i];

@@ -320,11 +320,7 @@ impl FrustumGrid {
         if n >= u32::MAX as usize {
             return Err(GridError::TooManyPoints(n));
         }
-        if let Some(index) = cloud
-            .points
-            .iter()
-            .position(|p| !p.iter().all(|c| c.is_finite()))
-        {
+        if let Some(index) = cloud.first_non_finite_point() {
             return Err(GridError::NonFinitePoint { index });
         }
         let cell_of = |p: &[f32; 3]| -> [i64; 3] {

@@ -438,11 +438,7 @@ impl MapIndex {
         if n >= u32::MAX as usize {
             return Err(IndexError::TooManyPoints(n));
         }
-        if let Some(index) = cloud
-            .points
-            .par_iter()
-            .position_first(|p| !p.iter().all(|c| c.is_finite()))
-        {
+        if let Some(index) = cloud.first_non_finite_point() {
             return Err(IndexError::NonFinitePoint { index });
         }
         let inv = 1.0 / s;
