@@ -39,8 +39,8 @@ pub trait PlaneAssociator {
     fn name(&self) -> &'static str;
     /// Planes for some of `queries` (at most one per point), in query order.
     fn associate(&self, kind: SolveKind, queries: &[AssociationQuery]) -> Vec<PlaneConstraint>;
-    /// Robust loss per plane family this associator produces.
-    fn losses(&self) -> Vec<(PlaneFamily, LossFunction)> {
+    /// Robust loss per plane family this associator produces in a solve of `kind`.
+    fn losses(&self, _kind: SolveKind) -> Vec<(PlaneFamily, LossFunction)> {
         Vec::new()
     }
 }
@@ -83,18 +83,19 @@ impl PlaneAssociator for NearestNeighbourAssociator<'_> {
     }
 
     /// Huber with the scale `loss_scale_m` (metres) times the family's weight.
-    fn losses(&self) -> Vec<(PlaneFamily, LossFunction)> {
-        let o = &self.options;
-        let huber = |w: f64| LossFunction::Huber {
-            scale: (w * o.loss_scale_m).max(1e-6),
+    fn losses(&self, kind: SolveKind) -> Vec<(PlaneFamily, LossFunction)> {
+        let w = self.options.weights(kind);
+        let huber = |weight: f64| LossFunction::Huber {
+            scale: (weight * w.loss_scale_m).max(1e-6),
         };
         vec![
-            (PlaneFamily::Nearest, huber(o.weight)),
-            (PlaneFamily::Ground, huber(o.ground_weight)),
+            (PlaneFamily::Nearest, huber(w.weight)),
+            (PlaneFamily::Ground, huber(w.ground_weight)),
         ]
     }
 
-    fn associate(&self, _kind: SolveKind, queries: &[AssociationQuery]) -> Vec<PlaneConstraint> {
+    fn associate(&self, kind: SolveKind, queries: &[AssociationQuery]) -> Vec<PlaneConstraint> {
+        let weights = self.options.weights(kind);
         let Some(normals) = self.cloud.normals.as_ref() else {
             return Vec::new();
         };
@@ -148,9 +149,9 @@ impl PlaneAssociator for NearestNeighbourAssociator<'_> {
                 normal: [normal.x, normal.y, normal.z],
                 offset_m,
                 weight: if ground {
-                    self.options.ground_weight
+                    weights.ground_weight
                 } else {
-                    self.options.weight
+                    weights.weight
                 },
                 family: if ground {
                     PlaneFamily::Ground

@@ -193,7 +193,7 @@ pub fn bundle_adjust(
             scale: options.reprojection_loss_px,
         },
         plane_loss: LossFunction::Trivial,
-        plane_family_losses: associator.losses(),
+        plane_family_losses: associator.losses(kind),
         max_iterations: match kind {
             SolveKind::Local => options.local_max_iterations,
             _ => options.global_max_iterations,

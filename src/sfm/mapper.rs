@@ -347,7 +347,11 @@ pub fn run_mapper(
 
     // 5. Final global BA.
     retriangulate_all(&mut state, &options.triangulate);
-    for _ in 0..2 {
+    // Rounds of re-association + solve until no camera centre moves more
+    // than `final_stop_change_m` (the map pulls the model along directions
+    // it constrains weakly, e.g. along a corridor, a little each round).
+    for round in 0..options.bundle.final_rounds {
+        let before = camera_centres(&state);
         let fixed = fixed_for(&state);
         global_ba(
             &mut state,
@@ -358,6 +362,18 @@ pub fn run_mapper(
             options,
             &mut report,
         )?;
+        let moved = camera_centres(&state)
+            .iter()
+            .zip(&before)
+            .map(|(a, b)| (a - b).norm())
+            .fold(0.0f64, f64::max);
+        log::info!(
+            "final round {}: cameras moved up to {moved:.2e} m",
+            round + 1
+        );
+        if moved < options.bundle.final_stop_change_m {
+            break;
+        }
     }
     stages.done("final bundle adjustment");
 
@@ -374,6 +390,16 @@ pub fn run_mapper(
         reconstruction: state.to_reconstruction(),
         report,
     })
+}
+
+/// Centres of the registered images in registration order.
+fn camera_centres(state: &MapState) -> Vec<nalgebra::Vector3<f64>> {
+    state
+        .registration_order
+        .iter()
+        .filter_map(|&i| state.pose(i))
+        .map(|p| p.camera_center())
+        .collect()
 }
 
 /// Global BA over every registered image, then filtering and track completion.

@@ -236,6 +236,13 @@ pub struct BundleOptions {
     pub initial_prior_position_m: f64,
     /// Standard deviation of the prior's rotation, degrees. Default 0.
     pub initial_prior_rotation_deg: f64,
+    /// Most final global bundle adjustments, each after a re-association (an
+    /// ICP-like loop: the map pulls the model a little further each round
+    /// along directions it constrains weakly). Default 12.
+    pub final_rounds: usize,
+    /// The final rounds stop once no camera centre moved more than this in
+    /// a round, metres. Default 0.0002.
+    pub final_stop_change_m: f64,
     /// Threads of the Ceres solver. More than one may change the last bits
     /// between runs. Default 1 (byte-identical output).
     pub num_threads: usize,
@@ -245,6 +252,8 @@ impl Default for BundleOptions {
     fn default() -> Self {
         Self {
             local_num_neighbours: 5,
+            final_rounds: 12,
+            final_stop_change_m: 0.0002,
             local_max_iterations: 30,
             global_max_iterations: 50,
             global_every_images: 5,
@@ -292,7 +301,13 @@ impl BundleOptions {
             (1..=256).contains(&self.num_threads),
             "bundle.num_threads",
             "must be in 1..=256",
-        )
+        )?;
+        check(
+            (1..=100).contains(&self.final_rounds),
+            "bundle.final_rounds",
+            "must be in 1..=100",
+        )?;
+        non_negative("bundle.final_stop_change_m", self.final_stop_change_m)
     }
 }
 
@@ -331,6 +346,19 @@ pub struct AssociationOptions {
     /// Huber scale on plane residuals, metres (times the weight in pixel
     /// equivalents). Default 0.02.
     pub loss_scale_m: f64,
+    /// Weight of a plane residual in the final bundle adjustments. The
+    /// strong weights above pull the model into the map's basin during
+    /// registration; at the end they would bend the structure onto planes
+    /// (measured: a 0.2-0.4 deg tilt of the whole model on the yard scene at
+    /// 1000), so the final solves use a weight near the noise ratio
+    /// (reprojection noise, about 0.3 px, over plane noise, 5-30 mm).
+    /// Default 10.
+    pub final_weight: f64,
+    /// Weight of a ground plane in the final bundle adjustments. Default 10.
+    pub final_ground_weight: f64,
+    /// Huber scale on plane residuals in the final bundle adjustments,
+    /// metres. Default 0.005.
+    pub final_loss_scale_m: f64,
     /// Map points searched per association. Default 10.
     pub num_neighbours: usize,
     /// Neighbours whose normals are within this angle share the plane (its
@@ -350,13 +378,41 @@ impl Default for AssociationOptions {
             ground_weight: 1000.0,
             ground_max_tilt_deg: 5.7,
             loss_scale_m: 0.02,
+            final_weight: 10.0,
+            final_ground_weight: 10.0,
+            final_loss_scale_m: 0.005,
             num_neighbours: 10,
             same_plane_max_angle_deg: 15.0,
         }
     }
 }
 
+/// Weights and robust-loss scale of the plane terms of one solve.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PlaneWeights {
+    pub weight: f64,
+    pub ground_weight: f64,
+    pub loss_scale_m: f64,
+}
+
 impl AssociationOptions {
+    /// The weights of a solve of `kind`.
+    pub fn weights(&self, kind: crate::sfm::associate::SolveKind) -> PlaneWeights {
+        use crate::sfm::associate::SolveKind;
+        match kind {
+            SolveKind::Final => PlaneWeights {
+                weight: self.final_weight,
+                ground_weight: self.final_ground_weight,
+                loss_scale_m: self.final_loss_scale_m,
+            },
+            SolveKind::Local | SolveKind::Global => PlaneWeights {
+                weight: self.weight,
+                ground_weight: self.ground_weight,
+                loss_scale_m: self.loss_scale_m,
+            },
+        }
+    }
+
     pub fn validate(&self) -> Result<(), OptionsError> {
         positive("association.max_radius_m", self.max_radius_m)?;
         non_negative("association.radius_drop_m", self.radius_drop_m)?;
@@ -377,6 +433,9 @@ impl AssociationOptions {
             "must be in [0, 90)",
         )?;
         positive("association.loss_scale_m", self.loss_scale_m)?;
+        non_negative("association.final_weight", self.final_weight)?;
+        non_negative("association.final_ground_weight", self.final_ground_weight)?;
+        positive("association.final_loss_scale_m", self.final_loss_scale_m)?;
         check(
             (1..=256).contains(&self.num_neighbours),
             "association.num_neighbours",
