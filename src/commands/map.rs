@@ -7,6 +7,7 @@
 //! `output_type`, `no_lidar_constraints`, and a `[mapper]` table with the
 //! stage options of [`MapperOptions`] (`seed`, `[mapper.register]`, ...).
 //! Command-line values win over the file.
+use std::collections::BTreeMap;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 
@@ -15,12 +16,66 @@ use serde::Deserialize;
 
 use crate::io::database::{read_database, DatabaseSnapshot};
 use crate::io::model::{write_model, ModelFormat};
+use crate::io::pose_ply::{format_pose_ply, read_pose_ply};
 use crate::map::io::read_point_cloud;
 use crate::map::prepare::{estimate_normals, NormalOptions};
 use crate::map::PointCloud;
 use crate::scene::{BodyPose, ImageId, Rigid3};
 use crate::sfm::options::AssociationKind;
-use crate::sfm::{run_mapper, MapperOptions};
+use crate::sfm::{run_mapper_with_priors, KnownPose, MapperOptions};
+
+/// Known poses: the database's pose priors, overridden by the pose file.
+fn known_poses(
+    db: &DatabaseSnapshot,
+    pose_file: Option<&Path>,
+) -> Result<BTreeMap<ImageId, KnownPose>> {
+    let mut known = BTreeMap::new();
+    for (&id, prior) in &db.pose_priors {
+        if let Some(pose) = prior.cam_from_world {
+            known.insert(
+                id,
+                KnownPose {
+                    cam_from_world: pose,
+                    has_rotation: true,
+                },
+            );
+        } else if let Some(p) = prior.position {
+            // Position only: the centre of an identity-rotation pose.
+            let centre = nalgebra::Vector3::from(p);
+            known.insert(
+                id,
+                KnownPose {
+                    cam_from_world: Rigid3::new(nalgebra::UnitQuaternion::identity(), -centre),
+                    has_rotation: false,
+                },
+            );
+        }
+    }
+    if let Some(path) = pose_file {
+        let poses = read_pose_ply(path)?;
+        for (id, pose) in poses {
+            if !db.images.contains_key(&id) {
+                bail!(
+                    "the pose file {} has a pose for image id {}, which is not in the database {}",
+                    path.display(),
+                    id.0,
+                    db.path.display()
+                );
+            }
+            known.insert(
+                id,
+                KnownPose {
+                    cam_from_world: pose.to_cam_from_world(),
+                    has_rotation: true,
+                },
+            );
+        }
+    }
+    if !known.is_empty() {
+        log::info!("{} images with a known pose", known.len());
+    }
+    Ok(known)
+}
 
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct MapArgs {
@@ -46,6 +101,12 @@ pub struct MapArgs {
         allow_hyphen_values = true
     )]
     pub init_pose: Option<String>,
+    /// Known poses of images in the reference's pose.ply layout (line k =
+    /// image id k: x y z roll pitch yaw, metres and radians, `nan` = none):
+    /// soft priors in every solve; images PnP cannot register are placed at
+    /// them. The database's pose priors are used too (the file wins).
+    #[arg(long, visible_alias = "pose_priors", value_name = "FILE")]
+    pub pose_priors: Option<PathBuf>,
     /// TOML options file; command-line values win.
     #[arg(long, value_name = "FILE")]
     pub options: Option<PathBuf>,
@@ -75,6 +136,7 @@ struct OptionsFile {
     output: Option<PathBuf>,
     init_image: Option<toml::Value>,
     init_pose: Option<String>,
+    pose_priors: Option<PathBuf>,
     output_type: Option<String>,
     no_lidar_constraints: Option<bool>,
     mapper: MapperOptions,
@@ -88,6 +150,7 @@ pub struct MapConfig {
     pub output: PathBuf,
     pub init_image: Option<String>,
     pub init_pose: Option<BodyPose>,
+    pub pose_priors: Option<PathBuf>,
     pub format: ModelFormat,
     pub options: MapperOptions,
 }
@@ -151,6 +214,7 @@ impl MapArgs {
             output,
             init_image,
             init_pose,
+            pose_priors: self.pose_priors.clone().or(file.pose_priors),
             format,
             options,
         })
@@ -192,7 +256,8 @@ pub fn resolve_init_image(db: &DatabaseSnapshot, spec: Option<&str>) -> Result<I
 }
 
 /// Files we may replace in an existing output folder.
-const REPLACEABLE: [&str; 7] = [
+const REPLACEABLE: [&str; 8] = [
+    "pose.ply",
     "cameras.txt",
     "images.txt",
     "points3D.txt",
@@ -258,6 +323,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
             ),
         },
     };
+    let known_poses = known_poses(&db, config.pose_priors.as_deref())?;
     let cloud = load_map(&config.lidar)?;
     let total = db.images.len();
     let bar = std::io::stderr().is_terminal().then(|| {
@@ -275,11 +341,12 @@ pub fn run(args: &MapArgs) -> Result<()> {
             bar.set_position(done as u64);
         }
     };
-    let out = run_mapper(
+    let out = run_mapper_with_priors(
         &db,
         &cloud,
         init_image,
         &init_cam_from_world,
+        &known_poses,
         &config.options,
         &mut progress,
     )?;
@@ -291,6 +358,15 @@ pub fn run(args: &MapArgs) -> Result<()> {
     crate::io::atomic::write_dir_atomically(&config.output, |tmp| -> Result<()> {
         write_model(tmp, &out.reconstruction, config.format)?;
         std::fs::write(tmp.join("report.json"), format!("{report_json}\n"))?;
+        let poses: BTreeMap<ImageId, BodyPose> = out
+            .reconstruction
+            .images
+            .iter()
+            .filter_map(|(&id, img)| {
+                Some((id, BodyPose::from_cam_from_world(&img.cam_from_world?)))
+            })
+            .collect();
+        std::fs::write(tmp.join("pose.ply"), format_pose_ply(&poses))?;
         Ok(())
     })
     .with_context(|| format!("writing the model to {}", config.output.display()))?;

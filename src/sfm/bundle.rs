@@ -9,7 +9,7 @@ use serde::Serialize;
 
 use super::associate::{AssociationQuery, PlaneAssociator, SolveKind};
 use super::options::BundleOptions;
-use super::state::MapState;
+use super::state::{MapState, PointPlane};
 use crate::scene::{CameraId, ImageId, Point3DId, Rigid3};
 use crate::solver::{
     solve, BaCamera, BaObservation, BaPoint, BaPose, BundleAdjustmentProblem, ConstantParams,
@@ -50,13 +50,94 @@ pub struct SolveRecord {
     pub num_constant_poses: usize,
     pub num_points: usize,
     pub num_observations: usize,
+    /// Planes by kind (`num_planes` = projection + nearest + ground).
     pub num_planes: usize,
+    pub num_projection_planes: usize,
+    pub num_nearest_planes: usize,
     pub num_ground_planes: usize,
+    /// Point-to-plane distances of the associated points before and after the solve.
+    pub plane_distance_before_m: DistanceStats,
+    pub plane_distance_after_m: DistanceStats,
+    /// Reprojection errors of the solve's observations before and after.
+    pub reprojection_before_px: ErrorStats,
+    pub reprojection_after_px: ErrorStats,
     pub initial_cost: f64,
     pub final_cost: f64,
     pub iterations: usize,
     pub usable: bool,
     pub time_s: f64,
+}
+
+/// Mean and median of unsigned distances.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct DistanceStats {
+    pub mean: f64,
+    pub median: f64,
+}
+
+impl DistanceStats {
+    fn of(mut values: Vec<f64>) -> Self {
+        if values.is_empty() {
+            return Self::default();
+        }
+        let mean = values.iter().sum::<f64>() / values.len() as f64;
+        values.sort_by(f64::total_cmp);
+        let n = values.len();
+        let median = if n % 2 == 1 {
+            values[n / 2]
+        } else {
+            0.5 * (values[n / 2 - 1] + values[n / 2])
+        };
+        Self { mean, median }
+    }
+}
+
+/// Mean and standard deviation of errors.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct ErrorStats {
+    pub mean: f64,
+    pub std: f64,
+    pub count: usize,
+}
+
+impl ErrorStats {
+    fn of(values: &[f64]) -> Self {
+        if values.is_empty() {
+            return Self::default();
+        }
+        let n = values.len() as f64;
+        let mean = values.iter().sum::<f64>() / n;
+        let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+        Self {
+            mean,
+            std: var.sqrt(),
+            count: values.len(),
+        }
+    }
+}
+
+/// Reprojection errors (pixels) of every observation of `points` by a registered image.
+fn reprojection_errors(state: &MapState, points: &[Point3DId]) -> Vec<f64> {
+    let mut errors = Vec::new();
+    for pid in points {
+        let Some(p) = state.points.get(pid) else {
+            continue;
+        };
+        for e in &p.track {
+            let Some(pose) = state.pose(e.image_id) else {
+                continue;
+            };
+            if let Some(e2) = super::geometry::reprojection_error_sq(
+                state.camera_of(e.image_id),
+                &pose,
+                &p.xyz,
+                &state.keypoint(*e),
+            ) {
+                errors.push(e2.sqrt());
+            }
+        }
+    }
+    errors
 }
 
 /// Runs one bundle adjustment on `state`. The variable points are those
@@ -160,7 +241,8 @@ pub fn bundle_adjust(
         problem.pose_priors.push(PosePrior {
             pose_idx: pi,
             position_in_world: Some([c.x, c.y, c.z]),
-            cam_from_world_rotation: Some(prior.cam_from_world.quaternion_wxyz()),
+            cam_from_world_rotation: (prior.rotation_weight > 0.0)
+                .then(|| prior.cam_from_world.quaternion_wxyz()),
             position_weight: prior.position_weight,
             rotation_weight: prior.rotation_weight,
         });
@@ -175,7 +257,13 @@ pub fn bundle_adjust(
             num_points: 0,
             num_observations: 0,
             num_planes: 0,
+            num_projection_planes: 0,
+            num_nearest_planes: 0,
             num_ground_planes: 0,
+            plane_distance_before_m: DistanceStats::default(),
+            plane_distance_after_m: DistanceStats::default(),
+            reprojection_before_px: ErrorStats::default(),
+            reprojection_after_px: ErrorStats::default(),
             initial_cost: 0.0,
             final_cost: 0.0,
             iterations: 0,
@@ -187,7 +275,30 @@ pub fn bundle_adjust(
     for plane in &mut problem.planes {
         plane.offset_m -= Vector3::from(plane.normal).dot(&origin);
     }
-    let anchored: BTreeSet<u32> = problem.planes.iter().map(|p| p.point_idx).collect();
+    let plane_of_point: BTreeMap<u32, PointPlane> = problem
+        .planes
+        .iter()
+        .map(|p| {
+            let normal = Vector3::from(p.normal);
+            (
+                p.point_idx,
+                PointPlane {
+                    family: p.family,
+                    normal,
+                    // Back from the solve's local frame to the world frame.
+                    offset_m: p.offset_m + normal.dot(&origin),
+                },
+            )
+        })
+        .collect();
+    let plane_distances = |state: &MapState| -> Vec<f64> {
+        plane_of_point
+            .iter()
+            .map(|(&i, plane)| plane.distance_m(&state.points[&point_list[i as usize]].xyz))
+            .collect()
+    };
+    let plane_distance_before_m = DistanceStats::of(plane_distances(state));
+    let reprojection_before_px = ErrorStats::of(&reprojection_errors(state, &point_list));
     let solver_options = SolverOptions {
         reprojection_loss: LossFunction::SoftL1 {
             scale: options.reprojection_loss_px,
@@ -213,7 +324,8 @@ pub fn bundle_adjust(
         for (i, pid) in point_list.iter().enumerate() {
             if let Some(p) = state.points.get_mut(pid) {
                 p.xyz = problem.points[i].position() + origin;
-                p.anchored = anchored.contains(&(i as u32));
+                p.plane = plane_of_point.get(&(i as u32)).copied();
+                p.anchored = p.plane.is_some();
                 if kind != SolveKind::Local {
                     p.num_global_ba += 1;
                 }
@@ -229,6 +341,7 @@ pub fn bundle_adjust(
     } else {
         log::warn!("{kind:?} bundle adjustment not usable: {}", summary.message);
     }
+    let count = |family: PlaneFamily| problem.planes.iter().filter(|p| p.family == family).count();
     Ok(SolveRecord {
         kind,
         num_registered: state.num_registered(),
@@ -237,11 +350,13 @@ pub fn bundle_adjust(
         num_points: point_list.len(),
         num_observations: problem.observations.len(),
         num_planes: problem.planes.len(),
-        num_ground_planes: problem
-            .planes
-            .iter()
-            .filter(|p| p.family == PlaneFamily::Ground)
-            .count(),
+        num_projection_planes: count(PlaneFamily::Projection),
+        num_nearest_planes: count(PlaneFamily::Nearest),
+        num_ground_planes: count(PlaneFamily::Ground),
+        plane_distance_before_m,
+        plane_distance_after_m: DistanceStats::of(plane_distances(state)),
+        reprojection_before_px,
+        reprojection_after_px: ErrorStats::of(&reprojection_errors(state, &point_list)),
         initial_cost: summary.initial_cost,
         final_cost: summary.final_cost,
         iterations: summary.num_iterations,

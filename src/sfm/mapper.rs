@@ -78,12 +78,45 @@ impl Stages {
     }
 }
 
-/// Runs the whole mapper.
+/// A known pose of an image (from a pose file or the database).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct KnownPose {
+    /// The pose; with `has_rotation == false` only its camera centre counts.
+    pub cam_from_world: Rigid3,
+    pub has_rotation: bool,
+}
+
+/// Runs the whole mapper without pose priors.
 pub fn run_mapper(
     db: &DatabaseSnapshot,
     cloud: &PointCloud,
     init_image: ImageId,
     init_cam_from_world: &Rigid3,
+    options: &MapperOptions,
+    progress: Progress<'_>,
+) -> Result<MapperOutput, MapperError> {
+    run_mapper_with_priors(
+        db,
+        cloud,
+        init_image,
+        init_cam_from_world,
+        &BTreeMap::new(),
+        options,
+        progress,
+    )
+}
+
+/// Runs the whole mapper. `known_poses` become soft prior residuals in every
+/// solve (weights `bundle.prior_position_weight`, `bundle.prior_rotation_weight`);
+/// an image with a full known pose that PnP could not register is placed at
+/// it at the end (flagged `placed_by_prior` in the report) and refined by the
+/// final bundle adjustments.
+pub fn run_mapper_with_priors(
+    db: &DatabaseSnapshot,
+    cloud: &PointCloud,
+    init_image: ImageId,
+    init_cam_from_world: &Rigid3,
+    known_poses: &BTreeMap<ImageId, KnownPose>,
     options: &MapperOptions,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
@@ -192,7 +225,7 @@ pub fn run_mapper(
         }
     };
     let b = &options.bundle;
-    let initial_prior: Vec<SoftPosePrior> =
+    let mut initial_prior: Vec<SoftPosePrior> =
         if lidar_gauge && b.initial_prior_position_m > 0.0 && b.initial_prior_rotation_deg > 0.0 {
             vec![SoftPosePrior {
                 image: init_image,
@@ -203,6 +236,24 @@ pub fn run_mapper(
         } else {
             Vec::new()
         };
+    // Known poses of the other images: soft priors in every solve.
+    for (&image, known) in known_poses {
+        if image == init_image || !state.images.contains_key(&image) {
+            continue;
+        }
+        if b.prior_position_weight > 0.0 || b.prior_rotation_weight > 0.0 {
+            initial_prior.push(SoftPosePrior {
+                image,
+                cam_from_world: known.cam_from_world,
+                position_weight: b.prior_position_weight,
+                rotation_weight: if known.has_rotation {
+                    b.prior_rotation_weight.to_degrees()
+                } else {
+                    0.0
+                },
+            });
+        }
+    }
     let stats = triangulate_image(&mut state, second, &options.triangulate);
     log::debug!("second image: {stats:?}");
     let config = BundleConfig {
@@ -342,6 +393,22 @@ pub fn run_mapper(
             last_global_size = state.num_registered();
         }
         progress(state.num_registered(), state.images.len());
+    }
+    // Images PnP could not register but whose full pose is known: placed at
+    // it, their tracks triangulated; the final solves refine them.
+    for (&image, known) in known_poses {
+        let Some(img) = state.images.get(&image) else {
+            continue;
+        };
+        if img.is_registered() || !known.has_rotation {
+            continue;
+        }
+        state.register(image, known.cam_from_world);
+        let stats = triangulate_image(&mut state, image, &options.triangulate);
+        log::info!("image {image} placed at its known pose ({stats:?})");
+        if let Some(rec) = report.record_mut(image) {
+            rec.placed_by_prior = true;
+        }
     }
     stages.done("incremental registration");
 

@@ -24,5 +24,5 @@ pub mod report;
 pub mod state;
 pub mod triangulate;
 
-pub use mapper::{run_mapper, MapperError, MapperOutput};
+pub use mapper::{run_mapper, run_mapper_with_priors, KnownPose, MapperError, MapperOutput};
 pub use options::MapperOptions;

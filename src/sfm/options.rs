@@ -243,6 +243,13 @@ pub struct BundleOptions {
     /// The final rounds stop once no camera centre moved more than this in
     /// a round, metres. Default 0.0002.
     pub final_stop_change_m: f64,
+    /// Weight of a known image position (pose file, database), pixel
+    /// equivalents per metre: 100 makes 1 cm count like 1 px. 0 disables.
+    /// Default 100.
+    pub prior_position_weight: f64,
+    /// Weight of a known image rotation, pixel equivalents per degree.
+    /// 0 disables. Default 10.
+    pub prior_rotation_weight: f64,
     /// Threads of the Ceres solver. More than one may change the last bits
     /// between runs. Default 1 (byte-identical output).
     pub num_threads: usize,
@@ -253,6 +260,8 @@ impl Default for BundleOptions {
         Self {
             local_num_neighbours: 5,
             final_rounds: 12,
+            prior_position_weight: 100.0,
+            prior_rotation_weight: 10.0,
             final_stop_change_m: 0.0002,
             local_max_iterations: 30,
             global_max_iterations: 50,
@@ -307,6 +316,8 @@ impl BundleOptions {
             "bundle.final_rounds",
             "must be in 1..=100",
         )?;
+        non_negative("bundle.prior_position_weight", self.prior_position_weight)?;
+        non_negative("bundle.prior_rotation_weight", self.prior_rotation_weight)?;
         non_negative("bundle.final_stop_change_m", self.final_stop_change_m)
     }
 }

@@ -6,6 +6,7 @@ use super::bundle::SolveRecord;
 use super::initialize::InitSummary;
 use super::state::MapState;
 use crate::scene::ImageId;
+use crate::solver::PlaneFamily;
 
 /// One image.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -21,10 +22,19 @@ pub struct ImageRecord {
     pub num_correspondences: usize,
     /// PnP inliers of the successful (or last) attempt.
     pub pnp_inliers: usize,
+    /// Registered by being placed at its known pose (too few matches for PnP).
+    pub placed_by_prior: bool,
     /// Observations of 3D points in the final model.
     pub num_observations: usize,
     /// Mean reprojection error of those observations, pixels.
     pub mean_reprojection_error_px: Option<f64>,
+    /// Points it observes that are tied to a LiDAR plane, by kind (from the
+    /// last solve that included them).
+    pub num_projection_planes: usize,
+    pub num_nearest_planes: usize,
+    pub num_ground_planes: usize,
+    /// Mean distance of those points to their planes, metres.
+    pub mean_plane_distance_m: Option<f64>,
 }
 
 /// One stage of the run.
@@ -67,9 +77,20 @@ impl MapReport {
             rec.registration_index = state.registration_order.iter().position(|&i| i == id);
             let mut sum = 0.0;
             let mut n = 0usize;
+            let mut plane_sum = 0.0;
+            let (mut n_proj, mut n_near, mut n_ground) = (0usize, 0usize, 0usize);
             if let Some(pose) = img.cam_from_world {
                 for (k, p) in img.point3d.iter().enumerate() {
                     let Some(p) = p else { continue };
+                    let point = &state.points[p];
+                    if let Some(plane) = &point.plane {
+                        plane_sum += plane.distance_m(&point.xyz);
+                        match plane.family {
+                            PlaneFamily::Projection => n_proj += 1,
+                            PlaneFamily::Ground => n_ground += 1,
+                            _ => n_near += 1,
+                        }
+                    }
                     if let Some(e2) = super::geometry::reprojection_error_sq(
                         state.camera_of(id),
                         &pose,
@@ -82,6 +103,11 @@ impl MapReport {
                 }
             }
             rec.num_observations = n;
+            rec.num_projection_planes = n_proj;
+            rec.num_nearest_planes = n_near;
+            rec.num_ground_planes = n_ground;
+            let n_planes = n_proj + n_near + n_ground;
+            rec.mean_plane_distance_m = (n_planes > 0).then(|| plane_sum / n_planes as f64);
             rec.mean_reprojection_error_px = (n > 0).then(|| sum / n as f64);
             total_err += sum;
             total_obs += n;

@@ -124,6 +124,23 @@ pub struct MapPoint {
     /// with a LiDAR plane in the latest solve. Such points are not removed
     /// for a small triangulation angle (the map fixes their depth).
     pub anchored: bool,
+    /// The LiDAR plane the point was tied to in the latest solve (world frame).
+    pub plane: Option<PointPlane>,
+}
+
+/// A point's plane: `normal . X = offset_m` in the world frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PointPlane {
+    pub family: crate::solver::PlaneFamily,
+    pub normal: Vector3<f64>,
+    pub offset_m: f64,
+}
+
+impl PointPlane {
+    /// Unsigned distance of `x` (world frame) to the plane, metres.
+    pub fn distance_m(&self, x: &Vector3<f64>) -> f64 {
+        (self.normal.dot(x) - self.offset_m).abs()
+    }
 }
 
 /// The reconstruction under construction.
@@ -251,6 +268,7 @@ impl MapState {
                 track: Vec::new(),
                 num_global_ba: 0,
                 anchored: false,
+                plane: None,
             },
         );
         for e in track {

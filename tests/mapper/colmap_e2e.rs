@@ -4,9 +4,15 @@
 //! Skipped loudly when `colmap` is not installed.
 use std::path::{Path, PathBuf};
 
+use std::collections::BTreeMap;
+
 use colmap_lidar::commands::map::{run as run_map, MapArgs};
 use colmap_lidar::eval::model_poses::load_poses;
 use colmap_lidar::eval::{evaluate, Alignment, EvaluationReport};
+use colmap_lidar::io::database::read_database;
+use colmap_lidar::io::model::read_model;
+use colmap_lidar::io::pose_ply::{read_pose_ply, write_pose_ply};
+use colmap_lidar::scene::{BodyPose, ImageId};
 use colmap_lidar::synth::colmap_harness::{make_database, HarnessOptions};
 use colmap_lidar::synth::generate::{generate_scene, image_name, read_init_pose, SynthOptions};
 use colmap_lidar::synth::scenes::SceneKind;
@@ -138,9 +144,48 @@ fn yard_with_colmap_database() {
         a.report["solves"].as_array().map(Vec::len),
         b.report["solves"].as_array().map(Vec::len)
     );
+    // pose.ply: the model's poses at full precision, line k = image id k.
+    let exported = read_pose_ply(&dir.path().join("a").join("pose.ply")).unwrap();
+    let model = read_model(&dir.path().join("a")).unwrap();
+    assert_eq!(
+        exported.len(),
+        model.images.values().filter(|i| i.is_registered()).count()
+    );
+    for (id, pose) in &exported {
+        let truth = model.images[id].cam_from_world.unwrap();
+        let back = pose.to_cam_from_world();
+        assert!((back.camera_center() - truth.camera_center()).norm() < 1e-9);
+        assert!(back.rotation.angle_to(&truth.rotation) < 1e-9);
+    }
+
+    // Known poses (the true ones, as a user's pose.ply) with the perturbed
+    // initial pose: soft priors in every solve.
+    let db = read_database(&scene.join("database.db")).unwrap();
+    let gt = load_poses(&scene.join("gt")).unwrap();
+    let known: BTreeMap<ImageId, BodyPose> = gt
+        .iter()
+        .map(|(name, pose)| {
+            (
+                db.image_by_name(name).unwrap().id,
+                BodyPose::from_cam_from_world(pose),
+            )
+        })
+        .collect();
+    let pose_file = dir.path().join("known_pose.ply");
+    write_pose_ply(&pose_file, &known).unwrap();
+    let (exact, perturbed) = read_init_pose(&scene.join("init_pose.txt")).unwrap();
+    let with_priors = map_scene(&scene, &dir.path().join("priors"), |args| {
+        args.pose_priors = Some(pose_file.clone());
+        args.init_pose = Some(perturbed.map(|v| v.to_string()).join(","));
+    });
+    print_run(
+        "yard, perturbed initial pose, true poses as priors",
+        &with_priors,
+    );
+    check_run(&with_priors);
+
     // Bad inputs on a real database: nothing written.
     let out = dir.path().join("bad");
-    let (exact, _) = read_init_pose(&scene.join("init_pose.txt")).unwrap();
     let base = MapArgs {
         database: Some(scene.join("database.db")),
         lidar: Some(scene.join("lidar.ply")),
@@ -169,6 +214,25 @@ fn yard_with_colmap_database() {
     assert!(
         format!("{err:#}").contains("sees no usable map point"),
         "{err:#}"
+    );
+    assert!(!out.exists());
+    // A pose file with a bad line: the file and the line are named.
+    let text = std::fs::read_to_string(&pose_file).unwrap();
+    let bad_pose_file = dir.path().join("bad_pose.ply");
+    std::fs::write(
+        &bad_pose_file,
+        text.replacen("end_header\n", "end_header\n1 2 x 4 5 6\n", 1),
+    )
+    .unwrap();
+    let err = run_map(&MapArgs {
+        pose_priors: Some(bad_pose_file.clone()),
+        ..base.clone()
+    })
+    .unwrap_err();
+    let msg = format!("{err:#}");
+    assert!(
+        msg.contains("bad_pose.ply") && msg.contains("line 13"),
+        "{msg}"
     );
     assert!(!out.exists());
     // The same through the binary.
