@@ -18,7 +18,10 @@ use crate::solver::{LossFunction, PlaneConstraint, PlaneFamily};
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum SolveKind {
+    /// Local BA, first pass (robust plane losses).
     Local,
+    /// Local BA, later passes (plain least squares on the planes).
+    LocalRefine,
     Global,
     Final,
 }
@@ -84,6 +87,12 @@ impl PlaneAssociator for NearestNeighbourAssociator<'_> {
 
     /// Huber with the scale `loss_scale_m` (metres) times the family's weight.
     fn losses(&self, kind: SolveKind) -> Vec<(PlaneFamily, LossFunction)> {
+        if kind == SolveKind::LocalRefine {
+            return vec![
+                (PlaneFamily::Nearest, LossFunction::Trivial),
+                (PlaneFamily::Ground, LossFunction::Trivial),
+            ];
+        }
         let w = self.options.weights(kind);
         let huber = |weight: f64| LossFunction::Huber {
             scale: (weight * w.loss_scale_m).max(1e-6),

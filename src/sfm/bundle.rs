@@ -306,7 +306,7 @@ pub fn bundle_adjust(
         plane_loss: LossFunction::Trivial,
         plane_family_losses: associator.losses(kind),
         max_iterations: match kind {
-            SolveKind::Local => options.local_max_iterations,
+            SolveKind::Local | SolveKind::LocalRefine => options.local_max_iterations,
             _ => options.global_max_iterations,
         },
         num_threads: options.num_threads,
@@ -326,7 +326,7 @@ pub fn bundle_adjust(
                 p.xyz = problem.points[i].position() + origin;
                 p.plane = plane_of_point.get(&(i as u32)).copied();
                 p.anchored = p.plane.is_some();
-                if kind != SolveKind::Local {
+                if matches!(kind, SolveKind::Global | SolveKind::Final) {
                     p.num_global_ba += 1;
                 }
             }

@@ -262,13 +262,7 @@ pub fn run_mapper_with_priors(
         refine_intrinsics: false,
         pose_priors: initial_prior.clone(),
     };
-    report.solves.push(bundle_adjust(
-        &mut state,
-        &config,
-        SolveKind::Local,
-        associator,
-        &options.bundle,
-    )?);
+    local_ba(&mut state, &config, associator, options, &mut report)?;
     filter_observations(&mut state, None, options.filter.max_reprojection_error_px);
     progress(state.num_registered(), state.images.len());
     stages.done("initialisation");
@@ -354,13 +348,7 @@ pub fn run_mapper_with_priors(
             refine_intrinsics: false,
             pose_priors: initial_prior.clone(),
         };
-        report.solves.push(bundle_adjust(
-            &mut state,
-            &config,
-            SolveKind::Local,
-            associator,
-            &options.bundle,
-        )?);
+        local_ba(&mut state, &config, associator, options, &mut report)?;
         filter_observations(
             &mut state,
             Some(&variable),
@@ -379,7 +367,18 @@ pub fn run_mapper_with_priors(
         let grown = state.num_registered() as f64
             >= last_global_size as f64 * (1.0 + options.bundle.global_growth_ratio);
         if since_global >= options.bundle.global_every_images || grown {
-            let fixed = fixed_for(&state);
+            // Sphere BA: images within `global_radius_m` of the newest one vary.
+            let mut fixed = fixed_for(&state);
+            if let Some(centre) = state.pose(image).map(|p| p.camera_center()) {
+                for &i in &state.registration_order {
+                    let far = state.pose(i).is_some_and(|p| {
+                        (p.camera_center() - centre).norm() > options.bundle.global_radius_m
+                    });
+                    if far {
+                        fixed.insert(i);
+                    }
+                }
+            }
             global_ba(
                 &mut state,
                 SolveKind::Global,
@@ -457,6 +456,33 @@ pub fn run_mapper_with_priors(
         reconstruction: state.to_reconstruction(),
         report,
     })
+}
+
+/// Local BA in `options.bundle.local_passes` passes, each after a
+/// re-association: the first with the robust plane losses, later ones with
+/// plain least squares on the planes (the gate has removed the far ones).
+fn local_ba(
+    state: &mut MapState,
+    config: &BundleConfig,
+    associator: &dyn PlaneAssociator,
+    options: &MapperOptions,
+    report: &mut MapReport,
+) -> Result<(), MapperError> {
+    for pass in 0..options.bundle.local_passes {
+        let kind = if pass == 0 {
+            SolveKind::Local
+        } else {
+            SolveKind::LocalRefine
+        };
+        report.solves.push(bundle_adjust(
+            state,
+            config,
+            kind,
+            associator,
+            &options.bundle,
+        )?);
+    }
+    Ok(())
 }
 
 /// Centres of the registered images in registration order.
