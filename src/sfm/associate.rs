@@ -10,9 +10,14 @@
 use nalgebra::Vector3;
 
 use super::options::AssociationOptions;
+use super::state::MapState;
+use crate::map::grid::FrustumGrid;
 use crate::map::index::MapIndex;
+use crate::map::projection::{project_map_at_pixels, ProjectionOptions};
 use crate::map::PointCloud;
+use crate::scene::{ImageId, Point3DId};
 use crate::solver::{LossFunction, PlaneConstraint, PlaneFamily};
+use std::collections::BTreeMap;
 
 /// Which solve the planes are for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
@@ -31,6 +36,7 @@ pub enum SolveKind {
 pub struct AssociationQuery {
     /// Index of the point in the solve's problem.
     pub point_idx: u32,
+    pub point_id: Point3DId,
     pub position_in_world: Vector3<f64>,
     /// Global BAs the point took part in.
     pub num_global_ba: u32,
@@ -41,7 +47,13 @@ pub struct AssociationQuery {
 pub trait PlaneAssociator {
     fn name(&self) -> &'static str;
     /// Planes for some of `queries` (at most one per point), in query order.
-    fn associate(&self, kind: SolveKind, queries: &[AssociationQuery]) -> Vec<PlaneConstraint>;
+    /// `state` gives the tracks and the current poses.
+    fn associate(
+        &self,
+        kind: SolveKind,
+        state: &MapState,
+        queries: &[AssociationQuery],
+    ) -> Vec<PlaneConstraint>;
     /// Robust loss per plane family this associator produces in a solve of `kind`.
     fn losses(&self, _kind: SolveKind) -> Vec<(PlaneFamily, LossFunction)> {
         Vec::new()
@@ -56,7 +68,12 @@ impl PlaneAssociator for NoAssociation {
         "none"
     }
 
-    fn associate(&self, _: SolveKind, _: &[AssociationQuery]) -> Vec<PlaneConstraint> {
+    fn associate(
+        &self,
+        _: SolveKind,
+        _: &MapState,
+        _: &[AssociationQuery],
+    ) -> Vec<PlaneConstraint> {
         Vec::new()
     }
 }
@@ -103,7 +120,56 @@ impl PlaneAssociator for NearestNeighbourAssociator<'_> {
         ]
     }
 
-    fn associate(&self, kind: SolveKind, queries: &[AssociationQuery]) -> Vec<PlaneConstraint> {
+    fn associate(
+        &self,
+        kind: SolveKind,
+        _state: &MapState,
+        queries: &[AssociationQuery],
+    ) -> Vec<PlaneConstraint> {
+        self.associate_points(kind, queries)
+    }
+}
+
+impl NearestNeighbourAssociator<'_> {
+    /// Offset of the plane with normal `normal` through the map around `at`:
+    /// the mean of `normal . l` over the `num_neighbours` nearest map points
+    /// within `min_radius_m` whose normals lie within
+    /// `same_plane_max_angle_deg` (averages the map's range noise).
+    pub fn mean_offset(&self, at: &Vector3<f64>, normal: &Vector3<f64>) -> f64 {
+        let cos_same = self.options.same_plane_max_angle_deg.to_radians().cos();
+        let normals = self.cloud.normals.as_ref();
+        let mut sum = 0.0;
+        let mut count = 0usize;
+        for nb in self.index.k_nearest_within(
+            at,
+            self.options.num_neighbours,
+            self.options.min_radius_m.max(0.2),
+        ) {
+            let i = nb.point_idx as usize;
+            let same = normals.is_some_and(|ns| {
+                let m = ns[i];
+                let m = Vector3::new(f64::from(m[0]), f64::from(m[1]), f64::from(m[2]));
+                m.try_normalize(1e-9)
+                    .is_some_and(|m| m.dot(normal) >= cos_same)
+            });
+            if same {
+                sum += normal.dot(&self.cloud.point_in_map(i));
+                count += 1;
+            }
+        }
+        if count == 0 {
+            normal.dot(at)
+        } else {
+            sum / count as f64
+        }
+    }
+
+    /// The nearest-neighbour planes of `queries` (needs no tracks or poses).
+    pub fn associate_points(
+        &self,
+        kind: SolveKind,
+        queries: &[AssociationQuery],
+    ) -> Vec<PlaneConstraint> {
         let weights = self.options.weights(kind);
         let Some(normals) = self.cloud.normals.as_ref() else {
             return Vec::new();
@@ -173,6 +239,118 @@ impl PlaneAssociator for NearestNeighbourAssociator<'_> {
     }
 }
 
+/// Projection associations for short tracks (method.md 4.6): for a point
+/// with at most `projection_max_track_len` observations, the map is
+/// projected into each registered image of its track and the LiDAR point
+/// splatted at the point's feature there is a candidate; the candidate whose
+/// offset `X - l` is most parallel to its plane (smallest |cos(n, X - l)|)
+/// wins, kept when `X` lies within `max_plane_distance_m` of that plane.
+/// Longer tracks (and short ones without a hit) use the nearest-neighbour
+/// association.
+pub struct ProjectionAssociator<'a> {
+    pub nearest: NearestNeighbourAssociator<'a>,
+    pub grid: &'a FrustumGrid,
+    pub projection: ProjectionOptions,
+}
+
+impl PlaneAssociator for ProjectionAssociator<'_> {
+    fn name(&self) -> &'static str {
+        "projection+nearest"
+    }
+
+    fn losses(&self, kind: SolveKind) -> Vec<(PlaneFamily, LossFunction)> {
+        let mut losses = self.nearest.losses(kind);
+        let w = self.nearest.options.weights(kind);
+        let loss = if kind == SolveKind::LocalRefine {
+            LossFunction::Trivial
+        } else {
+            LossFunction::Huber {
+                scale: (w.projection_weight * w.loss_scale_m).max(1e-6),
+            }
+        };
+        losses.push((PlaneFamily::Projection, loss));
+        losses
+    }
+
+    fn associate(
+        &self,
+        kind: SolveKind,
+        state: &MapState,
+        queries: &[AssociationQuery],
+    ) -> Vec<PlaneConstraint> {
+        let o = &self.nearest.options;
+        let weights = o.weights(kind);
+        // Feature pixels to look up, grouped by image (one projection each).
+        let mut per_image: BTreeMap<ImageId, Vec<(usize, nalgebra::Vector2<f64>)>> =
+            BTreeMap::new();
+        for (qi, q) in queries.iter().enumerate() {
+            if q.track_len > o.projection_max_track_len {
+                continue;
+            }
+            let Some(point) = state.points.get(&q.point_id) else {
+                continue;
+            };
+            for e in &point.track {
+                if state.pose(e.image_id).is_some() {
+                    per_image
+                        .entry(e.image_id)
+                        .or_default()
+                        .push((qi, state.keypoint(*e)));
+                }
+            }
+        }
+        // Best candidate per query: (|cos|, normal, offset).
+        let mut best: Vec<Option<(f64, Vector3<f64>, f64)>> = vec![None; queries.len()];
+        for (image, pixels) in &per_image {
+            let pose = state.pose(*image).expect("registered, checked above");
+            let query_px: Vec<nalgebra::Vector2<f64>> = pixels.iter().map(|(_, p)| *p).collect();
+            let Ok(hits) = project_map_at_pixels(
+                self.nearest.cloud,
+                self.grid,
+                state.camera_of(*image),
+                &pose,
+                &query_px,
+                &self.projection,
+            ) else {
+                continue;
+            };
+            for ((qi, _), hit) in pixels.iter().zip(hits) {
+                let Some(hit) = hit else { continue };
+                let Some(n) = hit.normal_in_map.and_then(|n| n.try_normalize(1e-9)) else {
+                    continue;
+                };
+                let x = queries[*qi].position_in_world;
+                let offset = x - hit.point_in_map;
+                let cos = offset.try_normalize(1e-12).map_or(0.0, |d| n.dot(&d).abs());
+                if best[*qi].as_ref().is_none_or(|(c, _, _)| cos < *c) {
+                    best[*qi] = Some((cos, n, self.nearest.mean_offset(&hit.point_in_map, &n)));
+                }
+            }
+        }
+        let mut planes = Vec::new();
+        let mut rest = Vec::new();
+        for (q, b) in queries.iter().zip(best) {
+            match b {
+                Some((_, n, offset_m))
+                    if (n.dot(&q.position_in_world) - offset_m).abs() <= o.max_plane_distance_m =>
+                {
+                    planes.push(PlaneConstraint {
+                        point_idx: q.point_idx,
+                        normal: [n.x, n.y, n.z],
+                        offset_m,
+                        weight: weights.projection_weight,
+                        family: PlaneFamily::Projection,
+                    });
+                }
+                _ => rest.push(*q),
+            }
+        }
+        planes.extend(self.nearest.associate_points(kind, &rest));
+        planes.sort_by_key(|p| p.point_idx);
+        planes
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -204,11 +382,12 @@ mod tests {
         assert_eq!(assoc.radius_m(100), 0.1);
         let q = |idx: u32, x: f64, y: f64, z: f64, k: u32| AssociationQuery {
             point_idx: idx,
+            point_id: Point3DId(u64::from(idx)),
             position_in_world: Vector3::new(100.0 + x, 200.0 + y, 10.0 + z),
             num_global_ba: k,
             track_len: 2,
         };
-        let planes = assoc.associate(
+        let planes = assoc.associate_points(
             SolveKind::Local,
             &[
                 q(0, 0.03, 0.02, 0.05, 0), // near the floor: kept
@@ -220,8 +399,5 @@ mod tests {
         assert_eq!(planes[0].point_idx, 0);
         assert_eq!(planes[0].family, PlaneFamily::Ground);
         assert!((planes[0].offset_m - 10.0).abs() < 1e-6);
-        assert!(NoAssociation
-            .associate(SolveKind::Global, &[q(0, 0.0, 0.0, 0.0, 0)])
-            .is_empty());
     }
 }

@@ -65,7 +65,10 @@ pub struct SolveRecord {
     pub final_cost: f64,
     pub iterations: usize,
     pub usable: bool,
+    /// Ceres time, seconds.
     pub time_s: f64,
+    /// Time of the association (projection and nearest-neighbour search), seconds.
+    pub association_time_s: f64,
 }
 
 /// Mean and median of unsigned distances.
@@ -225,6 +228,7 @@ pub fn bundle_adjust(
         }
         queries.push(AssociationQuery {
             point_idx: idx,
+            point_id: *pid,
             position_in_world: p.xyz,
             num_global_ba: p.num_global_ba,
             track_len: p.track.len(),
@@ -269,9 +273,12 @@ pub fn bundle_adjust(
             iterations: 0,
             usable: true,
             time_s: 0.0,
+            association_time_s: 0.0,
         });
     }
-    problem.planes = associator.associate(kind, &queries);
+    let association_start = std::time::Instant::now();
+    problem.planes = associator.associate(kind, state, &queries);
+    let association_time_s = association_start.elapsed().as_secs_f64();
     for plane in &mut problem.planes {
         plane.offset_m -= Vector3::from(plane.normal).dot(&origin);
     }
@@ -362,5 +369,6 @@ pub fn bundle_adjust(
         iterations: summary.num_iterations,
         usable: summary.usable,
         time_s: summary.time_s,
+        association_time_s,
     })
 }

@@ -13,7 +13,9 @@ use std::time::Instant;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::associate::{NearestNeighbourAssociator, NoAssociation, PlaneAssociator, SolveKind};
+use super::associate::{
+    NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
+};
 use super::bundle::{bundle_adjust, BundleConfig, SoftPosePrior};
 use super::filter::{filter_observations, filter_small_angle_points};
 use super::initialize::{initialize, InitError};
@@ -25,6 +27,7 @@ use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulat
 use crate::io::database::DatabaseSnapshot;
 use crate::map::grid::{FrustumGrid, GridError, GridOptions};
 use crate::map::index::{IndexError, MapIndex};
+use crate::map::projection::ProjectionOptions;
 use crate::map::PointCloud;
 use crate::scene::{ImageId, Point3DId, Reconstruction, Rigid3};
 use crate::solver::SolverError;
@@ -158,15 +161,29 @@ pub fn run_mapper_with_priors(
     log::info!("map: {} points", cloud.len());
     stages.done("map index");
     let nearest;
+    let projection;
+    let nearest_associator = || NearestNeighbourAssociator {
+        cloud,
+        index: &index,
+        options: options.association.clone(),
+    };
     let associator: &dyn PlaneAssociator = match options.association.kind {
         AssociationKind::None => &NoAssociation,
         AssociationKind::Nearest => {
-            nearest = NearestNeighbourAssociator {
-                cloud,
-                index: &index,
-                options: options.association.clone(),
-            };
+            nearest = nearest_associator();
             &nearest
+        }
+        AssociationKind::Projection => {
+            projection = ProjectionAssociator {
+                nearest: nearest_associator(),
+                grid: &grid,
+                projection: ProjectionOptions {
+                    min_depth_m: options.init.min_depth_m,
+                    max_depth_m: options.init.max_depth_m,
+                    ..Default::default()
+                },
+            };
+            &projection
         }
     };
 

@@ -346,6 +346,9 @@ pub enum AssociationKind {
     None,
     /// Nearest map point within a shrinking radius, its tangent plane.
     Nearest,
+    /// Short tracks: the map point seen at the feature (projection into the
+    /// track's images); longer tracks: nearest.
+    Projection,
 }
 
 /// LiDAR point-to-plane associations.
@@ -362,9 +365,14 @@ pub struct AssociationOptions {
     pub min_radius_m: f64,
     /// Largest point-to-plane distance of an association, metres. Default 0.2.
     pub max_plane_distance_m: f64,
-    /// Weight of a plane residual (pixel equivalents per metre: 1000 makes
-    /// 1 mm count like 1 px). Default 1000.
+    /// Weight of a nearest-neighbour plane residual (pixel equivalents per
+    /// metre: 1000 makes 1 mm count like 1 px). Default 1000.
     pub weight: f64,
+    /// Weight of a projection plane residual (kind `projection`). Default 10.
+    pub projection_weight: f64,
+    /// Tracks with at most this many observations use projection
+    /// associations (kind `projection`). Default 3.
+    pub projection_max_track_len: usize,
     /// Weight of a ground plane (normal within `ground_max_tilt_deg` of
     /// vertical). Default 1000.
     pub ground_weight: f64,
@@ -402,6 +410,8 @@ impl Default for AssociationOptions {
             min_radius_m: 0.1,
             max_plane_distance_m: 0.2,
             weight: 1000.0,
+            projection_weight: 10.0,
+            projection_max_track_len: 3,
             ground_weight: 1000.0,
             ground_max_tilt_deg: 5.7,
             loss_scale_m: 0.02,
@@ -417,6 +427,7 @@ impl Default for AssociationOptions {
 /// Weights and robust-loss scale of the plane terms of one solve.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PlaneWeights {
+    pub projection_weight: f64,
     pub weight: f64,
     pub ground_weight: f64,
     pub loss_scale_m: f64,
@@ -428,11 +439,13 @@ impl AssociationOptions {
         use crate::sfm::associate::SolveKind;
         match kind {
             SolveKind::Final => PlaneWeights {
+                projection_weight: self.final_weight,
                 weight: self.final_weight,
                 ground_weight: self.final_ground_weight,
                 loss_scale_m: self.final_loss_scale_m,
             },
             SolveKind::Local | SolveKind::LocalRefine | SolveKind::Global => PlaneWeights {
+                projection_weight: self.projection_weight,
                 weight: self.weight,
                 ground_weight: self.ground_weight,
                 loss_scale_m: self.loss_scale_m,
@@ -453,6 +466,7 @@ impl AssociationOptions {
             self.max_plane_distance_m,
         )?;
         non_negative("association.weight", self.weight)?;
+        non_negative("association.projection_weight", self.projection_weight)?;
         non_negative("association.ground_weight", self.ground_weight)?;
         check(
             (0.0..90.0).contains(&self.ground_max_tilt_deg),
