@@ -10,7 +10,8 @@
 # env:   COLMAP (default colmap), COLMAP_LIDAR (default: colmap-lidar on PATH,
 #        else target/release/colmap-lidar), NUM_THREADS for colmap mapper
 #        (default 2), INIT_IMAGE (default frame_0000.jpg), POSE (exact|perturbed,
-#        default exact), MAP_ARGS (extra arguments for colmap-lidar map).
+#        default exact), MAP_ARGS (extra arguments for colmap-lidar map),
+#        ABLATION (default 1: also run map --no-lidar-constraints).
 set -euo pipefail
 scene=${1:?usage: bench_map_vs_colmap.sh SCENE_DIR [OUT_DIR]}
 out=${2:-$(mktemp -d)}
@@ -59,5 +60,31 @@ if [ -d "$scene/gt" ] && "$tool" evaluate --help >/dev/null 2>&1; then
     echo "== evaluation of colmap mapper $m (Sim3 alignment)"
     "$tool" evaluate --model "$m" --reference "$scene/gt" --align sim3 || true
   done
+fi
+if [ -n "${ABLATION:-1}" ] && [ "${ABLATION:-1}" != 0 ]; then
+  echo "== ablation: colmap-lidar map --no-lidar-constraints (the map only initialises)"
+  # shellcheck disable=SC2086
+  "$tool" map --database "$db" --lidar "$scene/lidar.ply" --output "$out/ablation" \
+    --init-image "${INIT_IMAGE:-frame_0000.jpg}" --init-pose "$pose" --no-lidar-constraints ${MAP_ARGS:-} 2>"$out/ablation.log"
+  if [ -d "$scene/gt" ]; then
+    "$tool" evaluate --model "$out/ablation" --reference "$scene/gt" --align none || true
+  fi
+fi
+
+# Where the time of `map` goes (report.json: stages, Ceres and association time per solve kind).
+if command -v python3 >/dev/null; then
+  python3 - "$out/map/report.json" <<'PY'
+import json, sys
+r = json.load(open(sys.argv[1]))
+print("== where the time of colmap-lidar map goes")
+for s in r["stages"]:
+    print(f"  stage {s['name']:<28} {s['time_s']:7.2f} s")
+kinds = {}
+for s in r["solves"]:
+    k = kinds.setdefault(s["kind"], [0, 0.0, 0.0])
+    k[0] += 1; k[1] += s["time_s"]; k[2] += s.get("association_time_s", 0.0)
+for kind, (n, ceres, assoc) in kinds.items():
+    print(f"  {kind:<13} solves {n:4d}: Ceres {ceres:7.2f} s, association {assoc:6.2f} s")
+PY
 fi
 echo "outputs in $out"

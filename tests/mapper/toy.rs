@@ -11,7 +11,7 @@ use colmap_lidar::map::PointCloud;
 use colmap_lidar::scene::BodyPose;
 use colmap_lidar::scene::{Camera, CameraId, CameraModel, ImageId, Rigid3};
 use colmap_lidar::sfm::options::AssociationKind;
-use colmap_lidar::sfm::{run_mapper, MapperOptions};
+use colmap_lidar::sfm::{run_mapper, run_mapper_with_priors, KnownPose, MapperOptions};
 use nalgebra::{Vector2, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -623,4 +623,108 @@ fn options_file_and_command_line_merge() {
     // Missing required paths.
     let err = format!("{:#}", MapArgs::default().config().unwrap_err());
     assert!(err.contains("--database"), "{err}");
+}
+
+#[test]
+fn toy_room_projection_associations_and_report() {
+    let scene = toy(14, 0.3, 0.03, 4);
+    let mut options = MapperOptions::default();
+    options.association.kind = AssociationKind::Projection;
+    let init = scene.init_pose.to_cam_from_world();
+    let out = run_mapper(
+        &scene.db,
+        &scene.cloud,
+        ImageId(1),
+        &init,
+        &options,
+        &mut |_, _| {},
+    )
+    .unwrap();
+    let err = max_centre_error(&out.reconstruction, &scene.gt);
+    eprintln!("toy room, projection associations: max centre error {err:.4} m");
+    assert_eq!(out.report.num_registered, 14);
+    assert!(err < 0.03, "max centre error {err} m");
+    let report = &out.report;
+    assert_eq!(report.association, "projection+nearest");
+    // Every solve's planes add up by kind; short tracks got projection planes.
+    for s in &report.solves {
+        assert_eq!(
+            s.num_planes,
+            s.num_projection_planes + s.num_nearest_planes + s.num_ground_planes
+        );
+        assert!(s.plane_distance_before_m.median <= s.plane_distance_before_m.mean * 10.0 + 1e-12);
+    }
+    assert!(report.solves.iter().any(|s| s.num_projection_planes > 0));
+    // The last solve leaves the points on their planes (the toy map is exact)
+    // and the reprojection error near the keypoint noise.
+    let last = report.solves.last().unwrap();
+    assert!(last.plane_distance_after_m.median < 0.01, "{last:?}");
+    assert!(last.reprojection_after_px.mean < 0.7, "{last:?}");
+    assert!(last.reprojection_after_px.count > 1000);
+    // Per image: association counts and the mean distance of its points.
+    for rec in report.images.iter().filter(|r| r.registered) {
+        let tied = rec.num_projection_planes + rec.num_nearest_planes + rec.num_ground_planes;
+        assert!(tied > 0 && tied <= rec.num_observations, "{rec:?}");
+        assert!(rec.mean_plane_distance_m.unwrap() < 0.02, "{rec:?}");
+    }
+}
+
+#[test]
+fn toy_room_image_with_too_few_matches_is_placed_at_its_known_pose() {
+    let mut scene = toy(14, 0.3, 0.0, 5);
+    // Image 9 keeps 8 matches per pair: too few for PnP (30 inliers).
+    let lonely = ImageId(9);
+    for g in &mut scene.db.two_view_geometries {
+        if g.image_id1 == lonely || g.image_id2 == lonely {
+            g.inlier_matches.truncate(8);
+        }
+    }
+    let options = MapperOptions::default();
+    let init = scene.init_pose.to_cam_from_world();
+    let without = run_mapper(
+        &scene.db,
+        &scene.cloud,
+        ImageId(1),
+        &init,
+        &options,
+        &mut |_, _| {},
+    )
+    .unwrap();
+    assert!(!without.reconstruction.images[&lonely].is_registered());
+    // Its true pose, 5 cm and 1 deg off, as a known pose.
+    let truth = scene.gt[&lonely];
+    let mut body = BodyPose::from_cam_from_world(&truth);
+    body.position_m += Vector3::new(0.05, 0.0, 0.0);
+    body.yaw_rad += 1f64.to_radians();
+    let known = BTreeMap::from([(
+        lonely,
+        KnownPose {
+            cam_from_world: body.to_cam_from_world(),
+            has_rotation: true,
+        },
+    )]);
+    let out = run_mapper_with_priors(
+        &scene.db,
+        &scene.cloud,
+        ImageId(1),
+        &init,
+        &known,
+        &options,
+        &mut |_, _| {},
+    )
+    .unwrap();
+    let rec = out
+        .report
+        .images
+        .iter()
+        .find(|r| r.image_id == lonely.0)
+        .unwrap();
+    assert!(rec.registered && rec.placed_by_prior, "{rec:?}");
+    let placed = out.reconstruction.images[&lonely].cam_from_world.unwrap();
+    let centre_error = (placed.camera_center() - truth.camera_center()).norm();
+    // The prior (weight 100 per metre) and its 8-match observations pull it
+    // back towards the truth; it must not stay worse than the prior.
+    assert!(centre_error <= 0.05 + 1e-3, "centre error {centre_error} m");
+    // The other images are unaffected.
+    assert_eq!(out.report.num_registered, 14);
 }
