@@ -380,9 +380,7 @@ fn map_one() {
 #[ignore]
 fn plane_bias() {
     use colmap_lidar::map::index::MapIndex;
-    use colmap_lidar::sfm::associate::{
-        AssociationQuery, NearestNeighbourAssociator, PlaneAssociator, SolveKind,
-    };
+    use colmap_lidar::sfm::associate::{AssociationQuery, NearestNeighbourAssociator, SolveKind};
     use nalgebra::{Matrix6, Vector3, Vector6};
     let (Some(scene), Some(out)) = (
         std::env::var_os("MAPPER_SCENE"),
@@ -405,12 +403,13 @@ fn plane_bias() {
         .enumerate()
         .map(|(i, p)| AssociationQuery {
             point_idx: i as u32,
+            point_id: colmap_lidar::scene::Point3DId(i as u64),
             position_in_world: *p,
             num_global_ba: 10,
             track_len: 2,
         })
         .collect();
-    let planes = assoc.associate(SolveKind::Final, &queries);
+    let planes = assoc.associate_points(SolveKind::Final, &queries);
     let c = pts.iter().sum::<Vector3<f64>>() / pts.len() as f64;
     let mut a = Matrix6::<f64>::zeros();
     let mut b = Vector6::<f64>::zeros();
