@@ -20,7 +20,9 @@ use super::bundle::{bundle_adjust, BundleConfig, SoftPosePrior};
 use super::filter::{filter_observations, filter_small_angle_points};
 use super::initialize::{initialize, InitError};
 use super::options::{AssociationKind, MapperOptions, OptionsError};
-use super::register::{next_best_images, register_image, PoseOutcome, RegistrationOutcome};
+use super::register::{
+    next_best_images, register_at_known_pose, register_image, PoseOutcome, RegistrationOutcome,
+};
 use super::report::{ImageRecord, MapReport, StageRecord};
 use super::state::MapState;
 use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulate_image};
@@ -419,9 +421,12 @@ pub fn run_mapper_with_priors(
         if img.is_registered() || !known.has_rotation {
             continue;
         }
-        state.register(image, known.cam_from_world);
+        let added =
+            register_at_known_pose(&mut state, image, &known.cam_from_world, &options.register);
         let stats = triangulate_image(&mut state, image, &options.triangulate);
-        log::info!("image {image} placed at its known pose ({stats:?})");
+        log::info!(
+            "image {image} placed at its known pose ({added} observations of existing points, {stats:?})"
+        );
         if let Some(rec) = report.record_mut(image) {
             rec.placed_by_prior = true;
         }

@@ -202,6 +202,68 @@ pub fn register_image(
     }
 }
 
+/// Places `image` at a known pose that PnP could not find: the pose is
+/// refined from there against its 2D-3D correspondences (robust, Huber at
+/// `max_error_px`) when at least 6 of them agree with the refined pose within
+/// `max_error_px`, and those become observations. Returns the number of
+/// observations added (0: the image stays at the known pose as given).
+pub fn register_at_known_pose(
+    state: &mut MapState,
+    image: ImageId,
+    known_cam_from_world: &Rigid3,
+    options: &RegisterOptions,
+) -> usize {
+    let corrs = correspondences_2d3d(state, image);
+    let img = &state.images[&image];
+    let pixels: Vec<Vector2<f64>> = corrs
+        .iter()
+        .map(|(k, _)| img.keypoints[*k as usize])
+        .collect();
+    let points: Vec<Vector3<f64>> = corrs.iter().map(|(_, p)| state.points[p].xyz).collect();
+    let camera = state.camera_of(image).clone();
+    let max_sq = options.max_error_px * options.max_error_px;
+    let inliers_of = |pose: &Rigid3| -> Vec<usize> {
+        (0..corrs.len())
+            .filter(|&i| {
+                super::geometry::reprojection_error_sq(&camera, pose, &points[i], &pixels[i])
+                    .is_some_and(|e2| e2 <= max_sq)
+            })
+            .collect()
+    };
+    let mut pose = *known_cam_from_world;
+    let mut inliers = Vec::new();
+    if corrs.len() >= 6 {
+        let refined = super::geometry::refine_pose(
+            &camera,
+            known_cam_from_world,
+            &pixels,
+            &points,
+            options.max_error_px,
+            100,
+        );
+        let refined_inliers = inliers_of(&refined);
+        if refined_inliers.len() >= 6 {
+            pose = refined;
+            inliers = refined_inliers;
+        }
+    }
+    state.register(image, pose);
+    let mut added = 0;
+    for i in inliers {
+        let (k, p) = corrs[i];
+        if state.add_observation(
+            p,
+            TrackElement {
+                image_id: image,
+                point2d_idx: k,
+            },
+        ) {
+            added += 1;
+        }
+    }
+    added
+}
+
 /// Unregistered images ranked for registration: visibility-pyramid score,
 /// then number of visible points, then id. Images that failed are left out
 /// until they see `retry_min_new_points` more points than at their failure

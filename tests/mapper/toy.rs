@@ -672,14 +672,18 @@ fn toy_room_projection_associations_and_report() {
 #[test]
 fn toy_room_image_with_too_few_matches_is_placed_at_its_known_pose() {
     let mut scene = toy(14, 0.3, 0.0, 5);
-    // Image 9 keeps 8 matches per pair: too few for PnP (30 inliers).
+    // Image 9 keeps 20 matches per pair: too few for PnP (30 inliers).
     let lonely = ImageId(9);
     for g in &mut scene.db.two_view_geometries {
         if g.image_id1 == lonely || g.image_id2 == lonely {
-            g.inlier_matches.truncate(8);
+            g.inlier_matches.truncate(20);
         }
     }
-    let options = MapperOptions::default();
+    // Weak priors (10 px-equivalents per metre, 1 per degree): the image's
+    // own matches decide where it ends up.
+    let mut options = MapperOptions::default();
+    options.bundle.prior_position_weight = 10.0;
+    options.bundle.prior_rotation_weight = 1.0;
     let init = scene.init_pose.to_cam_from_world();
     let without = run_mapper(
         &scene.db,
@@ -690,7 +694,11 @@ fn toy_room_image_with_too_few_matches_is_placed_at_its_known_pose() {
         &mut |_, _| {},
     )
     .unwrap();
-    assert!(!without.reconstruction.images[&lonely].is_registered());
+    assert!(without
+        .reconstruction
+        .images
+        .get(&lonely)
+        .is_none_or(|i| !i.is_registered()));
     // Its true pose, 5 cm and 1 deg off, as a known pose.
     let truth = scene.gt[&lonely];
     let mut body = BodyPose::from_cam_from_world(&truth);
@@ -722,9 +730,12 @@ fn toy_room_image_with_too_few_matches_is_placed_at_its_known_pose() {
     assert!(rec.registered && rec.placed_by_prior, "{rec:?}");
     let placed = out.reconstruction.images[&lonely].cam_from_world.unwrap();
     let centre_error = (placed.camera_center() - truth.camera_center()).norm();
-    // The prior (weight 100 per metre) and its 8-match observations pull it
-    // back towards the truth; it must not stay worse than the prior.
-    assert!(centre_error <= 0.05 + 1e-3, "centre error {centre_error} m");
+    // Refined from the known pose against its few 2D-3D matches (the
+    // prior alone would leave it 5 cm off).
+    assert!(
+        centre_error < 0.02,
+        "centre error {centre_error} m, {rec:?}"
+    );
     // The other images are unaffected.
     assert_eq!(out.report.num_registered, 14);
 }
