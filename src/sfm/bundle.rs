@@ -79,19 +79,14 @@ pub struct DistanceStats {
 }
 
 impl DistanceStats {
-    fn of(mut values: Vec<f64>) -> Self {
-        if values.is_empty() {
+    fn of(values: Vec<f64>) -> Self {
+        let Some(stats) = crate::eval::Stats::of(&values) else {
             return Self::default();
-        }
-        let mean = values.iter().sum::<f64>() / values.len() as f64;
-        values.sort_by(f64::total_cmp);
-        let n = values.len();
-        let median = if n % 2 == 1 {
-            values[n / 2]
-        } else {
-            0.5 * (values[n / 2 - 1] + values[n / 2])
         };
-        Self { mean, median }
+        Self {
+            mean: values.iter().sum::<f64>() / values.len() as f64,
+            median: stats.median,
+        }
     }
 }
 

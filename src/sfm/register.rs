@@ -162,13 +162,7 @@ pub fn register_image(
     options: &RegisterOptions,
     rng: &mut ChaCha8Rng,
 ) -> RegistrationOutcome {
-    let corrs = correspondences_2d3d(state, image);
-    let img = &state.images[&image];
-    let pixels: Vec<Vector2<f64>> = corrs
-        .iter()
-        .map(|(k, _)| img.keypoints[*k as usize])
-        .collect();
-    let points: Vec<Vector3<f64>> = corrs.iter().map(|(_, p)| state.points[p].xyz).collect();
+    let (corrs, pixels, points) = correspondence_arrays(state, image);
     let camera = state.camera_of(image).clone();
     match estimate_pose(&camera, &pixels, &points, options, rng) {
         PoseOutcome::Found {
@@ -176,19 +170,7 @@ pub fn register_image(
             inliers,
         } => {
             state.register(image, cam_from_world);
-            let mut added = 0;
-            for i in &inliers {
-                let (k, p) = corrs[*i];
-                if state.add_observation(
-                    p,
-                    TrackElement {
-                        image_id: image,
-                        point2d_idx: k,
-                    },
-                ) {
-                    added += 1;
-                }
-            }
+            let added = add_observations(state, image, &corrs, &inliers);
             log::debug!(
                 "image {image}: {} inliers, {added} observations added",
                 inliers.len()
@@ -213,13 +195,7 @@ pub fn register_at_known_pose(
     known_cam_from_world: &Rigid3,
     options: &RegisterOptions,
 ) -> usize {
-    let corrs = correspondences_2d3d(state, image);
-    let img = &state.images[&image];
-    let pixels: Vec<Vector2<f64>> = corrs
-        .iter()
-        .map(|(k, _)| img.keypoints[*k as usize])
-        .collect();
-    let points: Vec<Vector3<f64>> = corrs.iter().map(|(_, p)| state.points[p].xyz).collect();
+    let (corrs, pixels, points) = correspondence_arrays(state, image);
     let camera = state.camera_of(image).clone();
     let max_sq = options.max_error_px * options.max_error_px;
     let inliers_of = |pose: &Rigid3| -> Vec<usize> {
@@ -248,8 +224,35 @@ pub fn register_at_known_pose(
         }
     }
     state.register(image, pose);
+    add_observations(state, image, &corrs, &inliers)
+}
+
+/// The 2D-3D correspondences of `image` with their pixels and 3D points.
+#[allow(clippy::type_complexity)]
+fn correspondence_arrays(
+    state: &MapState,
+    image: ImageId,
+) -> (Vec<(u32, Point3DId)>, Vec<Vector2<f64>>, Vec<Vector3<f64>>) {
+    let corrs = correspondences_2d3d(state, image);
+    let img = &state.images[&image];
+    let pixels = corrs
+        .iter()
+        .map(|(k, _)| img.keypoints[*k as usize])
+        .collect();
+    let points = corrs.iter().map(|(_, p)| state.points[p].xyz).collect();
+    (corrs, pixels, points)
+}
+
+/// Adds the correspondences `inliers` of the registered `image` to the
+/// tracks of their points; returns how many were added.
+fn add_observations(
+    state: &mut MapState,
+    image: ImageId,
+    corrs: &[(u32, Point3DId)],
+    inliers: &[usize],
+) -> usize {
     let mut added = 0;
-    for i in inliers {
+    for &i in inliers {
         let (k, p) = corrs[i];
         if state.add_observation(
             p,

@@ -210,22 +210,29 @@ fn max_centre_error(
         .fold(0.0, f64::max)
 }
 
-#[test]
-fn toy_room_registers_in_the_map_frame() {
-    let scene = toy(14, 0.3, 0.03, 1);
-    let options = MapperOptions::default();
+/// Runs the mapper on a toy from image 1 at its initial pose; the output
+/// and the largest camera-centre error.
+fn map_toy(scene: &Toy, options: &MapperOptions) -> (colmap_lidar::sfm::MapperOutput, f64) {
     let init = scene.init_pose.to_cam_from_world();
     let out = run_mapper(
         &scene.db,
         &scene.cloud,
         ImageId(1),
         &init,
-        &options,
+        options,
         &mut |_, _| {},
     )
     .unwrap();
+    let err = max_centre_error(&out.reconstruction, &scene.gt);
+    (out, err)
+}
+
+#[test]
+fn toy_room_registers_in_the_map_frame() {
+    let scene = toy(14, 0.3, 0.03, 1);
+    let options = MapperOptions::default();
+    let (out, err) = map_toy(&scene, &options);
     let rec = &out.reconstruction;
-    let err = max_centre_error(rec, &scene.gt);
     eprintln!(
         "toy room: {}/{} registered, {} points, mean reprojection {:.3} px, max centre error {:.4} m",
         out.report.num_registered,
@@ -261,17 +268,7 @@ fn toy_room_without_lidar_terms_keeps_the_initial_frame() {
     let scene = toy(10, 0.3, 0.0, 2);
     let mut options = MapperOptions::default();
     options.association.kind = AssociationKind::None;
-    let init = scene.init_pose.to_cam_from_world();
-    let out = run_mapper(
-        &scene.db,
-        &scene.cloud,
-        ImageId(1),
-        &init,
-        &options,
-        &mut |_, _| {},
-    )
-    .unwrap();
-    let err = max_centre_error(&out.reconstruction, &scene.gt);
+    let (out, err) = map_toy(&scene, &options);
     eprintln!(
         "toy room, no LiDAR terms: {}/{} registered, max centre error {err:.4} m",
         out.report.num_registered, out.report.num_images
@@ -630,17 +627,7 @@ fn toy_room_projection_associations_and_report() {
     let scene = toy(14, 0.3, 0.03, 4);
     let mut options = MapperOptions::default();
     options.association.kind = AssociationKind::Projection;
-    let init = scene.init_pose.to_cam_from_world();
-    let out = run_mapper(
-        &scene.db,
-        &scene.cloud,
-        ImageId(1),
-        &init,
-        &options,
-        &mut |_, _| {},
-    )
-    .unwrap();
-    let err = max_centre_error(&out.reconstruction, &scene.gt);
+    let (out, err) = map_toy(&scene, &options);
     eprintln!("toy room, projection associations: max centre error {err:.4} m");
     assert_eq!(out.report.num_registered, 14);
     assert!(err < 0.03, "max centre error {err} m");
