@@ -4,7 +4,8 @@
 //! twin is `scripts/make_database.sh`.
 use std::fs;
 use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
 
 use super::SynthError;
 
@@ -57,22 +58,71 @@ fn read_true_camera(cameras_txt: &Path) -> Result<(String, String), SynthError> 
     Ok((fields[1].to_string(), fields[4..].join(",")))
 }
 
+/// How long a COLMAP step may linger after printing its final "Elapsed time"
+/// line before it is taken as hung at shutdown and killed.
+const SHUTDOWN_GRACE: Duration = Duration::from_secs(20);
+
+/// Runs one COLMAP step. COLMAP 3.8's matchers can deadlock in their
+/// destructor after all work is written (seen: `exhaustive_matcher` joining a
+/// geometry-verifier thread that waits on an already-stopped job queue, all
+/// 276 pairs in the database): once the step has printed its final
+/// "Elapsed time" line and still runs `SHUTDOWN_GRACE` later, it is killed
+/// and the step counts as done.
 fn run(colmap: &Path, step: &str, args: &[String]) -> Result<(), SynthError> {
+    run_with_grace(colmap, step, args, SHUTDOWN_GRACE)
+}
+
+fn run_with_grace(
+    colmap: &Path,
+    step: &str,
+    args: &[String],
+    grace: Duration,
+) -> Result<(), SynthError> {
     log::info!("running colmap {step}");
-    let out = Command::new(colmap)
+    let log_file = tempfile::NamedTempFile::new().map_err(|e| SynthError::io(Path::new("."), e))?;
+    let log_path = log_file.path().to_path_buf();
+    let out_handle = log_file
+        .reopen()
+        .map_err(|e| SynthError::io(&log_path, e))?;
+    let err_handle = log_file
+        .reopen()
+        .map_err(|e| SynthError::io(&log_path, e))?;
+    let mut child = Command::new(colmap)
         .arg(step)
         .args(args)
         .env("QT_QPA_PLATFORM", "offscreen")
-        .output()
+        .stdout(Stdio::from(out_handle))
+        .stderr(Stdio::from(err_handle))
+        .spawn()
         .map_err(|e| SynthError::ColmapNotFound(format!("{}: {e}", colmap.display())))?;
-    if !out.status.success() {
-        let mut text = String::from_utf8_lossy(&out.stdout).into_owned();
-        text.push_str(&String::from_utf8_lossy(&out.stderr));
+    let mut finished_at: Option<Instant> = None;
+    let status = loop {
+        if let Some(status) = child.try_wait().map_err(|e| SynthError::io(colmap, e))? {
+            break Some(status);
+        }
+        if finished_at.is_none()
+            && fs::read_to_string(&log_path).is_ok_and(|t| t.contains("Elapsed time"))
+        {
+            finished_at = Some(Instant::now());
+        }
+        if finished_at.is_some_and(|t| t.elapsed() > grace) {
+            log::warn!(
+                "colmap {step} finished its work but did not exit within {:.0} s (a known shutdown hang of COLMAP 3.8); killed it",
+                grace.as_secs_f64()
+            );
+            let _ = child.kill();
+            let _ = child.wait();
+            break None;
+        }
+        std::thread::sleep(Duration::from_millis(250));
+    };
+    if let Some(status) = status.filter(|s| !s.success()) {
+        let text = fs::read_to_string(&log_path).unwrap_or_default();
         let lines: Vec<&str> = text.lines().collect();
         let tail = lines[lines.len().saturating_sub(25)..].join("\n");
         return Err(SynthError::ColmapFailed {
             step: step.to_string(),
-            status: out.status.to_string(),
+            status: status.to_string(),
             output_tail: tail,
         });
     }
@@ -136,4 +186,50 @@ pub fn make_database(scene_dir: &Path, opts: &HarnessOptions) -> Result<PathBuf,
     ];
     run(&opts.colmap, "exhaustive_matcher", &args)?;
     Ok(db)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::os::unix::fs::PermissionsExt;
+
+    /// A stand-in for `colmap` running `body` (a shell script).
+    fn fake_colmap(dir: &Path, body: &str) -> PathBuf {
+        let path = dir.join("colmap");
+        fs::write(&path, format!("#!/bin/sh\n{body}\n")).unwrap();
+        fs::set_permissions(&path, fs::Permissions::from_mode(0o755)).unwrap();
+        path
+    }
+
+    #[test]
+    fn a_step_hung_after_its_final_line_is_killed_and_counts_as_done() {
+        let dir = tempfile::tempdir().unwrap();
+        let hung = fake_colmap(
+            dir.path(),
+            "echo 'Elapsed time: 0.1 [minutes]'; exec sleep 600",
+        );
+        let start = Instant::now();
+        run_with_grace(&hung, "exhaustive_matcher", &[], Duration::from_millis(500)).unwrap();
+        assert!(start.elapsed() < Duration::from_secs(30));
+    }
+
+    #[test]
+    fn a_failing_step_reports_its_output() {
+        let dir = tempfile::tempdir().unwrap();
+        let failing = fake_colmap(dir.path(), "echo 'no such database' >&2; exit 3");
+        let err = run_with_grace(
+            &failing,
+            "feature_extractor",
+            &[],
+            Duration::from_millis(500),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains("feature_extractor") && err.contains("no such database"),
+            "{err}"
+        );
+        let ok = fake_colmap(dir.path(), "echo 'Elapsed time: 0 [minutes]'");
+        run_with_grace(&ok, "feature_extractor", &[], Duration::from_millis(500)).unwrap();
+    }
 }
