@@ -383,8 +383,9 @@ pub fn run_mapper_with_priors(
             complete_and_merge_point(&mut state, p, &options.triangulate);
         }
         since_global += 1;
-        let grown = state.num_registered() as f64
-            >= last_global_size as f64 * (1.0 + options.bundle.global_growth_ratio);
+        let grown = state.num_registered() < options.bundle.global_growth_until_images
+            && state.num_registered() as f64
+                >= last_global_size as f64 * (1.0 + options.bundle.global_growth_ratio);
         if since_global >= options.bundle.global_every_images || grown {
             // Sphere BA: images within `global_radius_m` of the newest one vary.
             let mut fixed = fixed_for(&state);
