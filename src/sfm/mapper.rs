@@ -244,7 +244,7 @@ pub fn run_mapper_with_priors(
         }
     };
     let b = &options.bundle;
-    let mut initial_prior: Vec<SoftPosePrior> =
+    let mut pose_priors: Vec<SoftPosePrior> =
         if lidar_gauge && b.initial_prior_position_m > 0.0 && b.initial_prior_rotation_deg > 0.0 {
             vec![SoftPosePrior {
                 image: init_image,
@@ -261,7 +261,7 @@ pub fn run_mapper_with_priors(
             continue;
         }
         if b.prior_position_weight > 0.0 || b.prior_rotation_weight > 0.0 {
-            initial_prior.push(SoftPosePrior {
+            pose_priors.push(SoftPosePrior {
                 image,
                 cam_from_world: known.cam_from_world,
                 position_weight: b.prior_position_weight,
@@ -279,7 +279,7 @@ pub fn run_mapper_with_priors(
         variable_images: BTreeSet::from([init_image, second]),
         fixed_images: fixed_for(&state),
         refine_intrinsics: false,
-        pose_priors: initial_prior.clone(),
+        pose_priors: pose_priors.clone(),
     };
     local_ba(&mut state, &config, associator, options, &mut report)?;
     filter_observations(&mut state, None, options.filter.max_reprojection_error_px);
@@ -365,7 +365,7 @@ pub fn run_mapper_with_priors(
             variable_images: variable.clone(),
             fixed_images: fixed_for(&state),
             refine_intrinsics: false,
-            pose_priors: initial_prior.clone(),
+            pose_priors: pose_priors.clone(),
         };
         local_ba(&mut state, &config, associator, options, &mut report)?;
         filter_observations(
@@ -403,7 +403,7 @@ pub fn run_mapper_with_priors(
                 &mut state,
                 SolveKind::Global,
                 &fixed,
-                &initial_prior,
+                &pose_priors,
                 associator,
                 options,
                 &mut report,
@@ -446,7 +446,7 @@ pub fn run_mapper_with_priors(
             &mut state,
             SolveKind::Final,
             &fixed,
-            &initial_prior,
+            &pose_priors,
             associator,
             options,
             &mut report,
