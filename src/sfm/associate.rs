@@ -131,37 +131,40 @@ impl PlaneAssociator for NearestNeighbourAssociator<'_> {
 }
 
 impl NearestNeighbourAssociator<'_> {
-    /// Offset of the plane with normal `normal` through the map around `at`:
-    /// the mean of `normal . l` over the `num_neighbours` nearest map points
-    /// within `min_radius_m` whose normals lie within
-    /// `same_plane_max_angle_deg` (averages the map's range noise).
+    /// Offset of the plane with normal `normal` through the map around `at`
+    /// (see [`Self::plane_offset`]; the point's own offset when no neighbour
+    /// qualifies).
     pub fn mean_offset(&self, at: &Vector3<f64>, normal: &Vector3<f64>) -> f64 {
-        let cos_same = self.options.same_plane_max_angle_deg.to_radians().cos();
-        let normals = self.cloud.normals.as_ref();
-        let mut sum = 0.0;
-        let mut count = 0usize;
-        for nb in self.index.k_nearest_within(
+        let neighbours = self.index.k_nearest_within(
             at,
             self.options.num_neighbours,
             self.options.min_radius_m.max(0.2),
-        ) {
-            let i = nb.point_idx as usize;
-            let same = normals.is_some_and(|ns| {
-                let m = ns[i];
-                let m = Vector3::new(f64::from(m[0]), f64::from(m[1]), f64::from(m[2]));
-                m.try_normalize(1e-9)
-                    .is_some_and(|m| m.dot(normal) >= cos_same)
-            });
+        );
+        let indices: Vec<usize> = neighbours.iter().map(|nb| nb.point_idx as usize).collect();
+        self.plane_offset(normal, &indices)
+            .unwrap_or_else(|| normal.dot(at))
+    }
+
+    /// Offset `d` of the plane `normal . X = d` through the map points
+    /// `indices`: the mean of `normal . l` over those whose normals lie within
+    /// `same_plane_max_angle_deg` (averages the map's range noise); `None`
+    /// when none does.
+    pub fn plane_offset(&self, normal: &Vector3<f64>, indices: &[usize]) -> Option<f64> {
+        let cos_same = self.options.same_plane_max_angle_deg.to_radians().cos();
+        let normals = self.cloud.normals.as_ref()?;
+        let mut sum = 0.0;
+        let mut count = 0usize;
+        for &i in indices {
+            let m = normals[i];
+            let same = Vector3::new(f64::from(m[0]), f64::from(m[1]), f64::from(m[2]))
+                .try_normalize(1e-9)
+                .is_some_and(|m| m.dot(normal) >= cos_same);
             if same {
                 sum += normal.dot(&self.cloud.point_in_map(i));
                 count += 1;
             }
         }
-        if count == 0 {
-            normal.dot(at)
-        } else {
-            sum / count as f64
-        }
+        (count > 0).then(|| sum / count as f64)
     }
 
     /// The nearest-neighbour planes of `queries` (needs no tracks or poses).
@@ -179,7 +182,6 @@ impl NearestNeighbourAssociator<'_> {
             Vector3::new(f64::from(n[0]), f64::from(n[1]), f64::from(n[2])).try_normalize(1e-9)
         };
         let cos_ground = self.options.ground_max_tilt_deg.to_radians().cos();
-        let cos_same = self.options.same_plane_max_angle_deg.to_radians().cos();
         let mut planes = Vec::new();
         for q in queries {
             let radius = self.radius_m(q.num_global_ba);
@@ -199,22 +201,10 @@ impl NearestNeighbourAssociator<'_> {
                 }
             }
             let Some((_, normal)) = best else { continue };
-            // Plane offset: the mean over the neighbours on the same plane
-            // (normals within `same_plane_max_angle_deg`), which averages the
-            // map's range noise.
-            let mut sum = 0.0;
-            let mut count = 0usize;
-            for nb in &neighbours {
-                let i = nb.point_idx as usize;
-                if normal_of(i).is_some_and(|n| n.dot(&normal) >= cos_same) {
-                    sum += normal.dot(&self.cloud.point_in_map(i));
-                    count += 1;
-                }
-            }
-            if count == 0 {
+            let indices: Vec<usize> = neighbours.iter().map(|nb| nb.point_idx as usize).collect();
+            let Some(offset_m) = self.plane_offset(&normal, &indices) else {
                 continue;
-            }
-            let offset_m = sum / count as f64;
+            };
             if (normal.dot(&x) - offset_m).abs() > self.options.max_plane_distance_m {
                 continue;
             }
