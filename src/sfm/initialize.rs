@@ -191,7 +191,7 @@ pub fn initialize(
             .collect();
         let points: Vec<_> = pairs.iter().map(|(k1, _)| lidar[k1]).collect();
         let camera = state.camera_of(other).clone();
-        let outcome = estimate_pose(&camera, &pixels, &points, register, rng);
+        let outcome = estimate_pose(&camera, &pixels, &points, None, register, rng);
         let mut attempt = InitAttempt {
             image_id: other.0,
             image_name: img.name.clone(),

@@ -295,7 +295,11 @@ pub fn run_mapper_with_priors(
         let candidates = next_best_images(&state, &failed, &options.register);
         let mut registered = None;
         for image in candidates {
-            let outcome = register_image(&mut state, image, &options.register, &mut rng);
+            let known = known_poses
+                .get(&image)
+                .filter(|k| k.has_rotation)
+                .map(|k| &k.cam_from_world);
+            let outcome = register_image(&mut state, image, known, &options.register, &mut rng);
             let rec = report.record_mut(image).expect("every image has a record");
             rec.attempts += 1;
             match outcome {

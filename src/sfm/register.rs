@@ -31,11 +31,18 @@ pub enum PoseOutcome {
 
 /// Robust absolute pose: P3P in LO-RANSAC (local optimisation: the refined
 /// pose of the inliers of every new best model), then refinement on the final
-/// inliers and a last inlier count. `rng` makes the run reproducible.
+/// inliers and a last inlier count. `guess` (a known pose of the image, e.g.
+/// a pose prior) gives the first hypotheses: the guess itself and the guess
+/// refined (robustly) on the correspondences within 3 and 10 times the
+/// threshold of it, scored and locally optimised like sampled ones; the best
+/// sets the number of iterations RANSAC still needs, and RANSAC's samples
+/// replace it only with more inliers. `rng` makes the run
+/// reproducible.
 pub fn estimate_pose(
     camera: &Camera,
     pixels: &[Vector2<f64>],
     points_in_world: &[Vector3<f64>],
+    guess: Option<&Rigid3>,
     options: &RegisterOptions,
     rng: &mut ChaCha8Rng,
 ) -> PoseOutcome {
@@ -66,6 +73,47 @@ pub fn estimate_pose(
     };
     let mut best: Option<(Rigid3, Vec<usize>)> = None;
     let mut needed = options.max_iterations;
+    // Scores a hypothesis; a new best is locally optimised and sets the
+    // iterations still needed for `options.confidence`.
+    let consider = |pose: Rigid3, best: &mut Option<(Rigid3, Vec<usize>)>, needed: &mut usize| {
+        let inl = inliers_of(&pose);
+        if best.as_ref().is_some_and(|(_, b)| inl.len() <= b.len()) || inl.len() < 4 {
+            return;
+        }
+        let refined = refine_on(&pose, &inl, 10);
+        let inl_refined = inliers_of(&refined);
+        let (pose, inl) = if inl_refined.len() >= inl.len() {
+            (refined, inl_refined)
+        } else {
+            (pose, inl)
+        };
+        let ratio = inl.len() as f64 / n as f64;
+        let p_fail = 1.0 - ratio.powi(3);
+        *needed = if p_fail <= 1e-12 {
+            0
+        } else {
+            ((1.0 - options.confidence).ln() / p_fail.ln()).ceil() as usize
+        };
+        *best = Some((pose, inl));
+    };
+    if let Some(guess) = guess {
+        // A guess a little off (a prior 0.5 deg off moves pixels by more
+        // than the threshold) is first refined on the correspondences within
+        // wider thresholds.
+        consider(*guess, &mut best, &mut needed);
+        for widen in [3.0, 10.0] {
+            let wide_sq = thr_sq * widen * widen;
+            let near: Vec<usize> = (0..n)
+                .filter(|&i| {
+                    reprojection_error_sq(camera, guess, &points_in_world[i], &pixels[i])
+                        .is_some_and(|e| e < wide_sq)
+                })
+                .collect();
+            if near.len() >= 6 {
+                consider(refine_on(guess, &near, 20), &mut best, &mut needed);
+            }
+        }
+    }
     let mut it = 0;
     while it < options.max_iterations && (it < options.min_iterations || it < needed) {
         it += 1;
@@ -81,26 +129,7 @@ pub fn estimate_pose(
             points_in_world[idx[2]],
         ];
         for pose in p3p(&[b0, b1, b2], &pts) {
-            let inl = inliers_of(&pose);
-            if best.as_ref().is_some_and(|(_, b)| inl.len() <= b.len()) || inl.len() < 4 {
-                continue;
-            }
-            // Local optimisation of the new best model.
-            let refined = refine_on(&pose, &inl, 10);
-            let inl_refined = inliers_of(&refined);
-            let (pose, inl) = if inl_refined.len() >= inl.len() {
-                (refined, inl_refined)
-            } else {
-                (pose, inl)
-            };
-            let ratio = inl.len() as f64 / n as f64;
-            let p_fail = 1.0 - ratio.powi(3);
-            needed = if p_fail <= 1e-12 {
-                0
-            } else {
-                ((1.0 - options.confidence).ln() / p_fail.ln()).ceil() as usize
-            };
-            best = Some((pose, inl));
+            consider(pose, &mut best, &mut needed);
         }
     }
     let Some((pose, inliers)) = best else {
@@ -155,16 +184,18 @@ pub enum RegistrationOutcome {
 }
 
 /// Registers `image` against the current 3D points: on success sets its pose
-/// and adds its inlier keypoints to the tracks of their points.
+/// and adds its inlier keypoints to the tracks of their points. `known` (a
+/// known pose of the image) is PnP's first hypothesis ([`estimate_pose`]).
 pub fn register_image(
     state: &mut MapState,
     image: ImageId,
+    known: Option<&Rigid3>,
     options: &RegisterOptions,
     rng: &mut ChaCha8Rng,
 ) -> RegistrationOutcome {
     let (corrs, pixels, points) = correspondence_arrays(state, image);
     let camera = state.camera_of(image).clone();
-    match estimate_pose(&camera, &pixels, &points, options, rng) {
+    match estimate_pose(&camera, &pixels, &points, known, options, rng) {
         PoseOutcome::Found {
             cam_from_world,
             inliers,
@@ -298,45 +329,66 @@ mod tests {
     use nalgebra::UnitQuaternion;
     use rand::{Rng, SeedableRng};
 
-    #[test]
-    fn lo_ransac_finds_pose_among_outliers() {
-        let camera = Camera {
+    fn pinhole() -> Camera {
+        Camera {
             id: CameraId(1),
             model: CameraModel::from_name("PINHOLE").unwrap(),
             width: 640,
             height: 480,
             params: vec![500.0, 500.0, 320.0, 240.0],
-        };
-        let pose = Rigid3::new(
-            UnitQuaternion::from_euler_angles(0.1, -0.3, 0.2),
-            Vector3::new(0.5, -0.2, 1.0),
-        );
-        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        }
+    }
+
+    /// `n` 2D-3D correspondences of `pose` (points 3-10 m in front): those
+    /// with `is_inlier(i)` project within `noise_px` (uniform per axis), the
+    /// others are random pixels.
+    fn correspondences(
+        camera: &Camera,
+        pose: &Rigid3,
+        n: usize,
+        seed: u64,
+        is_inlier: impl Fn(usize) -> bool,
+        noise_px: f64,
+    ) -> (Vec<Vector2<f64>>, Vec<Vector3<f64>>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut pixels = Vec::new();
         let mut points = Vec::new();
-        for i in 0..200 {
+        for i in 0..n {
             let pc = Vector3::new(
                 rng.gen_range(-3.0..3.0),
                 rng.gen_range(-2.0..2.0),
                 rng.gen_range(3.0..10.0),
             );
             let x = camera.project(&pc).unwrap();
-            let pw = pose.inverse().transform_point(&pc);
-            // 40% outliers: random pixels.
-            let x = if i % 5 < 2 {
-                Vector2::new(rng.gen_range(0.0..640.0), rng.gen_range(0.0..480.0))
+            let x = if is_inlier(i) {
+                x + Vector2::new(
+                    rng.gen_range(-noise_px..noise_px),
+                    rng.gen_range(-noise_px..noise_px),
+                )
             } else {
-                x + Vector2::new(rng.gen_range(-0.5..0.5), rng.gen_range(-0.5..0.5))
+                Vector2::new(rng.gen_range(0.0..640.0), rng.gen_range(0.0..480.0))
             };
             pixels.push(x);
-            points.push(pw);
+            points.push(pose.inverse().transform_point(&pc));
         }
+        (pixels, points)
+    }
+
+    #[test]
+    fn lo_ransac_finds_pose_among_outliers() {
+        let camera = pinhole();
+        let pose = Rigid3::new(
+            UnitQuaternion::from_euler_angles(0.1, -0.3, 0.2),
+            Vector3::new(0.5, -0.2, 1.0),
+        );
+        // 40% outliers: random pixels.
+        let (pixels, points) = correspondences(&camera, &pose, 200, 11, |i| i % 5 >= 2, 0.5);
         let options = RegisterOptions::default();
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let PoseOutcome::Found {
             cam_from_world,
             inliers,
-        } = estimate_pose(&camera, &pixels, &points, &options, &mut rng)
+        } = estimate_pose(&camera, &pixels, &points, None, &options, &mut rng)
         else {
             panic!("no pose");
         };
@@ -348,7 +400,14 @@ mod tests {
         assert!(cam_from_world.rotation.angle_to(&pose.rotation) < 2e-3);
         assert!((cam_from_world.camera_center() - pose.camera_center()).norm() < 0.02);
         // Too few correspondences.
-        let out = estimate_pose(&camera, &pixels[..10], &points[..10], &options, &mut rng);
+        let out = estimate_pose(
+            &camera,
+            &pixels[..10],
+            &points[..10],
+            None,
+            &options,
+            &mut rng,
+        );
         assert_eq!(
             out,
             PoseOutcome::TooFewCorrespondences {
@@ -356,5 +415,43 @@ mod tests {
                 needed: 30
             }
         );
+    }
+
+    #[test]
+    fn known_pose_guess_finds_pose_ransac_misses() {
+        // 300 correspondences, 4 % inliers: 200 P3P samples almost never
+        // draw three inliers; a guess 3 cm and 0.5 deg off does.
+        let camera = pinhole();
+        let pose = Rigid3::new(
+            UnitQuaternion::from_euler_angles(0.2, 0.1, -0.4),
+            Vector3::new(-0.3, 0.4, 2.0),
+        );
+        let (pixels, points) = correspondences(&camera, &pose, 300, 5, |i| i % 25 == 0, 0.3);
+        let options = RegisterOptions {
+            min_num_inliers: 10,
+            min_inlier_ratio: 0.03,
+            min_iterations: 200,
+            max_iterations: 200,
+            ..RegisterOptions::default()
+        };
+        let guess = Rigid3::new(
+            UnitQuaternion::from_euler_angles(0.0, 0.5f64.to_radians(), 0.0) * pose.rotation,
+            pose.translation + Vector3::new(0.02, -0.02, 0.01),
+        );
+        let mut rng = ChaCha8Rng::seed_from_u64(2);
+        let without = estimate_pose(&camera, &pixels, &points, None, &options, &mut rng);
+        assert!(!matches!(without, PoseOutcome::Found { .. }), "{without:?}");
+        let mut rng = ChaCha8Rng::seed_from_u64(2);
+        let PoseOutcome::Found {
+            cam_from_world,
+            inliers,
+        } = estimate_pose(&camera, &pixels, &points, Some(&guess), &options, &mut rng)
+        else {
+            panic!("no pose from the guess");
+        };
+        let true_inliers = inliers.iter().filter(|&&i| i % 25 == 0).count();
+        assert!(true_inliers == 12 && inliers.len() <= 14, "{inliers:?}");
+        assert!(cam_from_world.rotation.angle_to(&pose.rotation) < 2e-3);
+        assert!((cam_from_world.camera_center() - pose.camera_center()).norm() < 0.02);
     }
 }
