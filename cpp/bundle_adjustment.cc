@@ -45,6 +45,31 @@ constexpr int kSparseNormalCholesky = 5;
   throw std::invalid_argument("bundle adjustment: " + what);
 }
 
+// X_cam = R(q) X + t.
+template <typename T>
+void CamFromWorld(const T* cam_from_world_q, const T* cam_from_world_t,
+                  const T* point_in_world, T* point_in_cam) {
+  ceres::UnitQuaternionRotatePoint(cam_from_world_q, point_in_world,
+                                   point_in_cam);
+  point_in_cam[0] += cam_from_world_t[0];
+  point_in_cam[1] += cam_from_world_t[1];
+  point_in_cam[2] += cam_from_world_t[2];
+}
+
+// r = w * (pi_model(K, X_cam) - x_observed); false when the model cannot
+// project X_cam.
+template <typename T>
+bool PixelResidual(int model_id, const T* params, const T* point_in_cam,
+                   double x_px, double y_px, double weight, T* residuals) {
+  T pixel[2];
+  if (!ProjectPoint(model_id, params, point_in_cam, pixel)) {
+    return false;
+  }
+  residuals[0] = T(weight) * (pixel[0] - T(x_px));
+  residuals[1] = T(weight) * (pixel[1] - T(y_px));
+  return true;
+}
+
 // Reprojection error of a world point seen by a posed camera:
 //   X_cam = R(q) X + t
 //   r     = w * (pi_model(K, X_cam) - x_observed)          [pixels * w]
@@ -60,18 +85,10 @@ struct ReprojectionError {
                   const T* point_in_world, const T* params,
                   T* residuals) const {
     T point_in_cam[3];
-    ceres::UnitQuaternionRotatePoint(cam_from_world_q, point_in_world,
-                                     point_in_cam);
-    point_in_cam[0] += cam_from_world_t[0];
-    point_in_cam[1] += cam_from_world_t[1];
-    point_in_cam[2] += cam_from_world_t[2];
-    T pixel[2];
-    if (!ProjectPoint(model_id, params, point_in_cam, pixel)) {
-      return false;
-    }
-    residuals[0] = T(weight) * (pixel[0] - T(x_px));
-    residuals[1] = T(weight) * (pixel[1] - T(y_px));
-    return true;
+    CamFromWorld(cam_from_world_q, cam_from_world_t, point_in_world,
+                 point_in_cam);
+    return PixelResidual(model_id, params, point_in_cam, x_px, y_px, weight,
+                         residuals);
   }
 
   static ceres::CostFunction* Create(int model_id, double x_px, double y_px,
@@ -87,22 +104,123 @@ struct ReprojectionError {
   double weight;
 };
 
+// The same residual with constant intrinsics held in the functor: the
+// automatic derivatives then carry 10 dual parts instead of 10 + #params.
+template <int kNumParams>
+struct ReprojectionErrorConstantCamera {
+  ReprojectionErrorConstantCamera(int model_id, const double* params,
+                                  double x_px, double y_px, double weight)
+      : model_id(model_id), x_px(x_px), y_px(y_px), weight(weight) {
+    for (int k = 0; k < kNumParams; ++k) this->params[k] = params[k];
+  }
+
+  template <typename T>
+  bool operator()(const T* cam_from_world_q, const T* cam_from_world_t,
+                  const T* point_in_world, T* residuals) const {
+    T point_in_cam[3];
+    CamFromWorld(cam_from_world_q, cam_from_world_t, point_in_world,
+                 point_in_cam);
+    return Finish(point_in_cam, residuals);
+  }
+
+  // The residual of a camera-frame point with the constant intrinsics.
+  template <typename T>
+  bool Finish(const T* point_in_cam, T* residuals) const {
+    T params_t[kNumParams];
+    for (int k = 0; k < kNumParams; ++k) params_t[k] = T(params[k]);
+    return PixelResidual(model_id, params_t, point_in_cam, x_px, y_px, weight,
+                         residuals);
+  }
+
+  int model_id;
+  double params[kNumParams];
+  double x_px;
+  double y_px;
+  double weight;
+};
+
+// The same residual for a constant pose and constant intrinsics (most
+// observations of a local bundle adjustment): only the point varies, so the
+// derivatives carry 3 dual parts.
+template <int kNumParams>
+struct ReprojectionErrorConstantPose {
+  ReprojectionErrorConstantPose(int model_id, const double* params,
+                                const double* cam_from_world_q,
+                                const double* cam_from_world_t, double x_px,
+                                double y_px, double weight)
+      : camera(model_id, params, x_px, y_px, weight) {
+    for (int k = 0; k < 4; ++k) q[k] = cam_from_world_q[k];
+    for (int k = 0; k < 3; ++k) t[k] = cam_from_world_t[k];
+  }
+
+  template <typename T>
+  bool operator()(const T* point_in_world, T* residuals) const {
+    const T q_t[4] = {T(q[0]), T(q[1]), T(q[2]), T(q[3])};
+    const T t_t[3] = {T(t[0]), T(t[1]), T(t[2])};
+    T point_in_cam[3];
+    CamFromWorld(q_t, t_t, point_in_world, point_in_cam);
+    return camera.Finish(point_in_cam, residuals);
+  }
+
+  ReprojectionErrorConstantCamera<kNumParams> camera;
+  double q[4];
+  double t[3];
+};
+
+// A reprojection residual for a pose and a camera, specialised to what is
+// constant: the variables it is added with are `params` (filled here).
+template <int kNumParams>
+ceres::CostFunction* CreateReprojection(int model_id, double* q, double* t,
+                                        double* point, double* intrinsics,
+                                        bool pose_constant,
+                                        bool camera_constant, double x_px,
+                                        double y_px, double weight,
+                                        std::vector<double*>* params) {
+  if (camera_constant && pose_constant) {
+    *params = {point};
+    return new ceres::AutoDiffCostFunction<
+        ReprojectionErrorConstantPose<kNumParams>, 2, 3>(
+        new ReprojectionErrorConstantPose<kNumParams>(
+            model_id, intrinsics, q, t, x_px, y_px, weight));
+  }
+  if (camera_constant) {
+    *params = {q, t, point};
+    return new ceres::AutoDiffCostFunction<
+        ReprojectionErrorConstantCamera<kNumParams>, 2, 4, 3, 3>(
+        new ReprojectionErrorConstantCamera<kNumParams>(model_id, intrinsics,
+                                                        x_px, y_px, weight));
+  }
+  *params = {q, t, point, intrinsics};
+  return ReprojectionError<kNumParams>::Create(model_id, x_px, y_px, weight);
+}
+
 // The parameter-block size of the intrinsics is a template argument, so
 // dispatch on the models' parameter counts (COLMAP: 3, 4, 5, 8 or 12).
-ceres::CostFunction* CreateReprojectionError(int model_id, int num_params,
-                                             double x_px, double y_px,
-                                             double weight) {
+ceres::CostFunction* CreateReprojectionError(
+    int model_id, int num_params, double* q, double* t, double* point,
+    double* intrinsics, bool pose_constant, bool camera_constant, double x_px,
+    double y_px, double weight, std::vector<double*>* params) {
   switch (num_params) {
     case 3:
-      return ReprojectionError<3>::Create(model_id, x_px, y_px, weight);
+      return CreateReprojection<3>(model_id, q, t, point, intrinsics,
+                                   pose_constant, camera_constant, x_px, y_px,
+                                   weight, params);
     case 4:
-      return ReprojectionError<4>::Create(model_id, x_px, y_px, weight);
+      return CreateReprojection<4>(model_id, q, t, point, intrinsics,
+                                   pose_constant, camera_constant, x_px, y_px,
+                                   weight, params);
     case 5:
-      return ReprojectionError<5>::Create(model_id, x_px, y_px, weight);
+      return CreateReprojection<5>(model_id, q, t, point, intrinsics,
+                                   pose_constant, camera_constant, x_px, y_px,
+                                   weight, params);
     case 8:
-      return ReprojectionError<8>::Create(model_id, x_px, y_px, weight);
+      return CreateReprojection<8>(model_id, q, t, point, intrinsics,
+                                   pose_constant, camera_constant, x_px, y_px,
+                                   weight, params);
     case 12:
-      return ReprojectionError<12>::Create(model_id, x_px, y_px, weight);
+      return CreateReprojection<12>(model_id, q, t, point, intrinsics,
+                                    pose_constant, camera_constant, x_px,
+                                    y_px, weight, params);
     default:
       Fail("unsupported number of camera parameters " +
            std::to_string(num_params));
@@ -385,6 +503,14 @@ std::unique_ptr<BuiltProblem> BuildProblem(BaProblemFfi& p,
     built->records.push_back(ResidualRecord{family, cost, loss, std::move(params)});
   };
 
+  // Cameras whose every intrinsic parameter is constant.
+  std::vector<bool> camera_constant(num_cameras, true);
+  for (size_t c = 0; c < num_cameras; ++c) {
+    for (uint32_t k = p.camera_param_offsets[c];
+         k < p.camera_param_offsets[c + 1]; ++k) {
+      if (p.camera_param_constant[k] == 0) camera_constant[c] = false;
+    }
+  }
   for (size_t i = 0; i < p.obs_pose.size(); ++i) {
     const uint32_t pose = p.obs_pose[i];
     const uint32_t cam = p.obs_camera[i];
@@ -392,13 +518,19 @@ std::unique_ptr<BuiltProblem> BuildProblem(BaProblemFfi& p,
     const uint32_t begin = p.camera_param_offsets[cam];
     const int num_params =
         static_cast<int>(p.camera_param_offsets[cam + 1] - begin);
+    // Constant poses and intrinsics are held inside the cost function (far
+    // cheaper derivatives) and stay out of the problem.
+    std::vector<double*> params;
     ceres::CostFunction* cost = CreateReprojectionError(
-        p.camera_model_ids[cam], num_params, p.obs_pixel[2 * i],
-        p.obs_pixel[2 * i + 1], p.obs_weight[i]);
-    add(kFamilyReprojection, cost,
-        {&p.poses[7 * pose], &p.poses[7 * pose + 4], &p.points[3 * point],
-         &p.camera_params[begin]});
-    pose_used[pose] = camera_used[cam] = point_used[point] = true;
+        p.camera_model_ids[cam], num_params, &p.poses[7 * pose],
+        &p.poses[7 * pose + 4], &p.points[3 * point], &p.camera_params[begin],
+        p.pose_constant[pose] != 0, camera_constant[cam], p.obs_pixel[2 * i],
+        p.obs_pixel[2 * i + 1], p.obs_weight[i], &params);
+    const size_t num_blocks = params.size();
+    add(kFamilyReprojection, cost, std::move(params));
+    point_used[point] = true;
+    if (num_blocks >= 3) pose_used[pose] = true;
+    if (num_blocks == 4) camera_used[cam] = true;
   }
   for (size_t i = 0; i < p.plane_point.size(); ++i) {
     const uint32_t point = p.plane_point[i];
