@@ -1174,10 +1174,11 @@ impl MapIndex {
     }
 
     /// [`nearest_within`](Self::nearest_within) for many query points at
-    /// once: the answer for `points_in_map[i]` is at `i`. Queries run in a
-    /// space-filling-curve order (consecutive queries touch the same cells, so
-    /// far fewer cache misses than in arbitrary order), in parallel over
-    /// chunks (rayon); the result does not depend on the thread count.
+    /// once: the answer for `points_in_map[i]` is at `i`. Queries run in the
+    /// index's own memory order (sorted by block and cell, a radix sort), so
+    /// consecutive queries scan the same cells and mostly hit the caches, in
+    /// parallel over chunks (rayon); the result does not depend on the order
+    /// or the thread count.
     pub fn nearest_within_batch(
         &self,
         points_in_map: &[Vector3<f64>],
@@ -1187,39 +1188,56 @@ impl MapIndex {
         if self.is_empty() || n == 0 {
             return vec![None; n];
         }
-        let order = spatial_order(points_in_map);
-        // Queries a few ahead have their cell's run prefetched.
-        const AHEAD: usize = 4;
-        let mut answers: Vec<Option<Neighbour>> = vec![None; n];
-        answers
-            .par_chunks_mut(1024)
-            .zip(order.par_chunks(1024))
-            .for_each(|(out, chunk)| {
-                for (k, slot) in out.iter_mut().enumerate() {
-                    if let Some(&next) = chunk.get(k + AHEAD) {
-                        self.prefetch_cell_of(&points_in_map[next as usize]);
-                    }
-                    *slot = self.nearest_within(&points_in_map[chunk[k] as usize], radius_m);
-                }
-            });
+        let order = self.memory_order(points_in_map);
+        // Gathered first: independent loads overlap, while a load inside the
+        // query loop would stall each query on its own cache miss.
+        let sorted: Vec<Vector3<f64>> = order
+            .iter()
+            .map(|&v| points_in_map[v as u32 as usize])
+            .collect();
+        let answers: Vec<Option<Neighbour>> = sorted
+            .par_chunks(4096)
+            .flat_map_iter(|chunk| chunk.iter().map(|p| self.nearest_within(p, radius_m)))
+            .collect();
         let mut out = vec![None; n];
-        for (&i, a) in order.iter().zip(answers) {
-            out[i as usize] = a;
+        for (&v, a) in order.iter().zip(answers) {
+            out[v as u32 as usize] = a;
         }
         out
     }
 
-    /// Hints the processor to fetch the start of the run of the cell holding
-    /// `point_in_map` (no effect on results).
-    #[inline]
-    fn prefetch_cell_of(&self, point_in_map: &Vector3<f64>) {
-        let Some(g) = self.to_grid(point_in_map) else {
-            return;
-        };
-        let own = [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])];
-        if let Some(id) = self.cell_id(own) {
-            self.prefetch_cell(id);
-        }
+    /// The queries' indices (low 32 bits) sorted by the memory position of
+    /// the cell holding them (high 32 bits: block id, then the cell's bit in
+    /// the block; ties by index). Queries outside the grid or in an empty
+    /// block go last. Only the visiting order depends on this.
+    fn memory_order(&self, points_in_map: &[Vector3<f64>]) -> Vec<u64> {
+        // Block ids above this share the last key (order only).
+        const MAX_BLOCK: u64 = (1 << 23) - 2;
+        let m = BLOCK_EDGE - 1;
+        let mut keyed: Vec<u64> = points_in_map
+            .par_iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let key = self
+                    .to_grid(p)
+                    .map(|g| [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])])
+                    .filter(|c| (0..3).all(|a| c[a] >= 0 && c[a] < self.extent[a]))
+                    .and_then(|c| {
+                        let b = [
+                            c[0] >> BLOCK_SHIFT,
+                            c[1] >> BLOCK_SHIFT,
+                            c[2] >> BLOCK_SHIFT,
+                        ];
+                        let id = self.table.get(pack_block(b))?;
+                        let bit = ((c[2] & m) << 6) | ((c[1] & m) << 3) | (c[0] & m);
+                        Some((u64::from(id).min(MAX_BLOCK) << 9) | bit as u64)
+                    })
+                    .unwrap_or(u64::from(u32::MAX));
+                (key << 32) | i as u64
+            })
+            .collect();
+        radix_sort_high_u32(&mut keyed);
+        keyed
     }
 
     /// Hints the processor to fetch the starts of the x, y and z runs of
@@ -1432,39 +1450,36 @@ impl MapIndex {
     }
 }
 
-/// Indices of `points` sorted along a Morton (z-order) curve over their
-/// bounding box (10 bits an axis), ties by index.
-fn spatial_order(points: &[Vector3<f64>]) -> Vec<u32> {
-    let mut lo = Vector3::repeat(f64::INFINITY);
-    let mut hi = Vector3::repeat(f64::NEG_INFINITY);
-    for p in points.iter().filter(|p| p.iter().all(|c| c.is_finite())) {
-        lo = lo.inf(p);
-        hi = hi.sup(p);
+/// Sorts `values` by their high 32 bits, stably (values with equal high
+/// bits keep their order): a least-significant-digit radix sort, 11 bits a
+/// pass, skipping passes in which every value has the same digit.
+fn radix_sort_high_u32(values: &mut Vec<u64>) {
+    const BITS: u32 = 11;
+    const BUCKETS: usize = 1 << BITS;
+    let mut scratch = vec![0u64; values.len()];
+    let mut shift = 32;
+    while shift < 64 {
+        let digit = |v: u64| ((v >> shift) as usize) & (BUCKETS - 1);
+        let mut counts = vec![0usize; BUCKETS];
+        for &v in values.iter() {
+            counts[digit(v)] += 1;
+        }
+        if !counts.contains(&values.len()) {
+            let mut next = 0;
+            for c in counts.iter_mut() {
+                let k = *c;
+                *c = next;
+                next += k;
+            }
+            for &v in values.iter() {
+                let d = digit(v);
+                scratch[counts[d]] = v;
+                counts[d] += 1;
+            }
+            std::mem::swap(values, &mut scratch);
+        }
+        shift += BITS;
     }
-    let scale = (hi - lo).map(|e| if e > 0.0 { 1023.0 / e } else { 0.0 });
-    let spread = |mut v: u64| -> u64 {
-        // Inserts two zero bits between the 10 low bits of v.
-        v &= 0x3ff;
-        v = (v | (v << 16)) & 0x0300_00ff;
-        v = (v | (v << 8)) & 0x0300_f00f;
-        v = (v | (v << 4)) & 0x030c_30c3;
-        (v | (v << 2)) & 0x0924_9249
-    };
-    let mut keyed: Vec<(u64, u32)> = points
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let q = (p - lo).component_mul(&scale);
-            // NaN and out-of-range values saturate in `as`.
-            let c = |a: usize| (q[a].clamp(0.0, 1023.0)) as u64;
-            (
-                spread(c(0)) | (spread(c(1)) << 1) | (spread(c(2)) << 2),
-                i as u32,
-            )
-        })
-        .collect();
-    keyed.par_sort_unstable();
-    keyed.into_iter().map(|(_, i)| i).collect()
 }
 
 #[cfg(test)]
@@ -1525,6 +1540,28 @@ mod tests {
             some += usize::from(b.is_some());
         }
         assert!(some > 50 && some < 500, "{some}");
+    }
+
+    #[test]
+    fn radix_sort_is_a_stable_sort_by_the_high_bits() {
+        // Keys over all 32 high bits, and keys in a narrow range (passes
+        // skipped); low bits in decreasing order to see the stability.
+        let mut state = 0x1234_5678_9abc_def0u64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        for mask in [u64::MAX, 0xffu64 << 32] {
+            let mut values: Vec<u64> = (0..20_000u64)
+                .map(|i| (next() & mask & !0xffff_ffff) | (20_000 - i))
+                .collect();
+            let mut expected = values.clone();
+            expected.sort_by_key(|v| v >> 32);
+            radix_sort_high_u32(&mut values);
+            assert_eq!(values, expected);
+        }
     }
 
     #[test]
