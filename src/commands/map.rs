@@ -119,7 +119,8 @@ pub struct MapArgs {
     /// Plain SfM: no LiDAR point-to-plane terms in BA.
     #[arg(long, visible_alias = "no_lidar_constraints")]
     pub no_lidar_constraints: bool,
-    /// Refine the intrinsics in the final bundle adjustment.
+    /// Refine focal length and distortion in the final bundle adjustments
+    /// (the principal point is held, as in COLMAP).
     #[arg(long, visible_alias = "refine_intrinsics")]
     pub refine_intrinsics: bool,
     /// Ceres threads (default 1: byte-identical output).

@@ -194,8 +194,12 @@ pub fn bundle_adjust(
         let cam_id = state.images[&image].camera_id;
         if let std::collections::btree_map::Entry::Vacant(slot) = camera_idx.entry(cam_id) {
             slot.insert(problem.cameras.len() as u32);
+            // Refined: focal length and distortion; the principal point stays
+            // (COLMAP's default: it is poorly determined by BA).
             let constant = if config.refine_intrinsics {
-                ConstantParams::None
+                let camera = &state.cameras[&cam_id];
+                let pp = camera.model.principal_point_idxs();
+                ConstantParams::Mask((0..camera.params.len()).map(|k| pp.contains(&k)).collect())
             } else {
                 ConstantParams::All
             };

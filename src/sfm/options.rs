@@ -232,7 +232,8 @@ pub struct BundleOptions {
     pub function_tolerance: f64,
     /// Soft-L1 scale on reprojection residuals, pixels. Default 1.
     pub reprojection_loss_px: f64,
-    /// Refine the intrinsics in global BA. Default false.
+    /// Refine focal length and distortion (not the principal point) in the
+    /// final bundle adjustments. Default false.
     pub refine_intrinsics: bool,
     /// The initial image stays fixed for this many registrations (when LiDAR
     /// constraints hold the gauge). Default 8.

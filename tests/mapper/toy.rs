@@ -726,3 +726,38 @@ fn toy_room_image_with_too_few_matches_is_placed_at_its_known_pose() {
     // The other images are unaffected.
     assert_eq!(out.report.num_registered, 14);
 }
+
+#[test]
+fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
+    // Keypoints made with f = 450 px; the database says 454.5 (1 % off).
+    let mut scene = toy(14, 0.3, 0.0, 3);
+    let camera = scene.db.cameras.get_mut(&CameraId(1)).expect("camera 1");
+    camera.params[0] = 454.5;
+    let fixed = MapperOptions::default();
+    let (out_fixed, err_fixed) = map_toy(&scene, &fixed);
+    let mut refine = MapperOptions::default();
+    refine.bundle.refine_intrinsics = true;
+    let (out, err) = map_toy(&scene, &refine);
+    let refined = &out.reconstruction.cameras[&CameraId(1)];
+    eprintln!(
+        "toy room, focal 1 % off: refined f = {:.2} px (true 450), max centre error {err:.4} m \
+         (held at 454.5: {err_fixed:.4} m)",
+        refined.params[0]
+    );
+    assert_eq!(out.report.num_registered, 14);
+    assert_eq!(
+        out_fixed.reconstruction.cameras[&CameraId(1)].params[0],
+        454.5
+    );
+    assert!(
+        (refined.params[0] - 450.0).abs() < 0.9,
+        "refined f {}",
+        refined.params[0]
+    );
+    assert_eq!(
+        refined.params[1..3],
+        [320.0, 240.0],
+        "principal point moved"
+    );
+    assert!(err < err_fixed, "{err} vs {err_fixed}");
+}
