@@ -36,8 +36,7 @@ pub enum PoseOutcome {
 /// refined (robustly) on the correspondences within 3 and 10 times the
 /// threshold of it, scored and locally optimised like sampled ones; the best
 /// sets the number of iterations RANSAC still needs, and RANSAC's samples
-/// replace it only with more inliers. `rng` makes the run
-/// reproducible.
+/// replace it only with more inliers. `rng` makes the run reproducible.
 pub fn estimate_pose(
     camera: &Camera,
     pixels: &[Vector2<f64>],
