@@ -1526,13 +1526,25 @@ mod tests {
         }
         let c = cloud(points);
         let index = MapIndex::build(&c).unwrap();
-        let queries: Vec<Vector3<f64>> = (0..500)
+        let mut queries: Vec<Vector3<f64>> = (0..500)
             .map(|i| {
                 let t = i as f64 * 0.37;
                 c.origin + Vector3::new(t.sin() * 6.0, t.cos() * 2.0, (t * 0.05) % 2.0)
             })
             .collect();
+        // Outside the grid, non-finite, and twice the same point: sorted
+        // last or next to each other, answered like single queries.
+        queries.insert(17, c.origin + Vector3::new(1e4, -1e4, 3.0));
+        queries.insert(3, Vector3::new(f64::NAN, 0.0, 0.0));
+        let found = (0..queries.len())
+            .find(|&i| index.nearest_within(&queries[i], 0.5).is_some())
+            .expect("a query near the cloud");
+        queries.push(queries[found]);
         let batch = index.nearest_within_batch(&queries, 0.5);
+        assert_eq!(batch[3], None);
+        assert_eq!(batch[18], None);
+        assert!(batch[found].is_some());
+        assert_eq!(batch[found], batch[queries.len() - 1]);
         assert_eq!(batch.len(), queries.len());
         let mut some = 0;
         for (q, b) in queries.iter().zip(&batch) {
