@@ -57,14 +57,16 @@ pub fn estimate_pose(
         .map(|x| camera.unproject(x).map(|v| v.normalize()))
         .collect();
     let thr_sq = options.max_error_px * options.max_error_px;
-    let inliers_of = |pose: &Rigid3| -> Vec<usize> {
+    // Correspondences reprojecting within sqrt(max_sq) pixels of `pose`.
+    let within = |pose: &Rigid3, max_sq: f64| -> Vec<usize> {
         (0..n)
             .filter(|&i| {
                 reprojection_error_sq(camera, pose, &points_in_world[i], &pixels[i])
-                    .is_some_and(|e| e < thr_sq)
+                    .is_some_and(|e| e < max_sq)
             })
             .collect()
     };
+    let inliers_of = |pose: &Rigid3| within(pose, thr_sq);
     let refine_on = |pose: &Rigid3, idx: &[usize], iterations: usize| -> Rigid3 {
         let px: Vec<Vector2<f64>> = idx.iter().map(|&i| pixels[i]).collect();
         let pw: Vec<Vector3<f64>> = idx.iter().map(|&i| points_in_world[i]).collect();
@@ -100,14 +102,8 @@ pub fn estimate_pose(
         // than the threshold) is first refined on the correspondences within
         // wider thresholds.
         consider(*guess, &mut best, &mut needed);
-        for widen in [3.0, 10.0] {
-            let wide_sq = thr_sq * widen * widen;
-            let near: Vec<usize> = (0..n)
-                .filter(|&i| {
-                    reprojection_error_sq(camera, guess, &points_in_world[i], &pixels[i])
-                        .is_some_and(|e| e < wide_sq)
-                })
-                .collect();
+        for widen in [3.0f64, 10.0] {
+            let near = within(guess, thr_sq * widen * widen);
             if near.len() >= 6 {
                 consider(refine_on(guess, &near, 20), &mut best, &mut needed);
             }
