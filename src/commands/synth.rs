@@ -46,6 +46,12 @@ pub struct SynthArgs {
     /// Upper bound on the number of LiDAR surface samples.
     #[arg(long, default_value_t = 1_500_000)]
     pub lidar_max_points: usize,
+    /// Standard deviation of the LiDAR range noise along the surface normal, metres.
+    #[arg(long, default_value_t = 0.015)]
+    pub lidar_noise: f64,
+    /// Fraction of LiDAR outliers (random points with random normals in the scene's box).
+    #[arg(long, default_value_t = 0.001)]
+    pub lidar_outliers: f64,
 }
 
 fn parse_offset(s: &str) -> Result<[f64; 3], String> {
@@ -79,6 +85,8 @@ impl SynthArgs {
         };
         opts.lidar.spacing_m = self.lidar_spacing;
         opts.lidar.max_points = self.lidar_max_points;
+        opts.lidar.noise_sigma_m = self.lidar_noise;
+        opts.lidar.outlier_fraction = self.lidar_outliers;
         opts.validate()?;
         Ok(opts)
     }

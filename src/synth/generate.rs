@@ -126,6 +126,12 @@ impl SynthOptions {
         if !(self.noise_sigma_u8 >= 0.0 && self.lidar.noise_sigma_m >= 0.0) {
             return bad("noise levels must be >= 0".into());
         }
+        if !(0.0..=0.5).contains(&self.lidar.outlier_fraction) {
+            return bad(format!(
+                "LiDAR outlier fraction {} must lie in 0..=0.5",
+                self.lidar.outlier_fraction
+            ));
+        }
         Ok(())
     }
 
