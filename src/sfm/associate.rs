@@ -123,14 +123,40 @@ impl PlaneAssociator for NearestNeighbourAssociator<'_> {
     fn associate(
         &self,
         kind: SolveKind,
-        _state: &MapState,
+        state: &MapState,
         queries: &[AssociationQuery],
     ) -> Vec<PlaneConstraint> {
-        self.associate_points(kind, queries)
+        let planes = self.associate_points(kind, queries);
+        self.keep_consistent(kind, state, queries, planes)
     }
 }
 
 impl NearestNeighbourAssociator<'_> {
+    /// In a final solve, the planes whose points can lie on them (see
+    /// [`on_plane_error_px`] and `final_max_on_plane_error_px`); other solves
+    /// keep all.
+    pub fn keep_consistent(
+        &self,
+        kind: SolveKind,
+        state: &MapState,
+        queries: &[AssociationQuery],
+        mut planes: Vec<PlaneConstraint>,
+    ) -> Vec<PlaneConstraint> {
+        let max_px = self.options.final_max_on_plane_error_px;
+        if kind != SolveKind::Final || max_px <= 0.0 {
+            return planes;
+        }
+        let ids: BTreeMap<u32, Point3DId> =
+            queries.iter().map(|q| (q.point_idx, q.point_id)).collect();
+        planes.retain(|p| {
+            ids.get(&p.point_idx).is_some_and(|&id| {
+                let normal = Vector3::from(p.normal);
+                on_plane_error_px(state, id, &normal, p.offset_m).is_some_and(|e| e <= max_px)
+            })
+        });
+        planes
+    }
+
     /// Offset of the plane with normal `normal` through the map around `at`
     /// (see [`Self::plane_offset`]; the point's own offset when no neighbour
     /// qualifies).
@@ -227,6 +253,91 @@ impl NearestNeighbourAssociator<'_> {
         }
         planes
     }
+}
+
+/// The smallest RMS reprojection error (pixels, over the point's registered
+/// observations) of `point` moved onto the plane `normal . X = offset_m`
+/// (any non-zero `normal`):
+/// Gauss-Newton over the plane's two coordinates from the point's orthogonal
+/// projection onto it (central-difference Jacobian; the problem is nearly
+/// linear at these scales, a few steps converge). `None` when the point is
+/// unknown, has fewer than two registered observations, or falls behind a
+/// camera.
+pub fn on_plane_error_px(
+    state: &MapState,
+    point: Point3DId,
+    normal: &Vector3<f64>,
+    offset_m: f64,
+) -> Option<f64> {
+    let p = state.points.get(&point)?;
+    let mut views = Vec::with_capacity(p.track.len());
+    for e in &p.track {
+        if let Some(pose) = state.pose(e.image_id) {
+            views.push((state.camera_of(e.image_id), pose, state.keypoint(*e)));
+        }
+    }
+    if views.len() < 2 {
+        return None;
+    }
+    let length = normal.norm();
+    let normal = normal.try_normalize(1e-12)?;
+    let offset_m = offset_m / length;
+    // Orthonormal basis (u, v) of the plane.
+    let helper = if normal.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let u = normal.cross(&helper).normalize();
+    let v = normal.cross(&u);
+    let origin = p.xyz - (normal.dot(&p.xyz) - offset_m) * normal;
+    let residuals = |a: f64, b: f64| -> Option<Vec<f64>> {
+        let x = origin + a * u + b * v;
+        let mut r = Vec::with_capacity(2 * views.len());
+        for (camera, pose, pixel) in &views {
+            let in_cam = pose.transform_point(&x);
+            if in_cam.z <= 1e-9 {
+                return None;
+            }
+            let q = camera.project(&in_cam)? - pixel;
+            r.extend([q.x, q.y]);
+        }
+        Some(r)
+    };
+    // Step of the numerical derivative: 1e-6 of the distance to a camera.
+    let h = ((views[0].1.camera_center() - origin).norm() * 1e-6).max(1e-9);
+    let (mut a, mut b) = (0.0, 0.0);
+    let mut r = residuals(a, b)?;
+    for _ in 0..5 {
+        let (ra_p, ra_m) = (residuals(a + h, b)?, residuals(a - h, b)?);
+        let (rb_p, rb_m) = (residuals(a, b + h)?, residuals(a, b - h)?);
+        let (mut jtj, mut jtr) = (
+            nalgebra::Matrix2::<f64>::zeros(),
+            nalgebra::Vector2::zeros(),
+        );
+        for i in 0..r.len() {
+            let j = nalgebra::Vector2::new(
+                (ra_p[i] - ra_m[i]) / (2.0 * h),
+                (rb_p[i] - rb_m[i]) / (2.0 * h),
+            );
+            jtj += j * j.transpose();
+            jtr += j * r[i];
+        }
+        let Some(step) = jtj.try_inverse().map(|inv| -(inv * jtr)) else {
+            break;
+        };
+        let next = residuals(a + step.x, b + step.y)?;
+        let norm_sq = |r: &[f64]| r.iter().map(|x| x * x).sum::<f64>();
+        if norm_sq(&next) >= norm_sq(&r) {
+            break;
+        }
+        (a, b, r) = (a + step.x, b + step.y, next);
+        if step.norm() < 1e-9 {
+            break;
+        }
+    }
+    let sum_sq: f64 = r.iter().map(|x| x * x).sum();
+    Some((sum_sq / views.len() as f64).sqrt())
 }
 
 /// Projection associations for short tracks (method.md 4.6): for a point
@@ -337,13 +448,79 @@ impl PlaneAssociator for ProjectionAssociator<'_> {
         }
         planes.extend(self.nearest.associate_points(kind, &rest));
         planes.sort_by_key(|p| p.point_idx);
-        planes
+        self.nearest.keep_consistent(kind, state, queries, planes)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::io::database::{DatabaseSnapshot, DbImage};
+    use crate::scene::{Camera, CameraId, CameraModel, Rigid3, TrackElement};
+
+    /// Two cameras 3 m above the floor z = 0, 0.5 m apart, looking straight
+    /// down (SIMPLE_PINHOLE, f = 500), both seeing X = (0.1, 0.2, 0) exactly;
+    /// the state's point sits 1 cm off the floor.
+    fn two_view_state() -> (MapState, Point3DId) {
+        let camera = Camera {
+            id: CameraId(1),
+            model: CameraModel::from_name("SIMPLE_PINHOLE").expect("known model"),
+            width: 640,
+            height: 480,
+            params: vec![500.0, 320.0, 240.0],
+        };
+        let down = nalgebra::Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0));
+        let x = Vector3::new(0.1, 0.2, 0.0);
+        let mut db = DatabaseSnapshot::default();
+        db.cameras.insert(CameraId(1), camera.clone());
+        let mut poses = Vec::new();
+        for (i, cx) in [0.0, 0.5].into_iter().enumerate() {
+            let id = ImageId(i as u32 + 1);
+            let pose = Rigid3::from_rotation_matrix(&down, -(down * Vector3::new(cx, 0.0, 3.0)));
+            let pixel = camera.project(&pose.transform_point(&x)).expect("in front");
+            db.images.insert(
+                id,
+                DbImage {
+                    id,
+                    name: format!("{i}.png"),
+                    camera_id: CameraId(1),
+                },
+            );
+            db.keypoints.insert(id, vec![pixel]);
+            poses.push((id, pose));
+        }
+        let mut state = MapState::new(&db, 1);
+        let mut track = Vec::new();
+        for (id, pose) in poses {
+            state.register(id, pose);
+            track.push(TrackElement {
+                image_id: id,
+                point2d_idx: 0,
+            });
+        }
+        let point = state.add_point(x + Vector3::new(0.0, 0.0, 0.01), track);
+        (state, point)
+    }
+
+    #[test]
+    fn on_plane_error_is_the_best_reprojection_on_the_plane() {
+        let (state, point) = two_view_state();
+        let up = Vector3::z();
+        // The floor holds the true point: no error, from 1 cm off.
+        let on_floor = on_plane_error_px(&state, point, &up, 0.0).expect("two views");
+        assert!(on_floor < 1e-6, "{on_floor}");
+        // z = 0.05: the rays cross that plane at x = 0.1 * 2.95 / 3 and
+        // 0.5 - 0.4 * 2.95 / 3, 8.33 mm apart at depth 2.95 m; the best point
+        // is halfway, each view off by f * 4.167 mm / 2.95 m.
+        let expected = 500.0 * (0.5 - 0.5 * 2.95 / 3.0) / 2.0 / 2.95;
+        let lifted = on_plane_error_px(&state, point, &up, 0.05).expect("two views");
+        assert!((lifted - expected).abs() < 1e-6, "{lifted} vs {expected}");
+        // The normal's sign and length do not matter.
+        let flipped = on_plane_error_px(&state, point, &(-2.0 * up), -0.1).expect("two views");
+        assert!((flipped - expected).abs() < 1e-6, "{flipped}");
+        // A plane behind the cameras cannot hold the point.
+        assert_eq!(on_plane_error_px(&state, point, &up, 4.0), None);
+    }
 
     #[test]
     fn nearest_association_gates_and_shrinks() {
