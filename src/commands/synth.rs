@@ -109,3 +109,34 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     );
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: SynthArgs,
+    }
+
+    fn options(extra: &[&str]) -> anyhow::Result<SynthOptions> {
+        let mut argv = vec!["synth", "--scene", "room", "--output", "out"];
+        argv.extend_from_slice(extra);
+        Cli::try_parse_from(argv)?.args.to_options()
+    }
+
+    #[test]
+    fn lidar_noise_and_outliers_reach_the_options_and_are_checked() {
+        let defaults = options(&[]).unwrap();
+        assert_eq!(defaults.lidar.noise_sigma_m, 0.015);
+        assert_eq!(defaults.lidar.outlier_fraction, 0.001);
+        let clean = options(&["--lidar-noise", "0", "--lidar-outliers", "0"]).unwrap();
+        assert_eq!(clean.lidar.noise_sigma_m, 0.0);
+        assert_eq!(clean.lidar.outlier_fraction, 0.0);
+        assert!(options(&["--lidar-noise=-0.01"]).is_err());
+        assert!(options(&["--lidar-outliers", "0.7"]).is_err());
+        assert!(options(&["--lidar-outliers", "NaN"]).is_err());
+    }
+}
