@@ -313,6 +313,156 @@ fn key_dist(key: u64) -> f32 {
     f32::from_bits((key >> 32) as u32)
 }
 
+/// Squared distance (squared steps) from `q` to the stored point
+/// `(x, y, z)`, both cell-local: the one formula of every query (the kd-tree's
+/// re-ranking included), so all agree to the bit.
+#[inline(always)]
+fn dist_sq(q: [f32; 3], x: u16, y: u16, z: u16) -> f32 {
+    let dx = q[0] - f32::from(x);
+    let dy = q[1] - f32::from(y);
+    let dz = q[2] - f32::from(z);
+    dx * dx + dy * dy + dz * dz
+}
+
+/// Lanes of the scan kernels: chunks of this many points are computed
+/// together (one AVX2 register, two SSE ones).
+const LANES: usize = 8;
+
+/// [`dist_sq`] of `LANES` points (vectorised).
+#[inline(always)]
+fn chunk_dist_sq(q: [f32; 3], x: &[u16], y: &[u16], z: &[u16]) -> [f32; LANES] {
+    let (x, y, z) = (&x[..LANES], &y[..LANES], &z[..LANES]);
+    let mut d = [0.0; LANES];
+    for l in 0..LANES {
+        d[l] = dist_sq(q, x[l], y[l], z[l]);
+    }
+    d
+}
+
+/// Smallest [`dist_sq`] from `q` to the points of the runs `xs`, `ys`, `zs`
+/// (infinite for none). Lane-wise minima over whole chunks, and over the
+/// last `LANES` points for the rest (the minimum does not mind points seen
+/// twice); short runs one by one.
+#[inline(always)]
+fn runs_min_impl(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> f32 {
+    // Not `f32::min`: no NaN occurs, and this is one `minps`.
+    let min = |a: f32, b: f32| if b < a { b } else { a };
+    let n = xs.len();
+    if n < LANES {
+        return (0..n).fold(f32::INFINITY, |m, k| {
+            min(m, dist_sq(q, xs[k], ys[k], zs[k]))
+        });
+    }
+    let mut acc = [f32::INFINITY; LANES];
+    let mut add = |d: [f32; LANES]| {
+        for l in 0..LANES {
+            acc[l] = min(acc[l], d[l]);
+        }
+    };
+    let (cx, cy, cz) = (
+        xs.chunks_exact(LANES),
+        ys.chunks_exact(LANES),
+        zs.chunks_exact(LANES),
+    );
+    let rest = cx.remainder().len();
+    for ((x, y), z) in cx.zip(cy).zip(cz) {
+        add(chunk_dist_sq(q, x, y, z));
+    }
+    if rest > 0 {
+        let t = n - LANES;
+        add(chunk_dist_sq(q, &xs[t..], &ys[t..], &zs[t..]));
+    }
+    acc.into_iter().fold(f32::INFINITY, min)
+}
+
+/// The first position in the runs `xs`, `ys`, `zs` of a point at
+/// [`dist_sq`] `d` from `q` (the runs' length when there is none): chunk by
+/// chunk, then the last `LANES` points (those seen before did not match).
+#[inline(always)]
+fn runs_position_impl(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3], d: f32) -> usize {
+    let n = xs.len();
+    if n < LANES {
+        return (0..n)
+            .position(|k| dist_sq(q, xs[k], ys[k], zs[k]) == d)
+            .unwrap_or(n);
+    }
+    // Bit `l` set when lane `l` matches (one compare and mask extraction).
+    let matches = |dist: [f32; LANES]| -> u32 {
+        let mut m = 0;
+        for (l, &v) in dist.iter().enumerate() {
+            m |= u32::from(v == d) << l;
+        }
+        m
+    };
+    let (cx, cy, cz) = (
+        xs.chunks_exact(LANES),
+        ys.chunks_exact(LANES),
+        zs.chunks_exact(LANES),
+    );
+    for (k, ((x, y), z)) in cx.zip(cy).zip(cz).enumerate() {
+        let m = matches(chunk_dist_sq(q, x, y, z));
+        if m != 0 {
+            return k * LANES + m.trailing_zeros() as usize;
+        }
+    }
+    let t = n - LANES;
+    match matches(chunk_dist_sq(q, &xs[t..], &ys[t..], &zs[t..])) {
+        0 => n,
+        m => t + m.trailing_zeros() as usize,
+    }
+}
+
+/// [`runs_min_impl`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn runs_min_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> f32 {
+    runs_min_impl(xs, ys, zs, q)
+}
+
+/// [`runs_position_impl`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn runs_position_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3], d: f32) -> usize {
+    runs_position_impl(xs, ys, zs, q, d)
+}
+
+/// Whether the AVX2 builds of the scan kernels can run (checked once, then
+/// a cached flag). Both builds compute the same IEEE operations in the same
+/// order (Rust does not fuse multiply-adds), so answers do not depend on it.
+#[inline]
+fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// [`runs_min_impl`], with AVX2 when available.
+#[inline]
+fn runs_min(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> f32 {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2() {
+        // SAFETY: the processor has AVX2 (checked above).
+        return unsafe { runs_min_avx2(xs, ys, zs, q) };
+    }
+    runs_min_impl(xs, ys, zs, q)
+}
+
+/// [`runs_position_impl`], with AVX2 when available.
+#[inline]
+fn runs_position(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3], d: f32) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2() {
+        // SAFETY: the processor has AVX2 (checked above).
+        return unsafe { runs_position_avx2(xs, ys, zs, q, d) };
+    }
+    runs_position_impl(xs, ys, zs, q, d)
+}
+
 /// A query run by [`MapIndex::search_growing`].
 trait Search {
     /// Current bound on the squared distance of a useful point (squared
@@ -335,18 +485,21 @@ impl Search for NearestSearch {
         self.best.map_or(self.bound, |b| b.d)
     }
 
+    /// The cell's minimum first (a pass that vectorises fully), its position
+    /// only when it can win: most cells scanned lose.
     #[inline]
     fn scan(&mut self, index: &MapIndex, id: u32, c: [i64; 3], g: &[f64; 3]) {
-        let (d, pos) = index.cell_min(id, MapIndex::local_query(g, c));
-        if !(d <= self.bound) {
+        let q = MapIndex::local_query(g, c);
+        let d = index.cell_min(id, q);
+        // `limit` is the best distance so far (<= bound) or the bound.
+        if !(d <= self.limit()) {
             return;
         }
+        let pos = index.cell_position(id, q, d);
         let better = match self.best {
             None => true,
             Some(b) => {
-                d < b.d
-                    || (d == b.d
-                        && index.point_index(id, pos) < index.point_index(b.cell, b.pos as usize))
+                d < b.d || index.point_index(id, pos) < index.point_index(b.cell, b.pos as usize)
             }
         };
         if better {
@@ -379,11 +532,8 @@ impl Search for KSearch {
         let q = MapIndex::local_query(g, c);
         let mut lim = self.limit();
         let (xs, ys, zs, start) = index.cell_coords(id);
-        for (k, ((x, y), z)) in xs.iter().zip(ys).zip(zs).enumerate() {
-            let dx = q[0] - f32::from(*x);
-            let dy = q[1] - f32::from(*y);
-            let dz = q[2] - f32::from(*z);
-            let d = dx * dx + dy * dy + dz * dz;
+        for (k, ((&x, &y), &z)) in xs.iter().zip(ys).zip(zs).enumerate() {
+            let d = dist_sq(q, x, y, z);
             if !(d <= lim) {
                 continue;
             }
@@ -745,10 +895,7 @@ impl MapIndex {
         let c = kd.cell_coord[id as usize];
         let q = Self::local_query(g, [i64::from(c[0]), i64::from(c[1]), i64::from(c[2])]);
         let (xyz, idx) = self.point_at(id, pos as usize);
-        let dx = q[0] - f32::from(xyz[0]);
-        let dy = q[1] - f32::from(xyz[1]);
-        let dz = q[2] - f32::from(xyz[2]);
-        heap_key(dx * dx + dy * dy + dz * dz, idx)
+        heap_key(dist_sq(q, xyz[0], xyz[1], xyz[2]), idx)
     }
 
     /// The query in the tree's frame, with the absolute error margin (m) of
@@ -1035,52 +1182,20 @@ impl MapIndex {
     }
 
     /// Smallest squared distance (squared steps) from `q` (cell-local steps)
-    /// to a point of cell `id`, and the first position where it occurs.
+    /// to a point of cell `id` (infinite for no point).
     #[inline]
-    fn cell_min(&self, id: u32, q: [f32; 3]) -> (f32, usize) {
+    fn cell_min(&self, id: u32, q: [f32; 3]) -> f32 {
+        let (xs, ys, zs, _) = self.cell_coords(id);
+        runs_min(xs, ys, zs, q)
+    }
+
+    /// The first position in the point arrays where a point of cell `id` is
+    /// at squared distance `d` of `q` (cell-local steps; `d` as returned by
+    /// [`cell_min`](Self::cell_min)).
+    #[inline]
+    fn cell_position(&self, id: u32, q: [f32; 3], d: f32) -> usize {
         let (xs, ys, zs, start) = self.cell_coords(id);
-        let dist = |x: u16, y: u16, z: u16| -> f32 {
-            let dx = q[0] - f32::from(x);
-            let dy = q[1] - f32::from(y);
-            let dz = q[2] - f32::from(z);
-            dx * dx + dy * dy + dz * dz
-        };
-        // Lane-wise minimum and its first position over chunks of 8
-        // (vectorised), then the rest.
-        const LANES: usize = 8;
-        let mut acc = [f32::INFINITY; LANES];
-        let mut at = [0u32; LANES];
-        let (cx, cy, cz) = (
-            xs.chunks_exact(LANES),
-            ys.chunks_exact(LANES),
-            zs.chunks_exact(LANES),
-        );
-        let (rx, ry, rz) = (cx.remainder(), cy.remainder(), cz.remainder());
-        let mut base = 0u32;
-        for ((x, y), z) in cx.zip(cy).zip(cz) {
-            for l in 0..LANES {
-                let d = dist(x[l], y[l], z[l]);
-                let better = d < acc[l];
-                acc[l] = if better { d } else { acc[l] };
-                at[l] = if better { base + l as u32 } else { at[l] };
-            }
-            base += LANES as u32;
-        }
-        let (mut min, mut pos) = (f32::INFINITY, 0u32);
-        for l in 0..LANES {
-            if acc[l] < min || (acc[l] == min && at[l] < pos) {
-                min = acc[l];
-                pos = at[l];
-            }
-        }
-        for (k, ((x, y), z)) in rx.iter().zip(ry).zip(rz).enumerate() {
-            let d = dist(*x, *y, *z);
-            if d < min {
-                min = d;
-                pos = base + k as u32;
-            }
-        }
-        (min, start + pos as usize)
+        start + runs_position(xs, ys, zs, q, d)
     }
 
     /// Visits the occupied cells around `g` nearest first, roughly: the own
@@ -1575,6 +1690,34 @@ mod tests {
             some += usize::from(b.is_some());
         }
         assert!(some > 50 && some < 500, "{some}");
+    }
+
+    #[test]
+    fn scan_kernels_match_a_plain_loop() {
+        // Runs of every length up to 40 (short runs, whole chunks and a
+        // tail), coordinates from a few values so distances tie; both the
+        // baseline and (when available) the AVX2 build.
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 40) as u16 % 4 * 1000
+        };
+        for n in 0..40 {
+            let run: Vec<u16> = (0..3 * n).map(|_| next()).collect();
+            let (xs, rest) = run.split_at(n);
+            let (ys, zs) = rest.split_at(n);
+            let q = [1500.25, 999.5, 2000.0];
+            let dists: Vec<f32> = (0..n).map(|k| dist_sq(q, xs[k], ys[k], zs[k])).collect();
+            let min = dists.iter().copied().fold(f32::INFINITY, f32::min);
+            let first = dists.iter().position(|&d| d == min).unwrap_or(n);
+            assert_eq!(runs_min_impl(xs, ys, zs, q), min, "n = {n}");
+            assert_eq!(runs_position_impl(xs, ys, zs, q, min), first, "n = {n}");
+            assert_eq!(runs_min(xs, ys, zs, q), min, "n = {n}");
+            assert_eq!(runs_position(xs, ys, zs, q, min), first, "n = {n}");
+            assert_eq!(runs_position(xs, ys, zs, q, -1.0), n);
+        }
     }
 
     #[test]
