@@ -375,41 +375,116 @@ fn runs_min_impl(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> f32 {
     acc.into_iter().fold(f32::INFINITY, min)
 }
 
-/// The first position in the runs `xs`, `ys`, `zs` of a point at
-/// [`dist_sq`] `d` from `q` (the runs' length when there is none): chunk by
-/// chunk, then the last `LANES` points (those seen before did not match).
+/// The smallest [`dist_sq`] from `q` to the points of the runs `xs`, `ys`,
+/// `zs` and the first position where it occurs (`(infinity, 0)` for no
+/// point): lane-wise minima and their first positions, then the lanes'
+/// minimum at its smallest position (positions increase along a lane, the
+/// last overlapping chunk included).
 #[inline(always)]
-fn runs_position_impl(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3], d: f32) -> usize {
+fn runs_argmin_impl(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (f32, usize) {
+    let n = xs.len();
+    let mut acc = [f32::INFINITY; LANES];
+    let mut at = [0usize; LANES];
+    let mut add = |k: usize| {
+        let d = chunk_dist_sq(q, &xs[k..], &ys[k..], &zs[k..]);
+        for l in 0..LANES {
+            if d[l] < acc[l] {
+                acc[l] = d[l];
+                at[l] = k + l;
+            }
+        }
+    };
+    if n < LANES {
+        let mut best = (f32::INFINITY, 0);
+        for k in 0..n {
+            let d = dist_sq(q, xs[k], ys[k], zs[k]);
+            if d < best.0 {
+                best = (d, k);
+            }
+        }
+        return best;
+    }
+    for k in (0..n - LANES + 1).step_by(LANES) {
+        add(k);
+    }
+    if n % LANES != 0 {
+        add(n - LANES);
+    }
+    lanes_argmin(&acc, &at)
+}
+
+/// The smallest of the lanes' minima `acc`, at the smallest of the
+/// positions `at` that reach it.
+#[inline(always)]
+fn lanes_argmin(acc: &[f32; LANES], at: &[usize; LANES]) -> (f32, usize) {
+    let mut best = (acc[0], at[0]);
+    for l in 1..LANES {
+        if acc[l] < best.0 || (acc[l] == best.0 && at[l] < best.1) {
+            best = (acc[l], at[l]);
+        }
+    }
+    best
+}
+
+/// [`runs_argmin_impl`] with AVX2 intrinsics (a compare and two blends a
+/// chunk; the compiler does not vectorise the positions by itself).
+///
+/// # Safety
+/// The processor must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn runs_argmin_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (f32, usize) {
+    use std::arch::x86_64::*;
     let n = xs.len();
     if n < LANES {
-        return (0..n)
-            .position(|k| dist_sq(q, xs[k], ys[k], zs[k]) == d)
-            .unwrap_or(n);
+        return runs_argmin_impl(xs, ys, zs, q);
     }
-    // Bit `l` set when lane `l` matches (one compare and mask extraction).
-    let matches = |dist: [f32; LANES]| -> u32 {
-        let mut m = 0;
-        for (l, &v) in dist.iter().enumerate() {
-            m |= u32::from(v == d) << l;
-        }
-        m
-    };
-    let (cx, cy, cz) = (
-        xs.chunks_exact(LANES),
-        ys.chunks_exact(LANES),
-        zs.chunks_exact(LANES),
+    let (qx, qy, qz) = (
+        _mm256_set1_ps(q[0]),
+        _mm256_set1_ps(q[1]),
+        _mm256_set1_ps(q[2]),
     );
-    for (k, ((x, y), z)) in cx.zip(cy).zip(cz).enumerate() {
-        let m = matches(chunk_dist_sq(q, x, y, z));
-        if m != 0 {
-            return k * LANES + m.trailing_zeros() as usize;
-        }
+    let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    let mut acc = _mm256_set1_ps(f32::INFINITY);
+    let mut at = _mm256_setzero_si256();
+    let mut add = |k: usize| {
+        let load = |v: &[u16]| {
+            let chunk = &v[k..k + LANES];
+            // SAFETY: `chunk` holds 8 u16 (16 bytes); unaligned load.
+            let w = unsafe { _mm_loadu_si128(chunk.as_ptr().cast()) };
+            _mm256_cvtepi32_ps(_mm256_cvtepu16_epi32(w))
+        };
+        // dist_sq's operations in its order: (dx dx + dy dy) + dz dz.
+        let dx = _mm256_sub_ps(qx, load(xs));
+        let dy = _mm256_sub_ps(qy, load(ys));
+        let dz = _mm256_sub_ps(qz, load(zs));
+        let d = _mm256_add_ps(
+            _mm256_add_ps(_mm256_mul_ps(dx, dx), _mm256_mul_ps(dy, dy)),
+            _mm256_mul_ps(dz, dz),
+        );
+        let better = _mm256_cmp_ps::<_CMP_LT_OQ>(d, acc);
+        acc = _mm256_blendv_ps(acc, d, better);
+        let pos = _mm256_add_epi32(_mm256_set1_epi32(k as i32), lane);
+        at = _mm256_castps_si256(_mm256_blendv_ps(
+            _mm256_castsi256_ps(at),
+            _mm256_castsi256_ps(pos),
+            better,
+        ));
+    };
+    for k in (0..n - LANES + 1).step_by(LANES) {
+        add(k);
     }
-    let t = n - LANES;
-    match matches(chunk_dist_sq(q, &xs[t..], &ys[t..], &zs[t..])) {
-        0 => n,
-        m => t + m.trailing_zeros() as usize,
+    if n % LANES != 0 {
+        add(n - LANES);
     }
+    let (mut acc_l, mut at_l) = ([0f32; LANES], [0i32; LANES]);
+    // SAFETY: both arrays are 32 bytes; unaligned stores.
+    unsafe {
+        _mm256_storeu_ps(acc_l.as_mut_ptr(), acc);
+        _mm256_storeu_si256(at_l.as_mut_ptr().cast(), at);
+    }
+    // Positions are below the run's length, itself below 2^31 (u32 points).
+    lanes_argmin(&acc_l, &at_l.map(|p| p as usize))
 }
 
 /// [`runs_min_impl`] compiled for AVX2.
@@ -419,16 +494,10 @@ fn runs_min_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> f32 {
     runs_min_impl(xs, ys, zs, q)
 }
 
-/// [`runs_position_impl`] compiled for AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn runs_position_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3], d: f32) -> usize {
-    runs_position_impl(xs, ys, zs, q, d)
-}
-
 /// Whether the AVX2 builds of the scan kernels can run (checked once, then
 /// a cached flag). Both builds compute the same IEEE operations in the same
-/// order (Rust does not fuse multiply-adds), so answers do not depend on it.
+/// order (Rust does not fuse multiply-adds) and pick the same position, so
+/// answers do not depend on it.
 #[inline]
 fn has_avx2() -> bool {
     #[cfg(target_arch = "x86_64")]
@@ -452,15 +521,15 @@ fn runs_min(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> f32 {
     runs_min_impl(xs, ys, zs, q)
 }
 
-/// [`runs_position_impl`], with AVX2 when available.
+/// [`runs_argmin_impl`], with AVX2 when available.
 #[inline]
-fn runs_position(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3], d: f32) -> usize {
+fn runs_argmin(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (f32, usize) {
     #[cfg(target_arch = "x86_64")]
     if has_avx2() {
         // SAFETY: the processor has AVX2 (checked above).
-        return unsafe { runs_position_avx2(xs, ys, zs, q, d) };
+        return unsafe { runs_argmin_avx2(xs, ys, zs, q) };
     }
-    runs_position_impl(xs, ys, zs, q, d)
+    runs_argmin_impl(xs, ys, zs, q)
 }
 
 /// A query run by [`MapIndex::search_growing`].
@@ -485,17 +554,27 @@ impl Search for NearestSearch {
         self.best.map_or(self.bound, |b| b.d)
     }
 
-    /// The cell's minimum first (a pass that vectorises fully), its position
-    /// only when it can win: most cells scanned lose.
+    /// The first cell scanned gives the minimum and its position in one
+    /// pass; the next ones their minimum only (a cheaper pass), and their
+    /// position only when they can win: most lose.
     #[inline]
     fn scan(&mut self, index: &MapIndex, id: u32, c: [i64; 3], g: &[f64; 3]) {
         let q = MapIndex::local_query(g, c);
-        let d = index.cell_min(id, q);
+        let (xs, ys, zs, start) = index.cell_coords(id);
+        let (d, k) = if self.best.is_none() {
+            runs_argmin(xs, ys, zs, q)
+        } else {
+            let d = runs_min(xs, ys, zs, q);
+            if !(d <= self.limit()) {
+                return;
+            }
+            runs_argmin(xs, ys, zs, q)
+        };
         // `limit` is the best distance so far (<= bound) or the bound.
         if !(d <= self.limit()) {
             return;
         }
-        let pos = index.cell_position(id, q, d);
+        let pos = start + k;
         let better = match self.best {
             None => true,
             Some(b) => {
@@ -1181,23 +1260,6 @@ impl MapIndex {
         u32::from(self.data[base + 3 * n + k]) | (u32::from(self.data[base + 4 * n + k]) << 16)
     }
 
-    /// Smallest squared distance (squared steps) from `q` (cell-local steps)
-    /// to a point of cell `id` (infinite for no point).
-    #[inline]
-    fn cell_min(&self, id: u32, q: [f32; 3]) -> f32 {
-        let (xs, ys, zs, _) = self.cell_coords(id);
-        runs_min(xs, ys, zs, q)
-    }
-
-    /// The first position in the point arrays where a point of cell `id` is
-    /// at squared distance `d` of `q` (cell-local steps; `d` as returned by
-    /// [`cell_min`](Self::cell_min)).
-    #[inline]
-    fn cell_position(&self, id: u32, q: [f32; 3], d: f32) -> usize {
-        let (xs, ys, zs, start) = self.cell_coords(id);
-        start + runs_position(xs, ys, zs, q, d)
-    }
-
     /// Visits the occupied cells around `g` nearest first, roughly: the own
     /// cell, then cubes of half-width 1, 2, 3, 4, 6, 9, ... cells around it
     /// (growing by half; each cell once), until the cube holds the ball of
@@ -1711,12 +1773,11 @@ mod tests {
             let q = [1500.25, 999.5, 2000.0];
             let dists: Vec<f32> = (0..n).map(|k| dist_sq(q, xs[k], ys[k], zs[k])).collect();
             let min = dists.iter().copied().fold(f32::INFINITY, f32::min);
-            let first = dists.iter().position(|&d| d == min).unwrap_or(n);
+            let first = dists.iter().position(|&d| d == min).unwrap_or(0);
             assert_eq!(runs_min_impl(xs, ys, zs, q), min, "n = {n}");
-            assert_eq!(runs_position_impl(xs, ys, zs, q, min), first, "n = {n}");
+            assert_eq!(runs_argmin_impl(xs, ys, zs, q), (min, first), "n = {n}");
             assert_eq!(runs_min(xs, ys, zs, q), min, "n = {n}");
-            assert_eq!(runs_position(xs, ys, zs, q, min), first, "n = {n}");
-            assert_eq!(runs_position(xs, ys, zs, q, -1.0), n);
+            assert_eq!(runs_argmin(xs, ys, zs, q), (min, first), "n = {n}");
         }
     }
 
