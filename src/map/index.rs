@@ -407,7 +407,7 @@ fn runs_argmin_impl(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (f32, us
     for k in (0..n - LANES + 1).step_by(LANES) {
         add(k);
     }
-    if n % LANES != 0 {
+    if !n.is_multiple_of(LANES) {
         add(n - LANES);
     }
     lanes_argmin(&acc, &at)
@@ -474,7 +474,7 @@ unsafe fn runs_argmin_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (
     for k in (0..n - LANES + 1).step_by(LANES) {
         add(k);
     }
-    if n % LANES != 0 {
+    if !n.is_multiple_of(LANES) {
         add(n - LANES);
     }
     let (mut acc_l, mut at_l) = ([0f32; LANES], [0i32; LANES]);
@@ -565,13 +565,14 @@ impl Search for NearestSearch {
             runs_argmin(xs, ys, zs, q)
         } else {
             let d = runs_min(xs, ys, zs, q);
-            if !(d <= self.limit()) {
+            if d > self.limit() {
                 return;
             }
             runs_argmin(xs, ys, zs, q)
         };
-        // `limit` is the best distance so far (<= bound) or the bound.
-        if !(d <= self.limit()) {
+        // `limit` is the best distance so far (<= bound) or the bound; no
+        // NaN occurs (finite query, bound checked).
+        if d > self.limit() {
             return;
         }
         let pos = start + k;
