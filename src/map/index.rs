@@ -1629,9 +1629,6 @@ impl MapIndex {
     }
 }
 
-/// Sorts `values` by their high 32 bits, stably (values with equal high
-/// bits keep their order): a least-significant-digit radix sort, 11 bits a
-/// pass, skipping passes in which every value has the same digit.
 /// Asks the kernel to back `v` with 2 MB pages where it can (Linux
 /// transparent huge pages, `madvise` mode): random queries into a map of
 /// hundreds of megabytes then miss the TLB far less often. Only a hint: call
@@ -1654,6 +1651,9 @@ fn advise_huge_pages<T>(v: &mut [T]) {
     let _ = v;
 }
 
+/// Sorts `values` by their high 32 bits, stably (values with equal high
+/// bits keep their order): a least-significant-digit radix sort, 11 bits a
+/// pass, skipping passes in which every value has the same digit.
 fn radix_sort_high_u32(values: &mut Vec<u64>) {
     const BITS: u32 = 11;
     const BUCKETS: usize = 1 << BITS;
