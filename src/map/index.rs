@@ -41,6 +41,7 @@
 //! grid's own distances, so both backends return identical results.
 use std::collections::BinaryHeap;
 use std::num::NonZeroUsize;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::OnceLock;
 
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
@@ -113,6 +114,10 @@ const STEPS: f64 = 65535.0;
 const NEIGHBOUR_PREFETCH_CELLS: f64 = 0.25;
 /// Empty slot of the block hash table (no valid key has all bits set).
 const EMPTY_KEY: u64 = u64::MAX;
+/// No answer, in a batch's heap keys (a NaN distance: no real key).
+const NO_ANSWER: u64 = u64::MAX;
+/// A batch query's point and cell are prefetched this many queries ahead.
+const BATCH_PREFETCH_AHEAD: usize = 8;
 
 fn pack_block(b: [i64; 3]) -> u64 {
     ((b[0] as u64) << (2 * KEY_AXIS_BITS)) | ((b[1] as u64) << KEY_AXIS_BITS) | (b[2] as u64)
@@ -204,6 +209,27 @@ fn floor_i64(x: f64) -> i64 {
     } else {
         t
     }
+}
+
+/// The grid cell holding the point `g` (continuous grid-cell coordinates).
+#[inline]
+fn grid_cell(g: &[f64; 3]) -> [i64; 3] {
+    [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])]
+}
+
+/// Hints the processor to fetch the cache line holding `value` (no effect
+/// on results).
+#[inline]
+fn prefetch<T>(value: &T) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        // SAFETY: SSE is part of the x86-64 baseline, and a prefetch of a
+        // valid address has no effect but on caches.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>((value as *const T).cast::<i8>()) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = value;
 }
 
 /// Nearest-neighbour index of a [`PointCloud`] (see the module doc). Holds no
@@ -1106,9 +1132,10 @@ impl MapIndex {
         Some((radius_m * radius_m / self.step_sq()) as f32)
     }
 
-    /// The id of the grid cell `c`, if occupied.
+    /// The block holding grid cell `c` and the cell's z-layer and bit in
+    /// it, if the block is occupied.
     #[inline]
-    fn cell_id(&self, c: [i64; 3]) -> Option<u32> {
+    fn block_of(&self, c: [i64; 3]) -> Option<(&Block, usize, u32)> {
         if (0..3).any(|a| c[a] < 0 || c[a] >= self.extent[a]) {
             return None;
         }
@@ -1120,6 +1147,13 @@ impl MapIndex {
         let block = &self.blocks[self.table.get(pack_block(b))? as usize];
         let m = BLOCK_EDGE - 1;
         let (z, bit) = ((c[2] & m) as usize, ((c[1] & m) << 3 | (c[0] & m)) as u32);
+        Some((block, z, bit))
+    }
+
+    /// The id of the grid cell `c`, if occupied.
+    #[inline]
+    fn cell_id(&self, c: [i64; 3]) -> Option<u32> {
+        let (block, z, bit) = self.block_of(c)?;
         (block.occupied[z] >> bit & 1 == 1).then(|| block.cell_id(z, bit))
     }
 
@@ -1267,8 +1301,20 @@ impl MapIndex {
     /// radius `sqrt(search.limit())` (the limit may shrink while visiting).
     /// Cells whose box lies beyond the limit are not scanned.
     fn search_growing<S: Search>(&self, g: &[f64; 3], search: &mut S) {
-        let own = [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])];
-        let own_id = self.cell_id(own);
+        let own = grid_cell(g);
+        self.search_around(g, own, self.cell_id(own), search);
+    }
+
+    /// [`search_growing`](Self::search_growing) with the query's own cell
+    /// `own` (`grid_cell(g)`) and its id (`None` when empty) known.
+    #[inline]
+    fn search_around<S: Search>(
+        &self,
+        g: &[f64; 3],
+        own: [i64; 3],
+        own_id: Option<u32>,
+        search: &mut S,
+    ) {
         if let Some(id) = own_id {
             self.prefetch_cell(id);
         }
@@ -1344,17 +1390,31 @@ impl MapIndex {
                 return self.keys_to_neighbours(keys).into_iter().next();
             }
         }
+        let own = grid_cell(&g);
+        self.nearest_around(&g, own, self.cell_id(own), bound)
+            .map(|key| self.key_to_neighbour(key))
+    }
+
+    /// The grid's nearest point within `bound` (squared steps, inclusive)
+    /// of `g`, whose own cell `own` has the id `own_id`, as a heap key.
+    #[inline]
+    fn nearest_around(
+        &self,
+        g: &[f64; 3],
+        own: [i64; 3],
+        own_id: Option<u32>,
+        bound: f32,
+    ) -> Option<u64> {
         let mut search = NearestSearch { bound, best: None };
-        self.search_growing(&g, &mut search);
-        search.best.map(|b| Neighbour {
-            point_idx: self.point_index(b.cell, b.pos as usize),
-            dist_sq: f64::from(b.d) * self.step_sq(),
-        })
+        self.search_around(g, own, own_id, &mut search);
+        search
+            .best
+            .map(|b| heap_key(b.d, self.point_index(b.cell, b.pos as usize)))
     }
 
     /// [`nearest_within`](Self::nearest_within) for many query points at
     /// once: the answer for `points_in_map[i]` is at `i`. Queries run in the
-    /// index's own memory order (sorted by block and cell, a radix sort), so
+    /// index's own memory order (sorted by cell, a radix sort), so
     /// consecutive queries scan the same cells and mostly hit the caches, in
     /// parallel over chunks (rayon); the result does not depend on the order
     /// or the thread count.
@@ -1364,58 +1424,89 @@ impl MapIndex {
         radius_m: f64,
     ) -> Vec<Option<Neighbour>> {
         let n = points_in_map.len();
-        if self.is_empty() || n == 0 {
+        let Some(bound) = self.radius_steps_sq(radius_m) else {
             return vec![None; n];
+        };
+        if self.is_empty() || self.use_tree(radius_m) {
+            return points_in_map
+                .par_iter()
+                .map(|p| self.nearest_within(p, radius_m))
+                .collect();
         }
         let order = self.memory_order(points_in_map);
-        // Gathered first: independent loads overlap, while a load inside the
-        // query loop would stall each query on its own cache miss.
-        let sorted: Vec<Vector3<f64>> = order
-            .iter()
-            .map(|&v| points_in_map[v as u32 as usize])
-            .collect();
-        let answers: Vec<Option<Neighbour>> = sorted
-            .par_chunks(4096)
-            .flat_map_iter(|chunk| chunk.iter().map(|p| self.nearest_within(p, radius_m)))
-            .collect();
-        let mut out = vec![None; n];
-        for (&v, a) in order.iter().zip(answers) {
-            out[v as u32 as usize] = a;
-        }
-        out
+        let outside = self.outside_key();
+        // Heap keys of the answers (NO_ANSWER for none), written in place:
+        // each slot once, `order` being a permutation.
+        let answers: Vec<AtomicU64> = (0..n).map(|_| AtomicU64::new(NO_ANSWER)).collect();
+        order.par_chunks(4096).for_each(|chunk| {
+            for (j, &v) in chunk.iter().enumerate() {
+                if let Some(&ahead) = chunk.get(j + BATCH_PREFETCH_AHEAD) {
+                    // The query point and its answer's slot are random
+                    // accesses; its cell usually the next run of memory.
+                    prefetch(&points_in_map[ahead as u32 as usize]);
+                    prefetch(&answers[ahead as u32 as usize]);
+                    let key = (ahead >> 32) as u32;
+                    if key != outside && key & 1 == 1 {
+                        self.prefetch_cell(key >> 1);
+                    }
+                }
+                let i = v as u32 as usize;
+                let key = (v >> 32) as u32;
+                let Some(g) = self.to_grid(&points_in_map[i]) else {
+                    continue;
+                };
+                let own = grid_cell(&g);
+                let own_id = if key == outside {
+                    self.cell_id(own)
+                } else {
+                    (key & 1 == 1).then_some(key >> 1)
+                };
+                if let Some(found) = self.nearest_around(&g, own, own_id, bound) {
+                    answers[i].store(found, Ordering::Relaxed);
+                }
+            }
+        });
+        answers
+            .into_iter()
+            .map(|a| {
+                let key = a.into_inner();
+                (key != NO_ANSWER).then(|| self.key_to_neighbour(key))
+            })
+            .collect()
     }
 
-    /// The queries' indices (low 32 bits) sorted by the memory position of
-    /// the cell holding them (high 32 bits: block id, then the cell's bit in
-    /// the block; ties by index). Queries outside the grid or in an empty
-    /// block go last. Only the visiting order depends on this.
+    /// The batch sort key ([`memory_order`](Self::memory_order)) of queries
+    /// outside the grid, in an empty block or not finite: the largest.
+    fn outside_key(&self) -> u32 {
+        (2 * self.num_cells() as u64 + 1).min(u64::from(u32::MAX)) as u32
+    }
+
+    /// The queries' indices (low 32 bits) sorted by a key (high 32 bits)
+    /// that follows the index's memory order: `2 id + 1` for a query in the
+    /// occupied cell `id`; `2 id` for one in an empty cell of an occupied
+    /// block, `id` counted in the block as for an occupied cell (the next
+    /// one's in its z-layer, order only); [`outside_key`](Self::outside_key)
+    /// for the rest (and for cell ids too large for the key), last. Ties by
+    /// index. The sort uses only the key's significant bits.
     fn memory_order(&self, points_in_map: &[Vector3<f64>]) -> Vec<u64> {
-        // Block ids above this share the last key (order only).
-        const MAX_BLOCK: u64 = (1 << 23) - 2;
-        let m = BLOCK_EDGE - 1;
+        let outside = self.outside_key();
         let mut keyed: Vec<u64> = points_in_map
             .par_iter()
             .enumerate()
             .map(|(i, p)| {
                 let key = self
                     .to_grid(p)
-                    .map(|g| [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])])
-                    .filter(|c| (0..3).all(|a| c[a] >= 0 && c[a] < self.extent[a]))
-                    .and_then(|c| {
-                        let b = [
-                            c[0] >> BLOCK_SHIFT,
-                            c[1] >> BLOCK_SHIFT,
-                            c[2] >> BLOCK_SHIFT,
-                        ];
-                        let id = self.table.get(pack_block(b))?;
-                        let bit = ((c[2] & m) << 6) | ((c[1] & m) << 3) | (c[0] & m);
-                        Some((u64::from(id).min(MAX_BLOCK) << 9) | bit as u64)
+                    .and_then(|g| self.block_of(grid_cell(&g)))
+                    .map(|(block, z, bit)| {
+                        let occupied = block.occupied[z] >> bit & 1;
+                        2 * u64::from(block.cell_id(z, bit)) + occupied
                     })
-                    .unwrap_or(u64::from(u32::MAX));
+                    .filter(|&key| key < u64::from(outside))
+                    .unwrap_or(u64::from(outside));
                 (key << 32) | i as u64
             })
             .collect();
-        radix_sort_high_u32(&mut keyed);
+        radix_sort_high_u32(&mut keyed, u32::BITS - outside.leading_zeros());
         keyed
     }
 
@@ -1426,17 +1517,8 @@ impl MapIndex {
         let range = self.cell_range(id);
         let (start, n) = (5 * range.start, range.len());
         for offset in [0, n, 2 * n] {
-            #[cfg(target_arch = "x86_64")]
-            {
-                use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-                let p = self.data[start + offset..].as_ptr().cast::<i8>();
-                // SAFETY: SSE is part of the x86-64 baseline, and a prefetch
-                // of a valid address has no effect but on caches.
-                unsafe { _mm_prefetch::<_MM_HINT_T0>(p) };
-            }
-            #[cfg(not(target_arch = "x86_64"))]
-            {
-                std::hint::black_box(self.data.get(start + offset));
+            if let Some(first) = self.data.get(start + offset) {
+                prefetch(first);
             }
         }
     }
@@ -1500,13 +1582,18 @@ impl MapIndex {
 
     /// Sorted heap keys to neighbours.
     fn keys_to_neighbours(&self, keys: Vec<u64>) -> Vec<Neighbour> {
-        let step_sq = self.step_sq();
         keys.into_iter()
-            .map(|key| Neighbour {
-                point_idx: key as u32,
-                dist_sq: f64::from(key_dist(key)) * step_sq,
-            })
+            .map(|key| self.key_to_neighbour(key))
             .collect()
+    }
+
+    /// A heap key to the neighbour.
+    #[inline]
+    fn key_to_neighbour(&self, key: u64) -> Neighbour {
+        Neighbour {
+            point_idx: key as u32,
+            dist_sq: f64::from(key_dist(key)) * self.step_sq(),
+        }
     }
 
     /// The nearest map point, whatever its distance (`None` for an empty map).
@@ -1618,14 +1705,7 @@ impl MapIndex {
             }
         });
         found.sort_unstable();
-        let step_sq = self.step_sq();
-        found
-            .into_iter()
-            .map(|key| Neighbour {
-                point_idx: key as u32,
-                dist_sq: f64::from(key_dist(key)) * step_sq,
-            })
-            .collect()
+        self.keys_to_neighbours(found)
     }
 }
 
@@ -1651,17 +1731,24 @@ fn advise_huge_pages<T>(v: &mut [T]) {
     let _ = v;
 }
 
-/// Sorts `values` by their high 32 bits, stably (values with equal high
-/// bits keep their order): a least-significant-digit radix sort, 11 bits a
-/// pass, skipping passes in which every value has the same digit.
-fn radix_sort_high_u32(values: &mut Vec<u64>) {
-    const BITS: u32 = 11;
-    const BUCKETS: usize = 1 << BITS;
+/// Sorts `values` by their high 32 bits, of which only the low `key_bits`
+/// may be set, stably (values with equal high bits keep their order): a
+/// least-significant-digit radix sort in as few passes of at most 11 bits
+/// as cover `key_bits`, skipping passes in which every value has the same
+/// digit.
+fn radix_sort_high_u32(values: &mut Vec<u64>, key_bits: u32) {
+    const MAX_DIGIT_BITS: u32 = 11;
+    let key_bits = key_bits.min(32);
+    if key_bits == 0 {
+        return;
+    }
+    let bits = key_bits.div_ceil(key_bits.div_ceil(MAX_DIGIT_BITS));
+    let buckets = 1usize << bits;
     let mut scratch = vec![0u64; values.len()];
     let mut shift = 32;
-    while shift < 64 {
-        let digit = |v: u64| ((v >> shift) as usize) & (BUCKETS - 1);
-        let mut counts = vec![0usize; BUCKETS];
+    while shift < 32 + key_bits {
+        let digit = |v: u64| ((v >> shift) as usize) & (buckets - 1);
+        let mut counts = vec![0usize; buckets];
         for &v in values.iter() {
             counts[digit(v)] += 1;
         }
@@ -1679,7 +1766,7 @@ fn radix_sort_high_u32(values: &mut Vec<u64>) {
             }
             std::mem::swap(values, &mut scratch);
         }
-        shift += BITS;
+        shift += bits;
     }
 }
 
@@ -1793,13 +1880,13 @@ mod tests {
             state ^= state << 17;
             state
         };
-        for mask in [u64::MAX, 0xffu64 << 32] {
+        for (mask, key_bits) in [(u64::MAX, 32), (0xffu64 << 32, 8), (0x3ffu64 << 32, 10)] {
             let mut values: Vec<u64> = (0..20_000u64)
                 .map(|i| (next() & mask & !0xffff_ffff) | (20_000 - i))
                 .collect();
             let mut expected = values.clone();
             expected.sort_by_key(|v| v >> 32);
-            radix_sort_high_u32(&mut values);
+            radix_sort_high_u32(&mut values, key_bits);
             assert_eq!(values, expected);
         }
     }
