@@ -134,7 +134,11 @@ fn unpack_block(key: u64) -> [i64; 3] {
 
 /// 8 x 8 x 8 cells: bit `x | y << 3` of word `z` is set when cell (x, y, z)
 /// of the block holds points; the cells of word `z` are numbered from
-/// `first_cell[z]` in bit order.
+/// `first_cell[z]` in bit order. For an empty word, `first_cell[z]` is the
+/// id of the next occupied cell in memory order (in a later z-layer or
+/// block; the number of cells after the last), so [`Block::cell_id`] of any
+/// cell, occupied or not, is that of the first occupied cell at or after it
+/// in memory order.
 #[derive(Clone, Copy, Debug)]
 struct Block {
     occupied: [u64; 8],
@@ -771,6 +775,18 @@ impl MapIndex {
             block.occupied[z] |= 1u64 << bit;
         }
         cell_start.push(n as u32);
+        // Empty z-layers: the next occupied cell's id, walking backwards
+        // from the end (see `Block`).
+        let mut next = (cell_start.len() - 1) as u32;
+        for block in blocks.iter_mut().rev() {
+            for z in (0..8).rev() {
+                if block.occupied[z] == 0 {
+                    block.first_cell[z] = next;
+                } else {
+                    next = block.first_cell[z];
+                }
+            }
+        }
         let table = BlockTable::new(&block_keys);
 
         // Groups of whole cells of about 32k points, quantised in parallel.
@@ -1484,9 +1500,11 @@ impl MapIndex {
     /// The queries' indices (low 32 bits) sorted by a key (high 32 bits)
     /// that follows the index's memory order: `2 id + 1` for a query in the
     /// occupied cell `id`; `2 id` for one in an empty cell of an occupied
-    /// block, `id` counted in the block as for an occupied cell (the next
-    /// one's in its z-layer, order only); [`outside_key`](Self::outside_key)
-    /// for the rest (and for cell ids too large for the key), last. Ties by
+    /// block, `id` being that of the first occupied cell after it in memory
+    /// order (in its z-layer, a later one or a later block; the number of
+    /// cells after the last: order only, see [`Block`]), so it sorts just
+    /// before that cell's queries; [`outside_key`](Self::outside_key) for
+    /// the rest (and for cell ids too large for the key), last. Ties by
     /// index. The sort uses only the key's significant bits.
     fn memory_order(&self, points_in_map: &[Vector3<f64>]) -> Vec<u64> {
         let outside = self.outside_key();
@@ -1840,6 +1858,59 @@ mod tests {
             some += usize::from(b.is_some());
         }
         assert!(some > 50 && some < 500, "{some}");
+    }
+
+    #[test]
+    fn batch_keys_of_empty_cells_follow_memory_order() {
+        // 1 m cells: block (0, 0, 0) holds cells (0, 0, 0), (1, 0, 0) and
+        // (0, 0, 3) (ids 0, 1, 2), block (0, 0, 1) cell (0, 0, 12) (id 3),
+        // block (1, 0, 1) cell (8, 0, 8) (id 4). A query in an empty cell
+        // gets twice the id of the first occupied cell after it in memory
+        // order, also in an empty z-layer (never 0 but before cell 0).
+        let c = cloud(vec![
+            [0.5, 0.5, 0.5],
+            [1.5, 0.5, 0.5],
+            [0.5, 0.5, 3.5],
+            [0.5, 0.5, 12.5],
+            [8.5, 0.5, 8.5],
+        ]);
+        let options = IndexOptions {
+            cell_size_m: Some(1.0),
+        };
+        let index = MapIndex::build_with_options(&c, &options).unwrap();
+        assert_eq!(index.num_cells(), 5);
+        let outside = index.outside_key();
+        assert_eq!(outside, 11);
+        let cases: [([f64; 3], u32); 11] = [
+            ([0.5, 0.5, 0.5], 1),
+            ([0.2, 0.7, 3.1], 5),
+            ([0.5, 0.5, 1.5], 4),
+            ([2.5, 0.5, 0.5], 4),
+            ([0.5, 0.5, 5.5], 6),
+            ([0.5, 0.5, 8.5], 6),
+            ([0.5, 0.5, 12.5], 7),
+            ([8.5, 0.5, 10.5], 10),
+            ([8.5, 0.5, 8.5], 9),
+            ([8.5, 0.5, 0.5], outside),
+            ([-3.0, 0.5, 0.5], outside),
+        ];
+        let queries: Vec<Vector3<f64>> = cases
+            .iter()
+            .map(|(p, _)| c.origin + Vector3::new(p[0], p[1], p[2]))
+            .collect();
+        let order = index.memory_order(&queries);
+        assert_eq!(order.len(), cases.len());
+        for pair in order.windows(2) {
+            assert!(pair[0] < pair[1]);
+        }
+        for &v in &order {
+            let i = v as u32 as usize;
+            assert_eq!((v >> 32) as u32, cases[i].1, "query {:?}", cases[i].0);
+        }
+        let batch = index.nearest_within_batch(&queries, 2.0);
+        for (q, b) in queries.iter().zip(&batch) {
+            assert_eq!(*b, index.nearest_within(q, 2.0));
+        }
     }
 
     #[test]
