@@ -494,7 +494,8 @@ unsafe fn runs_argmin_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (
         );
         let better = _mm256_cmp_ps::<_CMP_LT_OQ>(d, acc);
         acc = _mm256_blendv_ps(acc, d, better);
-        let pos = _mm256_add_epi32(_mm256_set1_epi32(k as i32), lane);
+        // k < 2^32 - 1: its bits as u32, in an i32 lane (read back below).
+        let pos = _mm256_add_epi32(_mm256_set1_epi32(k as u32 as i32), lane);
         at = _mm256_castps_si256(_mm256_blendv_ps(
             _mm256_castsi256_ps(at),
             _mm256_castsi256_ps(pos),
@@ -513,8 +514,10 @@ unsafe fn runs_argmin_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (
         _mm256_storeu_ps(acc_l.as_mut_ptr(), acc);
         _mm256_storeu_si256(at_l.as_mut_ptr().cast(), at);
     }
-    // Positions are below the run's length, itself below 2^31 (u32 points).
-    lanes_argmin(&acc_l, &at_l.map(|p| p as usize))
+    // Positions are below the run's length, itself below 2^32 - 1 (the
+    // index holds fewer points), and the lanes hold them modulo 2^32 (the
+    // i32 additions wrap): read them as unsigned, also at 2^31 and above.
+    lanes_argmin(&acc_l, &at_l.map(|p| p as u32 as usize))
 }
 
 /// [`runs_min_impl`] compiled for AVX2.
