@@ -1916,30 +1916,169 @@ mod tests {
         }
     }
 
+    /// xorshift64: the kernel tests' deterministic random numbers.
+    struct Xorshift(u64);
+
+    impl Xorshift {
+        fn next(&mut self) -> u64 {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            self.0
+        }
+
+        /// Any u16, the full range.
+        fn u16(&mut self) -> u16 {
+            (self.next() >> 48) as u16
+        }
+
+        fn point(&mut self) -> [u16; 3] {
+            [self.u16(), self.u16(), self.u16()]
+        }
+    }
+
+    /// The runs of `points` (x, y and z).
+    fn runs(points: &[[u16; 3]]) -> [Vec<u16>; 3] {
+        [0, 1, 2].map(|a| points.iter().map(|p| p[a]).collect())
+    }
+
+    /// The scan kernels' answer for `points` and `q`, checked to be the same
+    /// in a plain loop (the first position of the smallest distance,
+    /// `(infinity, 0)` when no distance is below infinity), the scalar
+    /// builds, the dispatching ones and, when the processor has AVX2, the
+    /// AVX2 builds.
+    fn kernels_answer(points: &[[u16; 3]], q: [f32; 3], what: &str) -> (f32, usize) {
+        let [xs, ys, zs] = runs(points);
+        let mut plain = (f32::INFINITY, 0);
+        for (k, p) in points.iter().enumerate() {
+            let d = dist_sq(q, p[0], p[1], p[2]);
+            if d < plain.0 {
+                plain = (d, k);
+            }
+        }
+        let what = format!("{what}, n = {}, q = {q:?}", points.len());
+        assert_eq!(
+            runs_min_impl(&xs, &ys, &zs, q),
+            plain.0,
+            "scalar min, {what}"
+        );
+        assert_eq!(
+            runs_argmin_impl(&xs, &ys, &zs, q),
+            plain,
+            "scalar argmin, {what}"
+        );
+        assert_eq!(runs_min(&xs, &ys, &zs, q), plain.0, "min, {what}");
+        assert_eq!(runs_argmin(&xs, &ys, &zs, q), plain, "argmin, {what}");
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() {
+            // SAFETY: the processor has AVX2 (checked above).
+            let (min, argmin) = unsafe {
+                (
+                    runs_min_avx2(&xs, &ys, &zs, q),
+                    runs_argmin_avx2(&xs, &ys, &zs, q),
+                )
+            };
+            assert_eq!(min, plain.0, "AVX2 min, {what}");
+            assert_eq!(argmin, plain, "AVX2 argmin, {what}");
+        }
+        plain
+    }
+
+    /// The stored coordinate nearest to the query coordinate `v`.
+    fn nearest_step(v: f32) -> u16 {
+        v.round().clamp(0.0, STEPS as f32) as u16
+    }
+
     #[test]
     fn scan_kernels_match_a_plain_loop() {
-        // Runs of every length up to 40 (short runs, whole chunks and a
-        // tail), coordinates from a few values so distances tie; both the
-        // baseline and (when available) the AVX2 build.
-        let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 40) as u16 % 4 * 1000
+        // Runs of every length up to 17 (short runs, one chunk and a tail)
+        // and a few longer (whole chunks, tails); full-range coordinates;
+        // queries with fractional parts, negative and above 65535.
+        let lengths: Vec<usize> = (0..=17).chain([23, 31, 40]).collect();
+        let queries: [[f32; 3]; 6] = [
+            [1500.25, 999.5, 2000.0],
+            [31_337.5, 12.5, 65_000.5],
+            [-1234.75, 40_000.125, -0.5],
+            [65_535.5, 70_000.375, 131_071.9],
+            [-70_000.3, 65_600.8, 3.7],
+            [0.5, 65_534.5, 32_767.5],
+        ];
+        let mut rng = Xorshift(0x9e37_79b9_7f4a_7c15);
+        // Redraws the points not in `keep` until they are farther than
+        // `d` (they then cannot tie with the expected minimum).
+        let farther = |rng: &mut Xorshift, points: &mut [[u16; 3]], keep: &[usize], q, d| {
+            for (k, p) in points.iter_mut().enumerate() {
+                while !keep.contains(&k) && dist_sq(q, p[0], p[1], p[2]) <= d {
+                    *p = rng.point();
+                }
+            }
         };
-        for n in 0..40 {
-            let run: Vec<u16> = (0..3 * n).map(|_| next()).collect();
-            let (xs, rest) = run.split_at(n);
-            let (ys, zs) = rest.split_at(n);
-            let q = [1500.25, 999.5, 2000.0];
-            let dists: Vec<f32> = (0..n).map(|k| dist_sq(q, xs[k], ys[k], zs[k])).collect();
-            let min = dists.iter().copied().fold(f32::INFINITY, f32::min);
-            let first = dists.iter().position(|&d| d == min).unwrap_or(0);
-            assert_eq!(runs_min_impl(xs, ys, zs, q), min, "n = {n}");
-            assert_eq!(runs_argmin_impl(xs, ys, zs, q), (min, first), "n = {n}");
-            assert_eq!(runs_min(xs, ys, zs, q), min, "n = {n}");
-            assert_eq!(runs_argmin(xs, ys, zs, q), (min, first), "n = {n}");
+        for &q in &queries {
+            let near = q.map(nearest_step);
+            for &n in &lengths {
+                // Random runs; and from a few values (ties by chance).
+                let points: Vec<[u16; 3]> = (0..n).map(|_| rng.point()).collect();
+                kernels_answer(&points, q, "random");
+                let points: Vec<[u16; 3]> =
+                    (0..n).map(|_| rng.point().map(|v| v % 4 * 1000)).collect();
+                kernels_answer(&points, q, "few values");
+
+                // Every position the unique minimum (at or next to the
+                // query's nearest stored point).
+                for p in 0..n {
+                    let mut points: Vec<[u16; 3]> = (0..n).map(|_| rng.point()).collect();
+                    points[p] = near.map(|v| v.saturating_add(rng.u16() % 3));
+                    let d = dist_sq(q, points[p][0], points[p][1], points[p][2]);
+                    farther(&mut rng, &mut points, &[p], q, d);
+                    assert_eq!(kernels_answer(&points, q, "unique"), (d, p), "p = {p}");
+                }
+
+                // Every pair tied at the minimum: the lower position wins.
+                // Mirrored around a query at half a step when it lies in
+                // the range (different points), else the same point twice.
+                for j in 0..n {
+                    for i in 0..j {
+                        let mut points: Vec<[u16; 3]> = (0..n).map(|_| rng.point()).collect();
+                        points[i] = near;
+                        points[j] = near;
+                        if q[0].fract() == 0.5 && (0.5..=65_534.5).contains(&q[0]) {
+                            points[i][0] = (q[0] - 0.5) as u16;
+                            points[j][0] = (q[0] + 0.5) as u16;
+                            if (i + j) % 2 == 1 {
+                                points.swap(i, j);
+                            }
+                        }
+                        let d = dist_sq(q, points[i][0], points[i][1], points[i][2]);
+                        assert_eq!(d, dist_sq(q, points[j][0], points[j][1], points[j][2]));
+                        farther(&mut rng, &mut points, &[i, j], q, d);
+                        assert_eq!(kernels_answer(&points, q, "tie"), (d, i), "{i}, {j}");
+                    }
+                }
+
+                // All points the same: position 0.
+                let same = rng.point();
+                let d = dist_sq(q, same[0], same[1], same[2]);
+                let answer = kernels_answer(&vec![same; n], q, "all equal");
+                assert_eq!(answer, if n == 0 { (f32::INFINITY, 0) } else { (d, 0) });
+            }
+        }
+        // Queries so far that every distance is infinite: (infinity, 0),
+        // the kernels' answer for no point too.
+        let far: [[f32; 3]; 4] = [
+            [1e20, -1e20, 3e19],
+            [f32::MAX, 0.5, 0.5],
+            [f32::INFINITY, 100.25, -7.5],
+            [-3.5, f32::NEG_INFINITY, 65_536.5],
+        ];
+        for &q in &far {
+            for &n in &lengths {
+                let points: Vec<[u16; 3]> = (0..n).map(|_| rng.point()).collect();
+                assert_eq!(
+                    kernels_answer(&points, q, "far"),
+                    (f32::INFINITY, 0),
+                    "n = {n}, q = {q:?}"
+                );
+            }
         }
     }
 
