@@ -530,17 +530,11 @@ fn runs_min_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> f32 {
 /// Whether the AVX2 builds of the scan kernels can run (checked once, then
 /// a cached flag). Both builds compute the same IEEE operations in the same
 /// order (Rust does not fuse multiply-adds) and pick the same position, so
-/// answers do not depend on it.
+/// answers do not depend on it. Other targets use the scalar builds only.
+#[cfg(target_arch = "x86_64")]
 #[inline]
 fn has_avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::arch::is_x86_feature_detected!("avx2")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
+    std::arch::is_x86_feature_detected!("avx2")
 }
 
 /// [`runs_min_impl`], with AVX2 when available.
