@@ -457,13 +457,12 @@ fn lanes_argmin(acc: &[f32; LANES], at: &[usize; LANES]) -> (f32, usize) {
 }
 
 /// [`runs_argmin_impl`] with AVX2 intrinsics (a compare and two blends a
-/// chunk; the compiler does not vectorise the positions by itself).
-///
-/// # Safety
-/// The processor must have AVX2.
+/// chunk; the compiler does not vectorise the positions by itself). Code
+/// compiled without AVX2 calls it in `unsafe`, after checking that the
+/// processor has AVX2 ([`runs_argmin`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn runs_argmin_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (f32, usize) {
+fn runs_argmin_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (f32, usize) {
     use std::arch::x86_64::*;
     let n = xs.len();
     if n < LANES {
@@ -480,7 +479,8 @@ unsafe fn runs_argmin_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (
     let mut add = |k: usize| {
         let load = |v: &[u16]| {
             let chunk = &v[k..k + LANES];
-            // SAFETY: `chunk` holds 8 u16 (16 bytes); unaligned load.
+            // SAFETY: `chunk` holds 8 u16, the 16 bytes read; the load
+            // needs no alignment.
             let w = unsafe { _mm_loadu_si128(chunk.as_ptr().cast()) };
             _mm256_cvtepi32_ps(_mm256_cvtepu16_epi32(w))
         };
@@ -509,7 +509,8 @@ unsafe fn runs_argmin_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (
         add(n - LANES);
     }
     let (mut acc_l, mut at_l) = ([0f32; LANES], [0i32; LANES]);
-    // SAFETY: both arrays are 32 bytes; unaligned stores.
+    // SAFETY: both arrays hold 32 bytes, the bytes written; the stores
+    // need no alignment.
     unsafe {
         _mm256_storeu_ps(acc_l.as_mut_ptr(), acc);
         _mm256_storeu_si256(at_l.as_mut_ptr().cast(), at);
