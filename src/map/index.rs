@@ -354,6 +354,19 @@ fn dist_sq(q: [f32; 3], x: u16, y: u16, z: u16) -> f32 {
     dx * dx + dy * dy + dz * dz
 }
 
+/// How far (cells) from a query a search for points within `limit`
+/// (squared steps, inclusive; may be infinite) reaches: the one formula of
+/// [`MapIndex::within_radius`] and the growing searches, so they bound the
+/// same ball by the same cells.
+#[inline]
+fn reach_cells(limit: f32) -> f64 {
+    if limit.is_finite() {
+        f64::from(limit).sqrt() * (1.0 / STEPS)
+    } else {
+        f64::INFINITY
+    }
+}
+
 /// Lanes of the scan kernels: chunks of this many points are computed
 /// together (one AVX2 register, two SSE ones).
 const LANES: usize = 8;
@@ -1338,12 +1351,7 @@ impl MapIndex {
         }
         let mut done: i64 = 0;
         loop {
-            let limit = search.limit();
-            let reach = if limit.is_finite() {
-                f64::from(limit).sqrt() * (1.0 / STEPS)
-            } else {
-                f64::INFINITY
-            };
+            let reach = reach_cells(search.limit());
             // `as` saturates for infinite reaches; clamped to the grid.
             let lo = [
                 (floor_i64(g[0] - reach)).max(0),
@@ -1684,7 +1692,7 @@ impl MapIndex {
         else {
             return Vec::new();
         };
-        let reach = f64::from(bound).sqrt() / STEPS;
+        let reach = reach_cells(bound);
         let lo = [
             floor_i64(g[0] - reach),
             floor_i64(g[1] - reach),
@@ -1710,11 +1718,8 @@ impl MapIndex {
             }
             let q = Self::local_query(&g, c);
             let (xs, ys, zs, start) = self.cell_coords(id);
-            for (k, ((x, y), z)) in xs.iter().zip(ys).zip(zs).enumerate() {
-                let dx = q[0] - f32::from(*x);
-                let dy = q[1] - f32::from(*y);
-                let dz = q[2] - f32::from(*z);
-                let d = dx * dx + dy * dy + dz * dz;
+            for (k, ((&x, &y), &z)) in xs.iter().zip(ys).zip(zs).enumerate() {
+                let d = dist_sq(q, x, y, z);
                 if d <= bound {
                     found.push(heap_key(d, self.point_index(id, start + k)));
                 }
