@@ -41,6 +41,7 @@
 //! grid's own distances, so both backends return identical results.
 use std::collections::BinaryHeap;
 use std::num::NonZeroUsize;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::OnceLock;
 
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
@@ -113,6 +114,10 @@ const STEPS: f64 = 65535.0;
 const NEIGHBOUR_PREFETCH_CELLS: f64 = 0.25;
 /// Empty slot of the block hash table (no valid key has all bits set).
 const EMPTY_KEY: u64 = u64::MAX;
+/// No answer, in a batch's heap keys (a NaN distance: no real key).
+const NO_ANSWER: u64 = u64::MAX;
+/// A batch query's point and cell are prefetched this many queries ahead.
+const BATCH_PREFETCH_AHEAD: usize = 8;
 
 fn pack_block(b: [i64; 3]) -> u64 {
     ((b[0] as u64) << (2 * KEY_AXIS_BITS)) | ((b[1] as u64) << KEY_AXIS_BITS) | (b[2] as u64)
@@ -129,7 +134,11 @@ fn unpack_block(key: u64) -> [i64; 3] {
 
 /// 8 x 8 x 8 cells: bit `x | y << 3` of word `z` is set when cell (x, y, z)
 /// of the block holds points; the cells of word `z` are numbered from
-/// `first_cell[z]` in bit order.
+/// `first_cell[z]` in bit order. For an empty word, `first_cell[z]` is the
+/// id of the next occupied cell in memory order (in a later z-layer or
+/// block; the number of cells after the last), so [`Block::cell_id`] of any
+/// cell, occupied or not, is that of the first occupied cell at or after it
+/// in memory order.
 #[derive(Clone, Copy, Debug)]
 struct Block {
     occupied: [u64; 8],
@@ -204,6 +213,27 @@ fn floor_i64(x: f64) -> i64 {
     } else {
         t
     }
+}
+
+/// The grid cell holding the point `g` (continuous grid-cell coordinates).
+#[inline]
+fn grid_cell(g: &[f64; 3]) -> [i64; 3] {
+    [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])]
+}
+
+/// Hints the processor to fetch the cache line holding `value` (no effect
+/// on results).
+#[inline]
+fn prefetch<T>(value: &T) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        // SAFETY: SSE is part of the x86-64 baseline, and a prefetch of a
+        // valid address has no effect but on caches.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>((value as *const T).cast::<i8>()) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = value;
 }
 
 /// Nearest-neighbour index of a [`PointCloud`] (see the module doc). Holds no
@@ -313,6 +343,236 @@ fn key_dist(key: u64) -> f32 {
     f32::from_bits((key >> 32) as u32)
 }
 
+/// Squared distance (squared steps) from `q` to the stored point
+/// `(x, y, z)`, both cell-local: the one formula of every query (the kd-tree's
+/// re-ranking included), so all agree to the bit.
+#[inline(always)]
+fn dist_sq(q: [f32; 3], x: u16, y: u16, z: u16) -> f32 {
+    let dx = q[0] - f32::from(x);
+    let dy = q[1] - f32::from(y);
+    let dz = q[2] - f32::from(z);
+    dx * dx + dy * dy + dz * dz
+}
+
+/// How far (cells) from a query a search for points within `limit`
+/// (squared steps, inclusive; may be infinite) reaches: the one formula of
+/// [`MapIndex::within_radius`] and the growing searches, so they bound the
+/// same ball by the same cells.
+#[inline]
+fn reach_cells(limit: f32) -> f64 {
+    if limit.is_finite() {
+        f64::from(limit).sqrt() * (1.0 / STEPS)
+    } else {
+        f64::INFINITY
+    }
+}
+
+/// Lanes of the scan kernels: chunks of this many points are computed
+/// together (one AVX2 register, two SSE ones).
+const LANES: usize = 8;
+
+/// [`dist_sq`] of `LANES` points (vectorised).
+#[inline(always)]
+fn chunk_dist_sq(q: [f32; 3], x: &[u16], y: &[u16], z: &[u16]) -> [f32; LANES] {
+    let (x, y, z) = (&x[..LANES], &y[..LANES], &z[..LANES]);
+    let mut d = [0.0; LANES];
+    for l in 0..LANES {
+        d[l] = dist_sq(q, x[l], y[l], z[l]);
+    }
+    d
+}
+
+/// Smallest [`dist_sq`] from `q` to the points of the runs `xs`, `ys`, `zs`
+/// (infinite for none). Lane-wise minima over whole chunks, and over the
+/// last `LANES` points for the rest (the minimum does not mind points seen
+/// twice); short runs one by one.
+#[inline(always)]
+fn runs_min_impl(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> f32 {
+    // Not `f32::min`: no NaN occurs, and this is one `minps`.
+    let min = |a: f32, b: f32| if b < a { b } else { a };
+    let n = xs.len();
+    if n < LANES {
+        return (0..n).fold(f32::INFINITY, |m, k| {
+            min(m, dist_sq(q, xs[k], ys[k], zs[k]))
+        });
+    }
+    let mut acc = [f32::INFINITY; LANES];
+    let mut add = |d: [f32; LANES]| {
+        for l in 0..LANES {
+            acc[l] = min(acc[l], d[l]);
+        }
+    };
+    let (cx, cy, cz) = (
+        xs.chunks_exact(LANES),
+        ys.chunks_exact(LANES),
+        zs.chunks_exact(LANES),
+    );
+    let rest = cx.remainder().len();
+    for ((x, y), z) in cx.zip(cy).zip(cz) {
+        add(chunk_dist_sq(q, x, y, z));
+    }
+    if rest > 0 {
+        let t = n - LANES;
+        add(chunk_dist_sq(q, &xs[t..], &ys[t..], &zs[t..]));
+    }
+    acc.into_iter().fold(f32::INFINITY, min)
+}
+
+/// The smallest [`dist_sq`] from `q` to the points of the runs `xs`, `ys`,
+/// `zs` and the first position where it occurs (`(infinity, 0)` for no
+/// point): lane-wise minima and their first positions, then the lanes'
+/// minimum at its smallest position (positions increase along a lane, the
+/// last overlapping chunk included).
+#[inline(always)]
+fn runs_argmin_impl(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (f32, usize) {
+    let n = xs.len();
+    let mut acc = [f32::INFINITY; LANES];
+    let mut at = [0usize; LANES];
+    let mut add = |k: usize| {
+        let d = chunk_dist_sq(q, &xs[k..], &ys[k..], &zs[k..]);
+        for l in 0..LANES {
+            if d[l] < acc[l] {
+                acc[l] = d[l];
+                at[l] = k + l;
+            }
+        }
+    };
+    if n < LANES {
+        let mut best = (f32::INFINITY, 0);
+        for k in 0..n {
+            let d = dist_sq(q, xs[k], ys[k], zs[k]);
+            if d < best.0 {
+                best = (d, k);
+            }
+        }
+        return best;
+    }
+    for k in (0..n - LANES + 1).step_by(LANES) {
+        add(k);
+    }
+    if !n.is_multiple_of(LANES) {
+        add(n - LANES);
+    }
+    lanes_argmin(&acc, &at)
+}
+
+/// The smallest of the lanes' minima `acc`, at the smallest of the
+/// positions `at` that reach it.
+#[inline(always)]
+fn lanes_argmin(acc: &[f32; LANES], at: &[usize; LANES]) -> (f32, usize) {
+    let mut best = (acc[0], at[0]);
+    for l in 1..LANES {
+        if acc[l] < best.0 || (acc[l] == best.0 && at[l] < best.1) {
+            best = (acc[l], at[l]);
+        }
+    }
+    best
+}
+
+/// [`runs_argmin_impl`] with AVX2 intrinsics (a compare and two blends a
+/// chunk; the compiler does not vectorise the positions by itself). Code
+/// compiled without AVX2 calls it in `unsafe`, after checking that the
+/// processor has AVX2 ([`runs_argmin`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn runs_argmin_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (f32, usize) {
+    use std::arch::x86_64::*;
+    let n = xs.len();
+    if n < LANES {
+        return runs_argmin_impl(xs, ys, zs, q);
+    }
+    let (qx, qy, qz) = (
+        _mm256_set1_ps(q[0]),
+        _mm256_set1_ps(q[1]),
+        _mm256_set1_ps(q[2]),
+    );
+    let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    let mut acc = _mm256_set1_ps(f32::INFINITY);
+    let mut at = _mm256_setzero_si256();
+    let mut add = |k: usize| {
+        let load = |v: &[u16]| {
+            let chunk = &v[k..k + LANES];
+            // SAFETY: `chunk` holds 8 u16, the 16 bytes read; the load
+            // needs no alignment.
+            let w = unsafe { _mm_loadu_si128(chunk.as_ptr().cast()) };
+            _mm256_cvtepi32_ps(_mm256_cvtepu16_epi32(w))
+        };
+        // dist_sq's operations in its order: (dx dx + dy dy) + dz dz.
+        let dx = _mm256_sub_ps(qx, load(xs));
+        let dy = _mm256_sub_ps(qy, load(ys));
+        let dz = _mm256_sub_ps(qz, load(zs));
+        let d = _mm256_add_ps(
+            _mm256_add_ps(_mm256_mul_ps(dx, dx), _mm256_mul_ps(dy, dy)),
+            _mm256_mul_ps(dz, dz),
+        );
+        let better = _mm256_cmp_ps::<_CMP_LT_OQ>(d, acc);
+        acc = _mm256_blendv_ps(acc, d, better);
+        // k < 2^32 - 1: its bits as u32, in an i32 lane (read back below).
+        let pos = _mm256_add_epi32(_mm256_set1_epi32(k as u32 as i32), lane);
+        at = _mm256_castps_si256(_mm256_blendv_ps(
+            _mm256_castsi256_ps(at),
+            _mm256_castsi256_ps(pos),
+            better,
+        ));
+    };
+    for k in (0..n - LANES + 1).step_by(LANES) {
+        add(k);
+    }
+    if !n.is_multiple_of(LANES) {
+        add(n - LANES);
+    }
+    let (mut acc_l, mut at_l) = ([0f32; LANES], [0i32; LANES]);
+    // SAFETY: both arrays hold 32 bytes, the bytes written; the stores
+    // need no alignment.
+    unsafe {
+        _mm256_storeu_ps(acc_l.as_mut_ptr(), acc);
+        _mm256_storeu_si256(at_l.as_mut_ptr().cast(), at);
+    }
+    // Positions are below the run's length, itself below 2^32 - 1 (the
+    // index holds fewer points), and the lanes hold them modulo 2^32 (the
+    // i32 additions wrap): read them as unsigned, also at 2^31 and above.
+    lanes_argmin(&acc_l, &at_l.map(|p| p as u32 as usize))
+}
+
+/// [`runs_min_impl`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn runs_min_avx2(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> f32 {
+    runs_min_impl(xs, ys, zs, q)
+}
+
+/// Whether the AVX2 builds of the scan kernels can run (checked once, then
+/// a cached flag). Both builds compute the same IEEE operations in the same
+/// order (Rust does not fuse multiply-adds) and pick the same position, so
+/// answers do not depend on it. Other targets use the scalar builds only.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+fn has_avx2() -> bool {
+    std::arch::is_x86_feature_detected!("avx2")
+}
+
+/// [`runs_min_impl`], with AVX2 when available.
+#[inline]
+fn runs_min(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> f32 {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2() {
+        // SAFETY: the processor has AVX2 (checked above).
+        return unsafe { runs_min_avx2(xs, ys, zs, q) };
+    }
+    runs_min_impl(xs, ys, zs, q)
+}
+
+/// [`runs_argmin_impl`], with AVX2 when available.
+#[inline]
+fn runs_argmin(xs: &[u16], ys: &[u16], zs: &[u16], q: [f32; 3]) -> (f32, usize) {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2() {
+        // SAFETY: the processor has AVX2 (checked above).
+        return unsafe { runs_argmin_avx2(xs, ys, zs, q) };
+    }
+    runs_argmin_impl(xs, ys, zs, q)
+}
+
 /// A query run by [`MapIndex::search_growing`].
 trait Search {
     /// Current bound on the squared distance of a useful point (squared
@@ -335,18 +595,32 @@ impl Search for NearestSearch {
         self.best.map_or(self.bound, |b| b.d)
     }
 
+    /// The first cell scanned gives the minimum and its position in one
+    /// pass; the next ones their minimum only (a cheaper pass), and their
+    /// position only when they can win: most lose.
     #[inline]
     fn scan(&mut self, index: &MapIndex, id: u32, c: [i64; 3], g: &[f64; 3]) {
-        let (d, pos) = index.cell_min(id, MapIndex::local_query(g, c));
-        if !(d <= self.bound) {
+        let q = MapIndex::local_query(g, c);
+        let (xs, ys, zs, start) = index.cell_coords(id);
+        let (d, k) = if self.best.is_none() {
+            runs_argmin(xs, ys, zs, q)
+        } else {
+            let d = runs_min(xs, ys, zs, q);
+            if d > self.limit() {
+                return;
+            }
+            runs_argmin(xs, ys, zs, q)
+        };
+        // `limit` is the best distance so far (<= bound) or the bound; no
+        // NaN occurs (finite query, bound checked).
+        if d > self.limit() {
             return;
         }
+        let pos = start + k;
         let better = match self.best {
             None => true,
             Some(b) => {
-                d < b.d
-                    || (d == b.d
-                        && index.point_index(id, pos) < index.point_index(b.cell, b.pos as usize))
+                d < b.d || index.point_index(id, pos) < index.point_index(b.cell, b.pos as usize)
             }
         };
         if better {
@@ -379,11 +653,8 @@ impl Search for KSearch {
         let q = MapIndex::local_query(g, c);
         let mut lim = self.limit();
         let (xs, ys, zs, start) = index.cell_coords(id);
-        for (k, ((x, y), z)) in xs.iter().zip(ys).zip(zs).enumerate() {
-            let dx = q[0] - f32::from(*x);
-            let dy = q[1] - f32::from(*y);
-            let dz = q[2] - f32::from(*z);
-            let d = dx * dx + dy * dy + dz * dz;
+        for (k, ((&x, &y), &z)) in xs.iter().zip(ys).zip(zs).enumerate() {
+            let d = dist_sq(q, x, y, z);
             if !(d <= lim) {
                 continue;
             }
@@ -515,6 +786,18 @@ impl MapIndex {
             block.occupied[z] |= 1u64 << bit;
         }
         cell_start.push(n as u32);
+        // Empty z-layers: the next occupied cell's id, walking backwards
+        // from the end (see `Block`).
+        let mut next = (cell_start.len() - 1) as u32;
+        for block in blocks.iter_mut().rev() {
+            for z in (0..8).rev() {
+                if block.occupied[z] == 0 {
+                    block.first_cell[z] = next;
+                } else {
+                    next = block.first_cell[z];
+                }
+            }
+        }
         let table = BlockTable::new(&block_keys);
 
         // Groups of whole cells of about 32k points, quantised in parallel.
@@ -530,6 +813,7 @@ impl MapIndex {
         let step = s / STEPS;
         // The groups' runs, cut out of the final array (no copy).
         let mut data = vec![0u16; 5 * n];
+        advise_huge_pages(&mut data);
         let mut runs: Vec<&mut [u16]> = Vec::with_capacity(groups.len());
         let mut rest: &mut [u16] = &mut data;
         for &(c0, c1) in &groups {
@@ -744,10 +1028,7 @@ impl MapIndex {
         let c = kd.cell_coord[id as usize];
         let q = Self::local_query(g, [i64::from(c[0]), i64::from(c[1]), i64::from(c[2])]);
         let (xyz, idx) = self.point_at(id, pos as usize);
-        let dx = q[0] - f32::from(xyz[0]);
-        let dy = q[1] - f32::from(xyz[1]);
-        let dz = q[2] - f32::from(xyz[2]);
-        heap_key(dx * dx + dy * dy + dz * dz, idx)
+        heap_key(dist_sq(q, xyz[0], xyz[1], xyz[2]), idx)
     }
 
     /// The query in the tree's frame, with the absolute error margin (m) of
@@ -878,9 +1159,10 @@ impl MapIndex {
         Some((radius_m * radius_m / self.step_sq()) as f32)
     }
 
-    /// The id of the grid cell `c`, if occupied.
+    /// The block holding grid cell `c` and the cell's z-layer and bit in
+    /// it, if the block is occupied.
     #[inline]
-    fn cell_id(&self, c: [i64; 3]) -> Option<u32> {
+    fn block_of(&self, c: [i64; 3]) -> Option<(&Block, usize, u32)> {
         if (0..3).any(|a| c[a] < 0 || c[a] >= self.extent[a]) {
             return None;
         }
@@ -892,6 +1174,13 @@ impl MapIndex {
         let block = &self.blocks[self.table.get(pack_block(b))? as usize];
         let m = BLOCK_EDGE - 1;
         let (z, bit) = ((c[2] & m) as usize, ((c[1] & m) << 3 | (c[0] & m)) as u32);
+        Some((block, z, bit))
+    }
+
+    /// The id of the grid cell `c`, if occupied.
+    #[inline]
+    fn cell_id(&self, c: [i64; 3]) -> Option<u32> {
+        let (block, z, bit) = self.block_of(c)?;
         (block.occupied[z] >> bit & 1 == 1).then(|| block.cell_id(z, bit))
     }
 
@@ -1033,63 +1322,26 @@ impl MapIndex {
         u32::from(self.data[base + 3 * n + k]) | (u32::from(self.data[base + 4 * n + k]) << 16)
     }
 
-    /// Smallest squared distance (squared steps) from `q` (cell-local steps)
-    /// to a point of cell `id`, and the first position where it occurs.
-    #[inline]
-    fn cell_min(&self, id: u32, q: [f32; 3]) -> (f32, usize) {
-        let (xs, ys, zs, start) = self.cell_coords(id);
-        let dist = |x: u16, y: u16, z: u16| -> f32 {
-            let dx = q[0] - f32::from(x);
-            let dy = q[1] - f32::from(y);
-            let dz = q[2] - f32::from(z);
-            dx * dx + dy * dy + dz * dz
-        };
-        // Lane-wise minimum and its first position over chunks of 8
-        // (vectorised), then the rest.
-        const LANES: usize = 8;
-        let mut acc = [f32::INFINITY; LANES];
-        let mut at = [0u32; LANES];
-        let (cx, cy, cz) = (
-            xs.chunks_exact(LANES),
-            ys.chunks_exact(LANES),
-            zs.chunks_exact(LANES),
-        );
-        let (rx, ry, rz) = (cx.remainder(), cy.remainder(), cz.remainder());
-        let mut base = 0u32;
-        for ((x, y), z) in cx.zip(cy).zip(cz) {
-            for l in 0..LANES {
-                let d = dist(x[l], y[l], z[l]);
-                let better = d < acc[l];
-                acc[l] = if better { d } else { acc[l] };
-                at[l] = if better { base + l as u32 } else { at[l] };
-            }
-            base += LANES as u32;
-        }
-        let (mut min, mut pos) = (f32::INFINITY, 0u32);
-        for l in 0..LANES {
-            if acc[l] < min || (acc[l] == min && at[l] < pos) {
-                min = acc[l];
-                pos = at[l];
-            }
-        }
-        for (k, ((x, y), z)) in rx.iter().zip(ry).zip(rz).enumerate() {
-            let d = dist(*x, *y, *z);
-            if d < min {
-                min = d;
-                pos = base + k as u32;
-            }
-        }
-        (min, start + pos as usize)
-    }
-
     /// Visits the occupied cells around `g` nearest first, roughly: the own
     /// cell, then cubes of half-width 1, 2, 3, 4, 6, 9, ... cells around it
     /// (growing by half; each cell once), until the cube holds the ball of
     /// radius `sqrt(search.limit())` (the limit may shrink while visiting).
     /// Cells whose box lies beyond the limit are not scanned.
     fn search_growing<S: Search>(&self, g: &[f64; 3], search: &mut S) {
-        let own = [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])];
-        let own_id = self.cell_id(own);
+        let own = grid_cell(g);
+        self.search_around(g, own, self.cell_id(own), search);
+    }
+
+    /// [`search_growing`](Self::search_growing) with the query's own cell
+    /// `own` (`grid_cell(g)`) and its id (`None` when empty) known.
+    #[inline]
+    fn search_around<S: Search>(
+        &self,
+        g: &[f64; 3],
+        own: [i64; 3],
+        own_id: Option<u32>,
+        search: &mut S,
+    ) {
         if let Some(id) = own_id {
             self.prefetch_cell(id);
         }
@@ -1099,12 +1351,7 @@ impl MapIndex {
         }
         let mut done: i64 = 0;
         loop {
-            let limit = search.limit();
-            let reach = if limit.is_finite() {
-                f64::from(limit).sqrt() / STEPS
-            } else {
-                f64::INFINITY
-            };
+            let reach = reach_cells(search.limit());
             // `as` saturates for infinite reaches; clamped to the grid.
             let lo = [
                 (floor_i64(g[0] - reach)).max(0),
@@ -1165,17 +1412,31 @@ impl MapIndex {
                 return self.keys_to_neighbours(keys).into_iter().next();
             }
         }
+        let own = grid_cell(&g);
+        self.nearest_around(&g, own, self.cell_id(own), bound)
+            .map(|key| self.key_to_neighbour(key))
+    }
+
+    /// The grid's nearest point within `bound` (squared steps, inclusive)
+    /// of `g`, whose own cell `own` has the id `own_id`, as a heap key.
+    #[inline]
+    fn nearest_around(
+        &self,
+        g: &[f64; 3],
+        own: [i64; 3],
+        own_id: Option<u32>,
+        bound: f32,
+    ) -> Option<u64> {
         let mut search = NearestSearch { bound, best: None };
-        self.search_growing(&g, &mut search);
-        search.best.map(|b| Neighbour {
-            point_idx: self.point_index(b.cell, b.pos as usize),
-            dist_sq: f64::from(b.d) * self.step_sq(),
-        })
+        self.search_around(g, own, own_id, &mut search);
+        search
+            .best
+            .map(|b| heap_key(b.d, self.point_index(b.cell, b.pos as usize)))
     }
 
     /// [`nearest_within`](Self::nearest_within) for many query points at
     /// once: the answer for `points_in_map[i]` is at `i`. Queries run in the
-    /// index's own memory order (sorted by block and cell, a radix sort), so
+    /// index's own memory order (sorted by cell, a radix sort), so
     /// consecutive queries scan the same cells and mostly hit the caches, in
     /// parallel over chunks (rayon); the result does not depend on the order
     /// or the thread count.
@@ -1185,58 +1446,91 @@ impl MapIndex {
         radius_m: f64,
     ) -> Vec<Option<Neighbour>> {
         let n = points_in_map.len();
-        if self.is_empty() || n == 0 {
+        let Some(bound) = self.radius_steps_sq(radius_m) else {
             return vec![None; n];
+        };
+        if self.is_empty() || self.use_tree(radius_m) {
+            return points_in_map
+                .par_iter()
+                .map(|p| self.nearest_within(p, radius_m))
+                .collect();
         }
         let order = self.memory_order(points_in_map);
-        // Gathered first: independent loads overlap, while a load inside the
-        // query loop would stall each query on its own cache miss.
-        let sorted: Vec<Vector3<f64>> = order
-            .iter()
-            .map(|&v| points_in_map[v as u32 as usize])
-            .collect();
-        let answers: Vec<Option<Neighbour>> = sorted
-            .par_chunks(4096)
-            .flat_map_iter(|chunk| chunk.iter().map(|p| self.nearest_within(p, radius_m)))
-            .collect();
-        let mut out = vec![None; n];
-        for (&v, a) in order.iter().zip(answers) {
-            out[v as u32 as usize] = a;
-        }
-        out
+        let outside = self.outside_key();
+        // Heap keys of the answers (NO_ANSWER for none), written in place:
+        // each slot once, `order` being a permutation.
+        let answers: Vec<AtomicU64> = (0..n).map(|_| AtomicU64::new(NO_ANSWER)).collect();
+        order.par_chunks(4096).for_each(|chunk| {
+            for (j, &v) in chunk.iter().enumerate() {
+                if let Some(&ahead) = chunk.get(j + BATCH_PREFETCH_AHEAD) {
+                    // The query point and its answer's slot are random
+                    // accesses; its cell usually the next run of memory.
+                    prefetch(&points_in_map[ahead as u32 as usize]);
+                    prefetch(&answers[ahead as u32 as usize]);
+                    let key = (ahead >> 32) as u32;
+                    if key != outside && key & 1 == 1 {
+                        self.prefetch_cell(key >> 1);
+                    }
+                }
+                let i = v as u32 as usize;
+                let key = (v >> 32) as u32;
+                let Some(g) = self.to_grid(&points_in_map[i]) else {
+                    continue;
+                };
+                let own = grid_cell(&g);
+                let own_id = if key == outside {
+                    self.cell_id(own)
+                } else {
+                    (key & 1 == 1).then_some(key >> 1)
+                };
+                if let Some(found) = self.nearest_around(&g, own, own_id, bound) {
+                    answers[i].store(found, Ordering::Relaxed);
+                }
+            }
+        });
+        answers
+            .into_iter()
+            .map(|a| {
+                let key = a.into_inner();
+                (key != NO_ANSWER).then(|| self.key_to_neighbour(key))
+            })
+            .collect()
     }
 
-    /// The queries' indices (low 32 bits) sorted by the memory position of
-    /// the cell holding them (high 32 bits: block id, then the cell's bit in
-    /// the block; ties by index). Queries outside the grid or in an empty
-    /// block go last. Only the visiting order depends on this.
+    /// The batch sort key ([`memory_order`](Self::memory_order)) of queries
+    /// outside the grid, in an empty block or not finite: the largest.
+    fn outside_key(&self) -> u32 {
+        (2 * self.num_cells() as u64 + 1).min(u64::from(u32::MAX)) as u32
+    }
+
+    /// The queries' indices (low 32 bits) sorted by a key (high 32 bits)
+    /// that follows the index's memory order: `2 id + 1` for a query in the
+    /// occupied cell `id`; `2 id` for one in an empty cell of an occupied
+    /// block, `id` being that of the first occupied cell after it in memory
+    /// order (in its z-layer, a later one or a later block; the number of
+    /// cells after the last: order only, see [`Block`]), so it sorts just
+    /// before that cell's queries; [`outside_key`](Self::outside_key) for
+    /// the rest (and for cell ids too large for the key), last. Ties by
+    /// index. The sort uses only the key's significant bits.
     fn memory_order(&self, points_in_map: &[Vector3<f64>]) -> Vec<u64> {
-        // Block ids above this share the last key (order only).
-        const MAX_BLOCK: u64 = (1 << 23) - 2;
-        let m = BLOCK_EDGE - 1;
+        let outside = self.outside_key();
         let mut keyed: Vec<u64> = points_in_map
             .par_iter()
             .enumerate()
             .map(|(i, p)| {
                 let key = self
                     .to_grid(p)
-                    .map(|g| [floor_i64(g[0]), floor_i64(g[1]), floor_i64(g[2])])
-                    .filter(|c| (0..3).all(|a| c[a] >= 0 && c[a] < self.extent[a]))
-                    .and_then(|c| {
-                        let b = [
-                            c[0] >> BLOCK_SHIFT,
-                            c[1] >> BLOCK_SHIFT,
-                            c[2] >> BLOCK_SHIFT,
-                        ];
-                        let id = self.table.get(pack_block(b))?;
-                        let bit = ((c[2] & m) << 6) | ((c[1] & m) << 3) | (c[0] & m);
-                        Some((u64::from(id).min(MAX_BLOCK) << 9) | bit as u64)
+                    .and_then(|g| self.block_of(grid_cell(&g)))
+                    .map(|(block, z, bit)| {
+                        let occupied = block.occupied[z] >> bit & 1;
+                        2 * u64::from(block.cell_id(z, bit)) + occupied
                     })
-                    .unwrap_or(u64::from(u32::MAX));
+                    .filter(|&key| key < u64::from(outside))
+                    .unwrap_or(u64::from(outside));
                 (key << 32) | i as u64
             })
             .collect();
-        radix_sort_high_u32(&mut keyed);
+        radix_sort_high_u32(&mut keyed, u32::BITS - outside.leading_zeros());
         keyed
     }
 
@@ -1247,17 +1541,8 @@ impl MapIndex {
         let range = self.cell_range(id);
         let (start, n) = (5 * range.start, range.len());
         for offset in [0, n, 2 * n] {
-            #[cfg(target_arch = "x86_64")]
-            {
-                use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-                let p = self.data[start + offset..].as_ptr().cast::<i8>();
-                // SAFETY: SSE is part of the x86-64 baseline, and a prefetch
-                // of a valid address has no effect but on caches.
-                unsafe { _mm_prefetch::<_MM_HINT_T0>(p) };
-            }
-            #[cfg(not(target_arch = "x86_64"))]
-            {
-                std::hint::black_box(self.data.get(start + offset));
+            if let Some(first) = self.data.get(start + offset) {
+                prefetch(first);
             }
         }
     }
@@ -1321,13 +1606,18 @@ impl MapIndex {
 
     /// Sorted heap keys to neighbours.
     fn keys_to_neighbours(&self, keys: Vec<u64>) -> Vec<Neighbour> {
-        let step_sq = self.step_sq();
         keys.into_iter()
-            .map(|key| Neighbour {
-                point_idx: key as u32,
-                dist_sq: f64::from(key_dist(key)) * step_sq,
-            })
+            .map(|key| self.key_to_neighbour(key))
             .collect()
+    }
+
+    /// A heap key to the neighbour.
+    #[inline]
+    fn key_to_neighbour(&self, key: u64) -> Neighbour {
+        Neighbour {
+            point_idx: key as u32,
+            dist_sq: f64::from(key_dist(key)) * self.step_sq(),
+        }
     }
 
     /// The nearest map point, whatever its distance (`None` for an empty map).
@@ -1402,7 +1692,7 @@ impl MapIndex {
         else {
             return Vec::new();
         };
-        let reach = f64::from(bound).sqrt() / STEPS;
+        let reach = reach_cells(bound);
         let lo = [
             floor_i64(g[0] - reach),
             floor_i64(g[1] - reach),
@@ -1428,39 +1718,58 @@ impl MapIndex {
             }
             let q = Self::local_query(&g, c);
             let (xs, ys, zs, start) = self.cell_coords(id);
-            for (k, ((x, y), z)) in xs.iter().zip(ys).zip(zs).enumerate() {
-                let dx = q[0] - f32::from(*x);
-                let dy = q[1] - f32::from(*y);
-                let dz = q[2] - f32::from(*z);
-                let d = dx * dx + dy * dy + dz * dz;
+            for (k, ((&x, &y), &z)) in xs.iter().zip(ys).zip(zs).enumerate() {
+                let d = dist_sq(q, x, y, z);
                 if d <= bound {
                     found.push(heap_key(d, self.point_index(id, start + k)));
                 }
             }
         });
         found.sort_unstable();
-        let step_sq = self.step_sq();
-        found
-            .into_iter()
-            .map(|key| Neighbour {
-                point_idx: key as u32,
-                dist_sq: f64::from(key_dist(key)) * step_sq,
-            })
-            .collect()
+        self.keys_to_neighbours(found)
     }
 }
 
-/// Sorts `values` by their high 32 bits, stably (values with equal high
-/// bits keep their order): a least-significant-digit radix sort, 11 bits a
-/// pass, skipping passes in which every value has the same digit.
-fn radix_sort_high_u32(values: &mut Vec<u64>) {
-    const BITS: u32 = 11;
-    const BUCKETS: usize = 1 << BITS;
+/// Asks the kernel to back `v` with 2 MB pages where it can (Linux
+/// transparent huge pages, `madvise` mode): random queries into a map of
+/// hundreds of megabytes then miss the TLB far less often. Only a hint: call
+/// it before the memory is first written (fresh pages), no effect on
+/// contents or elsewhere.
+fn advise_huge_pages<T>(v: &mut [T]) {
+    #[cfg(target_os = "linux")]
+    {
+        const HUGE: usize = 2 << 20;
+        let start = v.as_mut_ptr() as usize;
+        let end = start + std::mem::size_of_val(v);
+        let (lo, hi) = (start.next_multiple_of(HUGE), end / HUGE * HUGE);
+        if lo < hi {
+            // SAFETY: [lo, hi) lies inside `v`'s allocation; MADV_HUGEPAGE
+            // changes no contents. A failure (e.g. THP disabled) is harmless.
+            unsafe { libc::madvise(lo as *mut libc::c_void, hi - lo, libc::MADV_HUGEPAGE) };
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = v;
+}
+
+/// Sorts `values` by their high 32 bits, of which only the low `key_bits`
+/// may be set, stably (values with equal high bits keep their order): a
+/// least-significant-digit radix sort in as few passes of at most 11 bits
+/// as cover `key_bits`, skipping passes in which every value has the same
+/// digit.
+fn radix_sort_high_u32(values: &mut Vec<u64>, key_bits: u32) {
+    const MAX_DIGIT_BITS: u32 = 11;
+    let key_bits = key_bits.min(32);
+    if key_bits == 0 {
+        return;
+    }
+    let bits = key_bits.div_ceil(key_bits.div_ceil(MAX_DIGIT_BITS));
+    let buckets = 1usize << bits;
     let mut scratch = vec![0u64; values.len()];
     let mut shift = 32;
-    while shift < 64 {
-        let digit = |v: u64| ((v >> shift) as usize) & (BUCKETS - 1);
-        let mut counts = vec![0usize; BUCKETS];
+    while shift < 32 + key_bits {
+        let digit = |v: u64| ((v >> shift) as usize) & (buckets - 1);
+        let mut counts = vec![0usize; buckets];
         for &v in values.iter() {
             counts[digit(v)] += 1;
         }
@@ -1478,7 +1787,7 @@ fn radix_sort_high_u32(values: &mut Vec<u64>) {
             }
             std::mem::swap(values, &mut scratch);
         }
-        shift += BITS;
+        shift += bits;
     }
 }
 
@@ -1555,6 +1864,225 @@ mod tests {
     }
 
     #[test]
+    fn batch_keys_of_empty_cells_follow_memory_order() {
+        // 1 m cells: block (0, 0, 0) holds cells (0, 0, 0), (1, 0, 0) and
+        // (0, 0, 3) (ids 0, 1, 2), block (0, 0, 1) cell (0, 0, 12) (id 3),
+        // block (1, 0, 1) cell (8, 0, 8) (id 4). A query in an empty cell
+        // gets twice the id of the first occupied cell after it in memory
+        // order, also in an empty z-layer (never 0 but before cell 0).
+        let c = cloud(vec![
+            [0.5, 0.5, 0.5],
+            [1.5, 0.5, 0.5],
+            [0.5, 0.5, 3.5],
+            [0.5, 0.5, 12.5],
+            [8.5, 0.5, 8.5],
+        ]);
+        let options = IndexOptions {
+            cell_size_m: Some(1.0),
+        };
+        let index = MapIndex::build_with_options(&c, &options).unwrap();
+        assert_eq!(index.num_cells(), 5);
+        let outside = index.outside_key();
+        assert_eq!(outside, 11);
+        let cases: [([f64; 3], u32); 11] = [
+            ([0.5, 0.5, 0.5], 1),
+            ([0.2, 0.7, 3.1], 5),
+            ([0.5, 0.5, 1.5], 4),
+            ([2.5, 0.5, 0.5], 4),
+            ([0.5, 0.5, 5.5], 6),
+            ([0.5, 0.5, 8.5], 6),
+            ([0.5, 0.5, 12.5], 7),
+            ([8.5, 0.5, 10.5], 10),
+            ([8.5, 0.5, 8.5], 9),
+            ([8.5, 0.5, 0.5], outside),
+            ([-3.0, 0.5, 0.5], outside),
+        ];
+        let queries: Vec<Vector3<f64>> = cases
+            .iter()
+            .map(|(p, _)| c.origin + Vector3::new(p[0], p[1], p[2]))
+            .collect();
+        let order = index.memory_order(&queries);
+        assert_eq!(order.len(), cases.len());
+        for pair in order.windows(2) {
+            assert!(pair[0] < pair[1]);
+        }
+        for &v in &order {
+            let i = v as u32 as usize;
+            assert_eq!((v >> 32) as u32, cases[i].1, "query {:?}", cases[i].0);
+        }
+        let batch = index.nearest_within_batch(&queries, 2.0);
+        for (q, b) in queries.iter().zip(&batch) {
+            assert_eq!(*b, index.nearest_within(q, 2.0));
+        }
+    }
+
+    /// xorshift64: the kernel tests' deterministic random numbers.
+    struct Xorshift(u64);
+
+    impl Xorshift {
+        fn next(&mut self) -> u64 {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            self.0
+        }
+
+        /// Any u16, the full range.
+        fn u16(&mut self) -> u16 {
+            (self.next() >> 48) as u16
+        }
+
+        fn point(&mut self) -> [u16; 3] {
+            [self.u16(), self.u16(), self.u16()]
+        }
+    }
+
+    /// The runs of `points` (x, y and z).
+    fn runs(points: &[[u16; 3]]) -> [Vec<u16>; 3] {
+        [0, 1, 2].map(|a| points.iter().map(|p| p[a]).collect())
+    }
+
+    /// The scan kernels' answer for `points` and `q`, checked to be the same
+    /// in a plain loop (the first position of the smallest distance,
+    /// `(infinity, 0)` when no distance is below infinity), the scalar
+    /// builds, the dispatching ones and, when the processor has AVX2, the
+    /// AVX2 builds.
+    fn kernels_answer(points: &[[u16; 3]], q: [f32; 3], what: &str) -> (f32, usize) {
+        let [xs, ys, zs] = runs(points);
+        let mut plain = (f32::INFINITY, 0);
+        for (k, p) in points.iter().enumerate() {
+            let d = dist_sq(q, p[0], p[1], p[2]);
+            if d < plain.0 {
+                plain = (d, k);
+            }
+        }
+        let what = format!("{what}, n = {}, q = {q:?}", points.len());
+        assert_eq!(
+            runs_min_impl(&xs, &ys, &zs, q),
+            plain.0,
+            "scalar min, {what}"
+        );
+        assert_eq!(
+            runs_argmin_impl(&xs, &ys, &zs, q),
+            plain,
+            "scalar argmin, {what}"
+        );
+        assert_eq!(runs_min(&xs, &ys, &zs, q), plain.0, "min, {what}");
+        assert_eq!(runs_argmin(&xs, &ys, &zs, q), plain, "argmin, {what}");
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() {
+            // SAFETY: the processor has AVX2 (checked above).
+            let (min, argmin) = unsafe {
+                (
+                    runs_min_avx2(&xs, &ys, &zs, q),
+                    runs_argmin_avx2(&xs, &ys, &zs, q),
+                )
+            };
+            assert_eq!(min, plain.0, "AVX2 min, {what}");
+            assert_eq!(argmin, plain, "AVX2 argmin, {what}");
+        }
+        plain
+    }
+
+    /// The stored coordinate nearest to the query coordinate `v`.
+    fn nearest_step(v: f32) -> u16 {
+        v.round().clamp(0.0, STEPS as f32) as u16
+    }
+
+    #[test]
+    fn scan_kernels_match_a_plain_loop() {
+        // Runs of every length up to 17 (short runs, one chunk and a tail)
+        // and a few longer (whole chunks, tails); full-range coordinates;
+        // queries with fractional parts, negative and above 65535.
+        let lengths: Vec<usize> = (0..=17).chain([23, 31, 40]).collect();
+        let queries: [[f32; 3]; 6] = [
+            [1500.25, 999.5, 2000.0],
+            [31_337.5, 12.5, 65_000.5],
+            [-1234.75, 40_000.125, -0.5],
+            [65_535.5, 70_000.375, 131_071.9],
+            [-70_000.3, 65_600.8, 3.7],
+            [0.5, 65_534.5, 32_767.5],
+        ];
+        let mut rng = Xorshift(0x9e37_79b9_7f4a_7c15);
+        // Redraws the points not in `keep` until they are farther than
+        // `d` (they then cannot tie with the expected minimum).
+        let farther = |rng: &mut Xorshift, points: &mut [[u16; 3]], keep: &[usize], q, d| {
+            for (k, p) in points.iter_mut().enumerate() {
+                while !keep.contains(&k) && dist_sq(q, p[0], p[1], p[2]) <= d {
+                    *p = rng.point();
+                }
+            }
+        };
+        for &q in &queries {
+            let near = q.map(nearest_step);
+            for &n in &lengths {
+                // Random runs; and from a few values (ties by chance).
+                let points: Vec<[u16; 3]> = (0..n).map(|_| rng.point()).collect();
+                kernels_answer(&points, q, "random");
+                let points: Vec<[u16; 3]> =
+                    (0..n).map(|_| rng.point().map(|v| v % 4 * 1000)).collect();
+                kernels_answer(&points, q, "few values");
+
+                // Every position the unique minimum (at or next to the
+                // query's nearest stored point).
+                for p in 0..n {
+                    let mut points: Vec<[u16; 3]> = (0..n).map(|_| rng.point()).collect();
+                    points[p] = near.map(|v| v.saturating_add(rng.u16() % 3));
+                    let d = dist_sq(q, points[p][0], points[p][1], points[p][2]);
+                    farther(&mut rng, &mut points, &[p], q, d);
+                    assert_eq!(kernels_answer(&points, q, "unique"), (d, p), "p = {p}");
+                }
+
+                // Every pair tied at the minimum: the lower position wins.
+                // Mirrored around a query at half a step when it lies in
+                // the range (different points), else the same point twice.
+                for j in 0..n {
+                    for i in 0..j {
+                        let mut points: Vec<[u16; 3]> = (0..n).map(|_| rng.point()).collect();
+                        points[i] = near;
+                        points[j] = near;
+                        if q[0].fract() == 0.5 && (0.5..=65_534.5).contains(&q[0]) {
+                            points[i][0] = (q[0] - 0.5) as u16;
+                            points[j][0] = (q[0] + 0.5) as u16;
+                            if (i + j) % 2 == 1 {
+                                points.swap(i, j);
+                            }
+                        }
+                        let d = dist_sq(q, points[i][0], points[i][1], points[i][2]);
+                        assert_eq!(d, dist_sq(q, points[j][0], points[j][1], points[j][2]));
+                        farther(&mut rng, &mut points, &[i, j], q, d);
+                        assert_eq!(kernels_answer(&points, q, "tie"), (d, i), "{i}, {j}");
+                    }
+                }
+
+                // All points the same: position 0.
+                let same = rng.point();
+                let d = dist_sq(q, same[0], same[1], same[2]);
+                let answer = kernels_answer(&vec![same; n], q, "all equal");
+                assert_eq!(answer, if n == 0 { (f32::INFINITY, 0) } else { (d, 0) });
+            }
+        }
+        // Queries so far that every distance is infinite: (infinity, 0),
+        // the kernels' answer for no point too.
+        let far: [[f32; 3]; 4] = [
+            [1e20, -1e20, 3e19],
+            [f32::MAX, 0.5, 0.5],
+            [f32::INFINITY, 100.25, -7.5],
+            [-3.5, f32::NEG_INFINITY, 65_536.5],
+        ];
+        for &q in &far {
+            for &n in &lengths {
+                let points: Vec<[u16; 3]> = (0..n).map(|_| rng.point()).collect();
+                assert_eq!(
+                    kernels_answer(&points, q, "far"),
+                    (f32::INFINITY, 0),
+                    "n = {n}, q = {q:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
     fn radix_sort_is_a_stable_sort_by_the_high_bits() {
         // Keys over all 32 high bits, and keys in a narrow range (passes
         // skipped); low bits in decreasing order to see the stability.
@@ -1565,13 +2093,13 @@ mod tests {
             state ^= state << 17;
             state
         };
-        for mask in [u64::MAX, 0xffu64 << 32] {
+        for (mask, key_bits) in [(u64::MAX, 32), (0xffu64 << 32, 8), (0x3ffu64 << 32, 10)] {
             let mut values: Vec<u64> = (0..20_000u64)
                 .map(|i| (next() & mask & !0xffff_ffff) | (20_000 - i))
                 .collect();
             let mut expected = values.clone();
             expected.sort_by_key(|v| v >> 32);
-            radix_sort_high_u32(&mut values);
+            radix_sort_high_u32(&mut values, key_bits);
             assert_eq!(values, expected);
         }
     }
