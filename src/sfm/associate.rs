@@ -193,6 +193,36 @@ impl NearestNeighbourAssociator<'_> {
         (count > 0).then(|| sum / count as f64)
     }
 
+    /// The map's plane near `x` (world frame): among the `num_neighbours`
+    /// nearest map points within `radius_m`, the one whose tangent plane
+    /// lies closest to `x` (at a corner the nearest point may belong to the
+    /// other surface) gives the normal; the offset is
+    /// [`Self::plane_offset`] over the neighbours. `None` without a
+    /// neighbour with a normal.
+    pub fn plane_near(&self, x: &Vector3<f64>, radius_m: f64) -> Option<(Vector3<f64>, f64)> {
+        let normals = self.cloud.normals.as_ref()?;
+        let neighbours = self
+            .index
+            .k_nearest_within(x, self.options.num_neighbours, radius_m);
+        let mut best: Option<(f64, Vector3<f64>)> = None;
+        for nb in &neighbours {
+            let i = nb.point_idx as usize;
+            let m = normals[i];
+            let Some(n) =
+                Vector3::new(f64::from(m[0]), f64::from(m[1]), f64::from(m[2])).try_normalize(1e-9)
+            else {
+                continue;
+            };
+            let d = n.dot(&(x - self.cloud.point_in_map(i))).abs();
+            if best.as_ref().is_none_or(|(bd, _)| d < *bd) {
+                best = Some((d, n));
+            }
+        }
+        let (_, normal) = best?;
+        let indices: Vec<usize> = neighbours.iter().map(|nb| nb.point_idx as usize).collect();
+        Some((normal, self.plane_offset(&normal, &indices)?))
+    }
+
     /// The nearest-neighbour planes of `queries` (needs no tracks or poses).
     pub fn associate_points(
         &self,
@@ -200,35 +230,12 @@ impl NearestNeighbourAssociator<'_> {
         queries: &[AssociationQuery],
     ) -> Vec<PlaneConstraint> {
         let weights = self.options.weights(kind);
-        let Some(normals) = self.cloud.normals.as_ref() else {
-            return Vec::new();
-        };
-        let normal_of = |i: usize| -> Option<Vector3<f64>> {
-            let n = normals[i];
-            Vector3::new(f64::from(n[0]), f64::from(n[1]), f64::from(n[2])).try_normalize(1e-9)
-        };
         let cos_ground = self.options.ground_max_tilt_deg.to_radians().cos();
         let mut planes = Vec::new();
         for q in queries {
-            let radius = self.radius_m(q.num_global_ba);
             let x = q.position_in_world;
-            let neighbours = self
-                .index
-                .k_nearest_within(&x, self.options.num_neighbours, radius);
-            // The neighbour whose tangent plane lies closest to the point (at a
-            // corner the nearest point may belong to the other surface).
-            let mut best: Option<(f64, Vector3<f64>)> = None;
-            for nb in &neighbours {
-                let i = nb.point_idx as usize;
-                let Some(n) = normal_of(i) else { continue };
-                let d = n.dot(&(x - self.cloud.point_in_map(i))).abs();
-                if best.as_ref().is_none_or(|(bd, _)| d < *bd) {
-                    best = Some((d, n));
-                }
-            }
-            let Some((_, normal)) = best else { continue };
-            let indices: Vec<usize> = neighbours.iter().map(|nb| nb.point_idx as usize).collect();
-            let Some(offset_m) = self.plane_offset(&normal, &indices) else {
+            let Some((normal, offset_m)) = self.plane_near(&x, self.radius_m(q.num_global_ba))
+            else {
                 continue;
             };
             if (normal.dot(&x) - offset_m).abs() > self.options.max_plane_distance_m {
@@ -453,7 +460,7 @@ impl PlaneAssociator for ProjectionAssociator<'_> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::io::database::{DatabaseSnapshot, DbImage};
     use crate::scene::{Camera, CameraId, CameraModel, Rigid3, TrackElement};
@@ -461,7 +468,8 @@ mod tests {
     /// Two cameras 3 m above the floor z = 0, 0.5 m apart, looking straight
     /// down (SIMPLE_PINHOLE, f = 500), both seeing X = (0.1, 0.2, 0) exactly;
     /// the state's point sits 1 cm off the floor.
-    fn two_view_state() -> (MapState, Point3DId) {
+    /// Two cameras 0.5 m apart looking down at a point near the origin.
+    pub(crate) fn two_view_state() -> (MapState, Point3DId) {
         let camera = Camera {
             id: CameraId(1),
             model: CameraModel::from_name("SIMPLE_PINHOLE").expect("known model"),

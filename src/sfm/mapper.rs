@@ -13,6 +13,7 @@ use std::time::Instant;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+use super::align::{align_to_map, apply_sim3, AlignOptions};
 use super::associate::{
     NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
 };
@@ -23,7 +24,7 @@ use super::options::{AssociationKind, MapperOptions, OptionsError};
 use super::register::{
     next_best_images, register_at_known_pose, register_image, PoseOutcome, RegistrationOutcome,
 };
-use super::report::{ImageRecord, MapReport, StageRecord};
+use super::report::{AlignmentRecord, ImageRecord, MapReport, StageRecord};
 use super::state::MapState;
 use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulate_image};
 use crate::io::database::DatabaseSnapshot;
@@ -440,6 +441,34 @@ pub fn run_mapper_with_priors(
 
     // 5. Final global BA.
     retriangulate_all(&mut state, &options.triangulate);
+    // The whole model onto the map first (shape held): undoes a placement
+    // that is wrong as a whole, which the solves below cannot (see `align`).
+    if lidar_gauge && options.bundle.align_to_map {
+        let nearest = nearest_associator();
+        if let Some(a) = align_to_map(&state, &nearest, &AlignOptions::default()) {
+            let moved = a.inliers_after > a.inliers_before;
+            log::info!(
+                "map alignment: scale {:.5}, rotation {:.3} deg, translation {:.3} m; points on the map {} -> {} ({})",
+                a.sim3.scale,
+                a.sim3.rotation.angle().to_degrees(),
+                a.sim3.translation.norm(),
+                a.inliers_before,
+                a.inliers_after,
+                if moved { "applied" } else { "kept the model where it was" }
+            );
+            if moved {
+                apply_sim3(&mut state, &a.sim3);
+            }
+            report.alignment = Some(AlignmentRecord {
+                scale: a.sim3.scale,
+                rotation_deg: a.sim3.rotation.angle().to_degrees(),
+                translation_m: a.sim3.translation.norm(),
+                points_on_map_before: a.inliers_before,
+                points_on_map_after: a.inliers_after,
+                applied: moved,
+            });
+        }
+    }
     // Rounds of re-association + solve until no camera centre moves more
     // than `final_stop_change_m` (the map pulls the model along directions
     // it constrains weakly, e.g. along a corridor, a little each round).

@@ -11,7 +11,9 @@
 //! * [`triangulate`]: new points, track continuation and merging;
 //! * [`bundle`] + [`associate`]: local/global BA through Ceres with LiDAR
 //!   point-to-plane terms from a pluggable associator;
+//! * [`align`]: the whole model moved onto the map (similarity, shape held);
 //! * [`filter`]: outlier filters; [`report`]: `report.json`.
+pub mod align;
 pub mod associate;
 pub mod bundle;
 pub mod filter;

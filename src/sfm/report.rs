@@ -37,6 +37,20 @@ pub struct ImageRecord {
     pub mean_plane_distance_m: Option<f64>,
 }
 
+/// The whole-model alignment to the map (see `sfm::align`).
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct AlignmentRecord {
+    pub scale: f64,
+    pub rotation_deg: f64,
+    /// Length of the similarity's translation, metres.
+    pub translation_m: f64,
+    /// Points within 2 cm of the map before and after.
+    pub points_on_map_before: usize,
+    pub points_on_map_after: usize,
+    /// Applied only when more points end on the map.
+    pub applied: bool,
+}
+
 /// One stage of the run.
 #[derive(Clone, Debug, Serialize)]
 pub struct StageRecord {
@@ -56,6 +70,8 @@ pub struct MapReport {
     pub mean_track_length: f64,
     pub mean_reprojection_error_px: f64,
     pub init: Option<InitSummary>,
+    /// The whole-model alignment to the map before the final rounds, when run.
+    pub alignment: Option<AlignmentRecord>,
     pub images: Vec<ImageRecord>,
     pub solves: Vec<SolveRecord>,
     pub stages: Vec<StageRecord>,
