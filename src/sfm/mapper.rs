@@ -445,10 +445,12 @@ pub fn run_mapper_with_priors(
     // that is wrong as a whole, which the solves below cannot (see `align`).
     if lidar_gauge && options.bundle.align_to_map {
         let nearest = nearest_associator();
+        let t = Instant::now();
         if let Some(a) = align_to_map(&state, &nearest, &AlignOptions::default()) {
             let moved = a.inliers_after > a.inliers_before;
+            let time_s = t.elapsed().as_secs_f64();
             log::info!(
-                "map alignment: scale {:.5}, rotation {:.3} deg, translation {:.3} m; points on the map {} -> {} ({})",
+                "map alignment: scale {:.5}, rotation {:.3} deg, translation {:.3} m; points on the map {} -> {} ({}; {time_s:.2} s)",
                 a.sim3.scale,
                 a.sim3.rotation.angle().to_degrees(),
                 a.sim3.translation.norm(),
@@ -466,6 +468,7 @@ pub fn run_mapper_with_priors(
                 points_on_map_before: a.inliers_before,
                 points_on_map_after: a.inliers_after,
                 applied: moved,
+                time_s,
             });
         }
     }

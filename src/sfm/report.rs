@@ -49,6 +49,7 @@ pub struct AlignmentRecord {
     pub points_on_map_after: usize,
     /// Applied only when more points end on the map.
     pub applied: bool,
+    pub time_s: f64,
 }
 
 /// One stage of the run.
