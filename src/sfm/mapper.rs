@@ -444,33 +444,7 @@ pub fn run_mapper_with_priors(
     // The whole model onto the map first (shape held): undoes a placement
     // that is wrong as a whole, which the solves below cannot (see `align`).
     if lidar_gauge && options.bundle.align_to_map {
-        let nearest = nearest_associator();
-        let t = Instant::now();
-        if let Some(a) = align_to_map(&state, &nearest, &AlignOptions::default()) {
-            let moved = a.inliers_after > a.inliers_before;
-            let time_s = t.elapsed().as_secs_f64();
-            log::info!(
-                "map alignment: scale {:.5}, rotation {:.3} deg, translation {:.3} m; points on the map {} -> {} ({}; {time_s:.2} s)",
-                a.sim3.scale,
-                a.sim3.rotation.angle().to_degrees(),
-                a.sim3.translation.norm(),
-                a.inliers_before,
-                a.inliers_after,
-                if moved { "applied" } else { "kept the model where it was" }
-            );
-            if moved {
-                apply_sim3(&mut state, &a.sim3);
-            }
-            report.alignment = Some(AlignmentRecord {
-                scale: a.sim3.scale,
-                rotation_deg: a.sim3.rotation.angle().to_degrees(),
-                translation_m: a.sim3.translation.norm(),
-                points_on_map_before: a.inliers_before,
-                points_on_map_after: a.inliers_after,
-                applied: moved,
-                time_s,
-            });
-        }
+        report.alignment = align_whole_model(&mut state, &nearest_associator());
     }
     // Rounds of re-association + solve until no camera centre moves more
     // than `final_stop_change_m` (the map pulls the model along directions
@@ -542,6 +516,40 @@ fn local_ba(
         )?);
     }
     Ok(())
+}
+
+/// Moves the whole model onto the map when that puts more points on it
+/// (see [`align_to_map`]); what was found, for the report.
+fn align_whole_model(
+    state: &mut MapState,
+    nearest: &NearestNeighbourAssociator,
+) -> Option<AlignmentRecord> {
+    let t = Instant::now();
+    let a = align_to_map(state, nearest, &AlignOptions::default())?;
+    let applied = a.inliers_after > a.inliers_before;
+    if applied {
+        apply_sim3(state, &a.sim3);
+    }
+    let record = AlignmentRecord {
+        scale: a.sim3.scale,
+        rotation_deg: a.sim3.rotation.angle().to_degrees(),
+        translation_m: a.sim3.translation.norm(),
+        points_on_map_before: a.inliers_before,
+        points_on_map_after: a.inliers_after,
+        applied,
+        time_s: t.elapsed().as_secs_f64(),
+    };
+    log::info!(
+        "map alignment: scale {:.5}, rotation {:.3} deg, translation {:.3} m; points on the map {} -> {} ({}; {:.2} s)",
+        record.scale,
+        record.rotation_deg,
+        record.translation_m,
+        record.points_on_map_before,
+        record.points_on_map_after,
+        if applied { "applied" } else { "kept the model where it was" },
+        record.time_s
+    );
+    Some(record)
 }
 
 /// Centres of the registered images in registration order.
