@@ -350,7 +350,14 @@ pub fn run(args: &MapArgs) -> Result<()> {
         &known_poses,
         &config.options,
         &mut progress,
-    )?;
+    )
+    .with_context(|| {
+        format!(
+            "mapping {} into the LiDAR map {}",
+            config.database.display(),
+            config.lidar.display()
+        )
+    })?;
     if let Some(bar) = &bar {
         bar.finish_and_clear();
     }

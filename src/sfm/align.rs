@@ -52,11 +52,11 @@ pub struct Alignment {
 }
 
 /// Distance below which a point counts as lying on the map, metres.
-const INLIER_M: f64 = 0.02;
+pub const INLIER_M: f64 = 0.02;
 
 /// Points on the map (within [`INLIER_M`] of the plane near them, searched
 /// within `radius_m`) among `points`.
-fn count_inliers(
+pub fn count_inliers(
     nearest: &NearestNeighbourAssociator,
     points: &[Vector3<f64>],
     radius_m: f64,

@@ -13,7 +13,7 @@ use std::time::Instant;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::align::{align_to_map, apply_sim3, AlignOptions};
+use super::align::{align_to_map, apply_sim3, count_inliers, AlignOptions, INLIER_M};
 use super::associate::{
     NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
 };
@@ -56,6 +56,15 @@ pub enum MapperError {
     Init(#[from] InitError),
     #[error("bundle adjustment failed: {0}")]
     Solver(#[from] SolverError),
+    #[error(
+        "the model does not fit the map: {:.0} % of its {points} 3D points lie within {:.0} cm of a map surface (at least {:.0} % expected, option association.min_points_on_map_share); is the initial pose right, and is the map of the place the images show?",
+        share * 100.0, INLIER_M * 100.0, min_share * 100.0
+    )]
+    OffMap {
+        share: f64,
+        points: usize,
+        min_share: f64,
+    },
 }
 
 /// The result of a run.
@@ -476,6 +485,24 @@ pub fn run_mapper_with_priors(
     }
     stages.done("final bundle adjustment");
 
+    if lidar_gauge && !state.points.is_empty() {
+        let points: Vec<_> = state.points.values().map(|p| p.xyz).collect();
+        let on_map = count_inliers(
+            &nearest_associator(),
+            &points,
+            options.association.min_radius_m,
+        );
+        let share = on_map as f64 / points.len() as f64;
+        report.points_on_map_share = Some(share);
+        let min_share = options.association.min_points_on_map_share;
+        if share < min_share {
+            return Err(MapperError::OffMap {
+                share,
+                points: points.len(),
+                min_share,
+            });
+        }
+    }
     report.finish(&state);
     report.stages = stages.records;
     log::info!(

@@ -73,6 +73,9 @@ pub struct MapReport {
     pub init: Option<InitSummary>,
     /// The whole-model alignment to the map before the final rounds, when run.
     pub alignment: Option<AlignmentRecord>,
+    /// Share of the final 3D points within 2 cm of a map surface (with LiDAR
+    /// constraints).
+    pub points_on_map_share: Option<f64>,
     pub images: Vec<ImageRecord>,
     pub solves: Vec<SolveRecord>,
     pub stages: Vec<StageRecord>,
