@@ -175,10 +175,8 @@ fn nearest_tangent_plane(
     y: &Vector3<f64>,
     radius_m: f64,
 ) -> Option<(Vector3<f64>, f64)> {
-    let nb = nearest.index.nearest_within(y, radius_m)?;
-    let i = nb.point_idx as usize;
-    let m = nearest.cloud.normals.as_ref()?[i];
-    let n = Vector3::new(f64::from(m[0]), f64::from(m[1]), f64::from(m[2])).try_normalize(1e-9)?;
+    let i = nearest.index.nearest_within(y, radius_m)?.point_idx as usize;
+    let n = nearest.normal_of(i)?;
     Some((n, n.dot(&nearest.cloud.point_in_map(i))))
 }
 

@@ -177,20 +177,22 @@ impl NearestNeighbourAssociator<'_> {
     /// when none does.
     pub fn plane_offset(&self, normal: &Vector3<f64>, indices: &[usize]) -> Option<f64> {
         let cos_same = self.options.same_plane_max_angle_deg.to_radians().cos();
-        let normals = self.cloud.normals.as_ref()?;
         let mut sum = 0.0;
         let mut count = 0usize;
         for &i in indices {
-            let m = normals[i];
-            let same = Vector3::new(f64::from(m[0]), f64::from(m[1]), f64::from(m[2]))
-                .try_normalize(1e-9)
-                .is_some_and(|m| m.dot(normal) >= cos_same);
-            if same {
+            if self.normal_of(i).is_some_and(|m| m.dot(normal) >= cos_same) {
                 sum += normal.dot(&self.cloud.point_in_map(i));
                 count += 1;
             }
         }
         (count > 0).then(|| sum / count as f64)
+    }
+
+    /// Unit normal of map point `i`; `None` when the map has no normals or
+    /// this one is zero or not finite.
+    pub fn normal_of(&self, i: usize) -> Option<Vector3<f64>> {
+        let m = self.cloud.normals.as_ref()?[i];
+        Vector3::new(f64::from(m[0]), f64::from(m[1]), f64::from(m[2])).try_normalize(1e-9)
     }
 
     /// The map's plane near `x` (world frame): among the `num_neighbours`
@@ -200,17 +202,13 @@ impl NearestNeighbourAssociator<'_> {
     /// [`Self::plane_offset`] over the neighbours. `None` without a
     /// neighbour with a normal.
     pub fn plane_near(&self, x: &Vector3<f64>, radius_m: f64) -> Option<(Vector3<f64>, f64)> {
-        let normals = self.cloud.normals.as_ref()?;
         let neighbours = self
             .index
             .k_nearest_within(x, self.options.num_neighbours, radius_m);
         let mut best: Option<(f64, Vector3<f64>)> = None;
         for nb in &neighbours {
             let i = nb.point_idx as usize;
-            let m = normals[i];
-            let Some(n) =
-                Vector3::new(f64::from(m[0]), f64::from(m[1]), f64::from(m[2])).try_normalize(1e-9)
-            else {
+            let Some(n) = self.normal_of(i) else {
                 continue;
             };
             let d = n.dot(&(x - self.cloud.point_in_map(i))).abs();
@@ -468,7 +466,6 @@ pub(crate) mod tests {
     /// Two cameras 3 m above the floor z = 0, 0.5 m apart, looking straight
     /// down (SIMPLE_PINHOLE, f = 500), both seeing X = (0.1, 0.2, 0) exactly;
     /// the state's point sits 1 cm off the floor.
-    /// Two cameras 0.5 m apart looking down at a point near the origin.
     pub(crate) fn two_view_state() -> (MapState, Point3DId) {
         let camera = Camera {
             id: CameraId(1),
