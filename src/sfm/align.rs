@@ -56,7 +56,7 @@ pub const INLIER_M: f64 = 0.02;
 
 /// Points on the map (within [`INLIER_M`] of the plane near them, searched
 /// within `radius_m`) among `points`.
-pub fn count_inliers(
+pub fn count_points_on_map(
     nearest: &NearestNeighbourAssociator,
     points: &[Vector3<f64>],
     radius_m: f64,
@@ -90,7 +90,7 @@ pub fn align_to_map(
         .iter()
         .copied()
         .fold(f64::INFINITY, f64::min);
-    let inliers_before = count_inliers(nearest, &model, finest);
+    let inliers_before = count_points_on_map(nearest, &model, finest);
     let mut sim3 = Sim3::identity();
     let mut current = model.clone();
     for &radius in &options.radii_m {
@@ -157,7 +157,7 @@ pub fn align_to_map(
             }
         }
     }
-    let inliers_after = count_inliers(nearest, &current, finest);
+    let inliers_after = count_points_on_map(nearest, &current, finest);
     Some(Alignment {
         sim3,
         inliers_before,

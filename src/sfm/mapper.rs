@@ -13,7 +13,7 @@ use std::time::Instant;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::align::{align_to_map, apply_sim3, count_inliers, AlignOptions, INLIER_M};
+use super::align::{align_to_map, apply_sim3, count_points_on_map, AlignOptions, INLIER_M};
 use super::associate::{
     NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
 };
@@ -487,7 +487,7 @@ pub fn run_mapper_with_priors(
 
     if lidar_gauge && !state.points.is_empty() {
         let points: Vec<_> = state.points.values().map(|p| p.xyz).collect();
-        let on_map = count_inliers(
+        let on_map = count_points_on_map(
             &nearest_associator(),
             &points,
             options.association.min_radius_m,
