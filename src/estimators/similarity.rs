@@ -44,6 +44,27 @@ impl Sim3 {
         }
     }
 
+    /// `c_from_a` for `self = c_from_b` and `b_from_a`.
+    pub fn compose(&self, b_from_a: &Sim3) -> Self {
+        Self {
+            scale: self.scale * b_from_a.scale,
+            rotation: self.rotation * b_from_a.rotation,
+            translation: self.transform_point(&b_from_a.translation),
+        }
+    }
+
+    /// A camera's `cam_from_a` as `cam_from_b` (`self = b_from_a`): the same
+    /// view of the moved scene. For `x_b = s Q x_a + τ`: `R' = R Qᵀ`,
+    /// `t' = s t - R Qᵀ τ` (the camera frame scaled by `s`, which projection
+    /// ignores).
+    pub fn transform_pose(&self, cam_from_a: &Rigid3) -> Rigid3 {
+        let rotation = cam_from_a.rotation * self.rotation.inverse();
+        Rigid3::new(
+            rotation,
+            self.scale * cam_from_a.translation - rotation * self.translation,
+        )
+    }
+
     /// The rigid part (rotation and translation; the scale is dropped).
     pub fn rigid(&self) -> Rigid3 {
         Rigid3::new(self.rotation, self.translation)
@@ -263,5 +284,24 @@ mod tests {
         }
         assert!((report.model.scale - truth.scale).abs() < 1e-9 * truth.scale);
         assert!(report.model.rotation.angle_to(&truth.rotation) < 1e-9);
+    }
+
+    #[test]
+    fn compose_applies_right_then_left() {
+        let a = Sim3 {
+            scale: 0.9,
+            rotation: UnitQuaternion::from_euler_angles(0.3, 0.0, -0.1),
+            translation: Vector3::new(1.0, 2.0, 3.0),
+        };
+        let b = Sim3 {
+            scale: 1.1,
+            rotation: UnitQuaternion::from_euler_angles(0.0, 0.5, 0.2),
+            translation: Vector3::new(-2.0, 0.0, 1.0),
+        };
+        let x = Vector3::new(0.3, -0.7, 4.0);
+        let ab = a.compose(&b);
+        assert!(
+            (ab.transform_point(&x) - a.transform_point(&b.transform_point(&x))).norm() < 1e-12
+        );
     }
 }

@@ -15,12 +15,11 @@
 //! refine shape and placement together. It has a basin, not a guarantee: the
 //! room's model, 12 % off in scale, stayed out of reach (there the soft hold
 //! of the initial image keeps the model from getting that far).
-use nalgebra::{Matrix3, SMatrix, SVector, UnitQuaternion, Vector3};
+use nalgebra::{SMatrix, SVector, UnitQuaternion, Vector3};
 
 use super::associate::NearestNeighbourAssociator;
 use super::state::MapState;
 use crate::estimators::similarity::Sim3;
-use crate::scene::Rigid3;
 
 /// Options of [`align_to_map`].
 #[derive(Clone, Debug, PartialEq)]
@@ -144,7 +143,7 @@ pub fn align_to_map(
                 rotation,
                 translation: centroid + tau - scale * (rotation * centroid),
             };
-            sim3 = compose(&step, &sim3);
+            sim3 = step.compose(&sim3);
             current = model.iter().map(|x| sim3.transform_point(x)).collect();
             let size = current
                 .iter()
@@ -180,34 +179,17 @@ fn nearest_tangent_plane(
     Some((n, n.dot(&nearest.cloud.point_in_map(i))))
 }
 
-/// `c_from_a` of `c_from_b` and `b_from_a`.
-fn compose(c_from_b: &Sim3, b_from_a: &Sim3) -> Sim3 {
-    Sim3 {
-        scale: c_from_b.scale * b_from_a.scale,
-        rotation: c_from_b.rotation * b_from_a.rotation,
-        translation: c_from_b.transform_point(&b_from_a.translation),
-    }
-}
-
-/// Moves the whole model by `new_from_old`: 3D points, camera poses (a
-/// camera keeps its view: `R' = R Qᵀ`, `t' = s t - R Qᵀ τ` for
-/// `x' = s Q x + τ`; projection ignores the common factor `s`) and the
-/// points' cached planes are dropped (the next solve re-associates).
+/// Moves the whole model by `new_from_old`: 3D points and camera poses
+/// (each camera keeps its view, see [`Sim3::transform_pose`]); the points'
+/// cached planes are dropped (the next solve re-associates).
 pub fn apply_sim3(state: &mut MapState, new_from_old: &Sim3) {
     for p in state.points.values_mut() {
         p.xyz = new_from_old.transform_point(&p.xyz);
         p.plane = None;
     }
-    let q_inv: Matrix3<f64> = new_from_old
-        .rotation
-        .inverse()
-        .to_rotation_matrix()
-        .into_inner();
     for img in state.images.values_mut() {
         if let Some(pose) = img.cam_from_world.as_mut() {
-            let r = pose.rotation_matrix() * q_inv;
-            let t = new_from_old.scale * pose.translation - r * new_from_old.translation;
-            *pose = Rigid3::from_rotation_matrix(&r, t);
+            *pose = new_from_old.transform_pose(pose);
         }
     }
 }
@@ -254,25 +236,6 @@ mod tests {
             let moved = img.cam_from_world.unwrap().camera_center();
             assert!((moved - s.transform_point(c)).norm() < 1e-9);
         }
-    }
-
-    #[test]
-    fn compose_applies_right_then_left() {
-        let a = Sim3 {
-            scale: 0.9,
-            rotation: UnitQuaternion::from_euler_angles(0.3, 0.0, -0.1),
-            translation: Vector3::new(1.0, 2.0, 3.0),
-        };
-        let b = Sim3 {
-            scale: 1.1,
-            rotation: UnitQuaternion::from_euler_angles(0.0, 0.5, 0.2),
-            translation: Vector3::new(-2.0, 0.0, 1.0),
-        };
-        let x = Vector3::new(0.3, -0.7, 4.0);
-        let ab = compose(&a, &b);
-        assert!(
-            (ab.transform_point(&x) - a.transform_point(&b.transform_point(&x))).norm() < 1e-12
-        );
     }
 
     /// The six faces of a 6 x 4 x 3 m room (2 cm spacing, exact normals) and
@@ -332,7 +295,7 @@ mod tests {
         let found = align_to_map(&state, &nearest, &AlignOptions::default()).expect("aligned");
         assert!(found.inliers_after > found.inliers_before);
         assert_eq!(found.inliers_after, on_map.len());
-        let back = compose(&found.sim3, &truth);
+        let back = found.sim3.compose(&truth);
         assert!((back.scale - 1.0).abs() < 1e-6, "scale {}", back.scale);
         assert!(
             back.rotation.angle() < 1e-6,
