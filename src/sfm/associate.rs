@@ -311,6 +311,7 @@ pub fn on_plane_error_px(
     };
     // Step of the numerical derivative: 1e-6 of the distance to a camera.
     let h = ((views[0].1.camera_center() - origin).norm() * 1e-6).max(1e-9);
+    let norm_sq = |r: &[f64]| r.iter().map(|x| x * x).sum::<f64>();
     let (mut a, mut b) = (0.0, 0.0);
     let mut r = residuals(a, b)?;
     for _ in 0..5 {
@@ -332,7 +333,6 @@ pub fn on_plane_error_px(
             break;
         };
         let next = residuals(a + step.x, b + step.y)?;
-        let norm_sq = |r: &[f64]| r.iter().map(|x| x * x).sum::<f64>();
         if norm_sq(&next) >= norm_sq(&r) {
             break;
         }
@@ -341,8 +341,7 @@ pub fn on_plane_error_px(
             break;
         }
     }
-    let sum_sq: f64 = r.iter().map(|x| x * x).sum();
-    Some((sum_sq / views.len() as f64).sqrt())
+    Some((norm_sq(&r) / views.len() as f64).sqrt())
 }
 
 /// Projection associations for short tracks (method.md 4.6): for a point
