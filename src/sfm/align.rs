@@ -53,8 +53,15 @@ pub struct Alignment {
 /// Distance below which a point counts as lying on the map, metres.
 pub const INLIER_M: f64 = 0.02;
 
-/// Points on the map (within [`INLIER_M`] of the plane near them, searched
-/// within `radius_m`) among `points`.
+/// Whether `x` lies on the map: within [`INLIER_M`] of the plane near it,
+/// searched within `radius_m`.
+pub fn is_on_map(nearest: &NearestNeighbourAssociator, x: &Vector3<f64>, radius_m: f64) -> bool {
+    nearest
+        .plane_near(x, radius_m)
+        .is_some_and(|(n, d)| (n.dot(x) - d).abs() <= INLIER_M)
+}
+
+/// Points on the map ([`is_on_map`]) among `points`.
 pub fn count_points_on_map(
     nearest: &NearestNeighbourAssociator,
     points: &[Vector3<f64>],
@@ -62,11 +69,7 @@ pub fn count_points_on_map(
 ) -> usize {
     points
         .iter()
-        .filter(|x| {
-            nearest
-                .plane_near(x, radius_m)
-                .is_some_and(|(n, d)| (n.dot(x) - d).abs() <= INLIER_M)
-        })
+        .filter(|x| is_on_map(nearest, x, radius_m))
         .count()
 }
 

@@ -466,6 +466,16 @@ pub(crate) mod tests {
     /// down (SIMPLE_PINHOLE, f = 500), both seeing X = (0.1, 0.2, 0) exactly;
     /// the state's point sits 1 cm off the floor.
     pub(crate) fn two_view_state() -> (MapState, Point3DId) {
+        let x = Vector3::new(0.1, 0.2, 0.0);
+        two_view_state_seeing(&x, &(x + Vector3::new(0.0, 0.0, 0.01)))
+    }
+
+    /// The cameras of [`two_view_state`] seeing `x` exactly; the state's
+    /// point is at `point`.
+    pub(crate) fn two_view_state_seeing(
+        x: &Vector3<f64>,
+        point: &Vector3<f64>,
+    ) -> (MapState, Point3DId) {
         let camera = Camera {
             id: CameraId(1),
             model: CameraModel::from_name("SIMPLE_PINHOLE").expect("known model"),
@@ -474,14 +484,13 @@ pub(crate) mod tests {
             params: vec![500.0, 320.0, 240.0],
         };
         let down = nalgebra::Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0));
-        let x = Vector3::new(0.1, 0.2, 0.0);
         let mut db = DatabaseSnapshot::default();
         db.cameras.insert(CameraId(1), camera.clone());
         let mut poses = Vec::new();
         for (i, cx) in [0.0, 0.5].into_iter().enumerate() {
             let id = ImageId(i as u32 + 1);
             let pose = Rigid3::from_rotation_matrix(&down, -(down * Vector3::new(cx, 0.0, 3.0)));
-            let pixel = camera.project(&pose.transform_point(&x)).expect("in front");
+            let pixel = camera.project(&pose.transform_point(x)).expect("in front");
             db.images.insert(
                 id,
                 DbImage {
@@ -502,7 +511,7 @@ pub(crate) mod tests {
                 point2d_idx: 0,
             });
         }
-        let point = state.add_point(x + Vector3::new(0.0, 0.0, 0.01), track);
+        let point = state.add_point(*point, track);
         (state, point)
     }
 

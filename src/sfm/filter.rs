@@ -1,12 +1,16 @@
-//! Outlier filters run after each bundle adjustment. Free functions; each
+//! Outlier filters run after bundle adjustments. Free functions; each
 //! returns how many observations or points it removed.
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 
-use nalgebra::Vector3;
+use nalgebra::{Vector2, Vector3};
 
+use super::align::is_on_map;
+use super::associate::NearestNeighbourAssociator;
 use super::geometry::reprojection_error_sq;
 use super::state::MapState;
 use crate::estimators::triangulation::triangulation_angle_deg;
+use crate::map::grid::FrustumGrid;
+use crate::map::projection::{project_map_at_pixels, ProjectionError, ProjectionOptions};
 use crate::scene::{ImageId, Point3DId, TrackElement};
 
 /// Removes observations whose reprojection error exceeds `max_error_px` or
@@ -96,4 +100,147 @@ pub fn filter_small_angle_points(state: &mut MapState, min_angle_deg: f64) -> us
         state.delete_point(*id);
     }
     doomed.len()
+}
+
+/// Deletes points the map says no camera could have seen: in at least half
+/// of their views, the point lies behind the surface the camera sees at its
+/// feature by more than `max(margin_m, margin_ratio * range)` along that
+/// surface's normal.
+///
+/// Such points are features on occlusion boundaries (a corner of a near
+/// object against a far wall: the two surfaces meet only in the image) that
+/// triangulate consistently enough to pass the reprojection test but lie
+/// behind a wall. The surface is the map point seen at the feature's pixel
+/// ([`project_map_at_pixels`]) with its normal, the plane's offset averaged
+/// over its neighbours ([`NearestNeighbourAssociator::mean_offset`]: the
+/// map's range noise); a view where the map shows nothing, or a map point
+/// without a normal, does not count. Measured along the normal, the test
+/// does not grow with the range at grazing angles. A point on the map
+/// ([`is_on_map`], searched within `on_map_radius_m`) stays: a splat
+/// reaches a few pixels beyond a near object's edge and would hide the wall
+/// points right beside it. Returns the number of points deleted.
+pub fn filter_points_behind_map(
+    state: &mut MapState,
+    nearest: &NearestNeighbourAssociator,
+    grid: &FrustumGrid,
+    projection: &ProjectionOptions,
+    on_map_radius_m: f64,
+    margin_m: f64,
+    margin_ratio: f64,
+) -> Result<usize, ProjectionError> {
+    let mut behind: BTreeMap<Point3DId, usize> = BTreeMap::new();
+    for &image in &state.registration_order {
+        let Some(pose) = state.pose(image) else {
+            continue;
+        };
+        let img = &state.images[&image];
+        let (points, pixels): (Vec<Point3DId>, Vec<Vector2<f64>>) = img
+            .point3d
+            .iter()
+            .zip(&img.keypoints)
+            .filter_map(|(p, xy)| p.map(|p| (p, *xy)))
+            .unzip();
+        let hits = project_map_at_pixels(
+            nearest.cloud,
+            grid,
+            state.camera_of(image),
+            &pose,
+            &pixels,
+            projection,
+        )?;
+        let centre = pose.camera_center();
+        for (pid, hit) in points.iter().zip(hits) {
+            let Some((hit, normal)) =
+                hit.and_then(|h| Some((h.point_in_map, h.normal_in_map?.try_normalize(1e-9)?)))
+            else {
+                continue;
+            };
+            // The normal toward the camera.
+            let normal = if normal.dot(&(centre - hit)) < 0.0 {
+                -normal
+            } else {
+                normal
+            };
+            let x = state.points[pid].xyz;
+            if is_on_map(nearest, &x, on_map_radius_m) {
+                continue;
+            }
+            let depth_behind = nearest.mean_offset(&hit, &normal) - normal.dot(&x);
+            if depth_behind > margin_m.max(margin_ratio * (x - centre).norm()) {
+                *behind.entry(*pid).or_default() += 1;
+            }
+        }
+    }
+    let doomed: Vec<Point3DId> = behind
+        .into_iter()
+        .filter(|(pid, n)| 2 * n >= state.points[pid].track.len())
+        .map(|(pid, _)| pid)
+        .collect();
+    for id in &doomed {
+        state.delete_point(*id);
+    }
+    Ok(doomed.len())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::map::grid::GridOptions;
+    use crate::map::index::MapIndex;
+    use crate::map::PointCloud;
+    use crate::sfm::associate::tests::two_view_state_seeing;
+    use crate::sfm::options::AssociationOptions;
+
+    /// Whether the filter deletes a point at height `z` above the floor
+    /// whose two views (3 m up) see the floor at (0.1, 0.2, 0).
+    fn deleted_at(z: f64) -> bool {
+        // A 3 x 3 m floor patch z = 0, 2 cm spacing, normals up.
+        let mut points = Vec::new();
+        for i in -75..=75 {
+            for j in -75..=75 {
+                points.push([i as f32 * 0.02, j as f32 * 0.02, 0.0]);
+            }
+        }
+        let normals = Some(vec![[0.0f32, 0.0, 1.0]; points.len()]);
+        let cloud = PointCloud {
+            origin: Vector3::zeros(),
+            points,
+            normals,
+            planarity: None,
+        };
+        let index = MapIndex::build(&cloud).unwrap();
+        let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+        let nearest = NearestNeighbourAssociator {
+            cloud: &cloud,
+            index: &index,
+            options: AssociationOptions::default(),
+        };
+        let seen = Vector3::new(0.1, 0.2, 0.0);
+        let (mut state, point) = two_view_state_seeing(&seen, &(seen + Vector3::z() * z));
+        let removed = filter_points_behind_map(
+            &mut state,
+            &nearest,
+            &grid,
+            &ProjectionOptions::default(),
+            0.1,
+            0.05,
+            0.02,
+        )
+        .unwrap();
+        assert_eq!(removed, usize::from(!state.points.contains_key(&point)));
+        removed == 1
+    }
+
+    #[test]
+    fn points_behind_the_map_are_deleted() {
+        // 30 cm under the floor both cameras see: deleted.
+        assert!(deleted_at(-0.3));
+        // The margin at a range of about 3.1 m is max(5 cm, 2 % of it) =
+        // 6.2 cm: 8 cm under goes, 4 cm under stays.
+        assert!(deleted_at(-0.08));
+        assert!(!deleted_at(-0.04));
+        // On the floor, or floating above it (an object the map lacks): kept.
+        assert!(!deleted_at(0.01));
+        assert!(!deleted_at(0.3));
+    }
 }

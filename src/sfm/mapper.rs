@@ -18,7 +18,7 @@ use super::associate::{
     NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
 };
 use super::bundle::{bundle_adjust, BundleConfig, SoftPosePrior};
-use super::filter::{filter_observations, filter_small_angle_points};
+use super::filter::{filter_observations, filter_points_behind_map, filter_small_angle_points};
 use super::initialize::{initialize, InitError};
 use super::options::{AssociationKind, MapperOptions, OptionsError};
 use super::register::{
@@ -30,7 +30,7 @@ use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulat
 use crate::io::database::DatabaseSnapshot;
 use crate::map::grid::{FrustumGrid, GridError, GridOptions};
 use crate::map::index::{IndexError, MapIndex};
-use crate::map::projection::ProjectionOptions;
+use crate::map::projection::{ProjectionError, ProjectionOptions};
 use crate::map::PointCloud;
 use crate::scene::{ImageId, Point3DId, Reconstruction, Rigid3};
 use crate::solver::SolverError;
@@ -54,6 +54,8 @@ pub enum MapperError {
     Grid(#[from] GridError),
     #[error("initialisation failed: {0}")]
     Init(#[from] InitError),
+    #[error("projecting the map into the images: {0}")]
+    Projection(#[from] ProjectionError),
     #[error("bundle adjustment failed: {0}")]
     Solver(#[from] SolverError),
     #[error(
@@ -174,6 +176,11 @@ pub fn run_mapper_with_priors(
     stages.done("map index");
     let nearest;
     let projection;
+    let projection_options = ProjectionOptions {
+        min_depth_m: options.init.min_depth_m,
+        max_depth_m: options.init.max_depth_m,
+        ..Default::default()
+    };
     let nearest_associator = || NearestNeighbourAssociator {
         cloud,
         index: &index,
@@ -189,11 +196,7 @@ pub fn run_mapper_with_priors(
             projection = ProjectionAssociator {
                 nearest: nearest_associator(),
                 grid: &grid,
-                projection: ProjectionOptions {
-                    min_depth_m: options.init.min_depth_m,
-                    max_depth_m: options.init.max_depth_m,
-                    ..Default::default()
-                },
+                projection: projection_options.clone(),
             };
             &projection
         }
@@ -454,6 +457,19 @@ pub fn run_mapper_with_priors(
     // that is wrong as a whole, which the solves below cannot (see `align`).
     if lidar_gauge && options.bundle.align_to_map {
         report.alignment = align_whole_model(&mut state, &nearest_associator());
+    }
+    if lidar_gauge && options.filter.remove_behind_map {
+        let removed = filter_points_behind_map(
+            &mut state,
+            &nearest_associator(),
+            &grid,
+            &projection_options,
+            options.association.min_radius_m,
+            options.filter.behind_map_margin_m,
+            options.filter.behind_map_margin_ratio,
+        )?;
+        log::info!("{removed} points behind the map removed");
+        report.points_behind_map_removed = Some(removed);
     }
     // Rounds of re-association + solve until no camera centre moves more
     // than `final_stop_change_m` (the map pulls the model along directions

@@ -557,6 +557,18 @@ pub struct FilterOptions {
     /// Points whose largest triangulation angle is smaller are removed
     /// (points held by the map are kept), degrees. Default 1.5.
     pub min_triangulation_angle_deg: f64,
+    /// Before the final bundle adjustments (with LiDAR constraints), delete
+    /// the points that in at least half of their views lie behind the
+    /// surface the map shows at their feature, by more than
+    /// `max(behind_map_margin_m, behind_map_margin_ratio * range)`: features
+    /// on occlusion boundaries triangulated behind a wall. Default true.
+    pub remove_behind_map: bool,
+    /// Metres. Default 0.05 (the map's noise and the points' depth noise at
+    /// a few metres stay well inside).
+    pub behind_map_margin_m: f64,
+    /// Share of the surface's range. Default 0.02 (a far point's depth is
+    /// less certain).
+    pub behind_map_margin_ratio: f64,
 }
 
 impl Default for FilterOptions {
@@ -564,6 +576,9 @@ impl Default for FilterOptions {
         Self {
             max_reprojection_error_px: 4.0,
             min_triangulation_angle_deg: 1.5,
+            remove_behind_map: true,
+            behind_map_margin_m: 0.05,
+            behind_map_margin_ratio: 0.02,
         }
     }
 }
@@ -577,6 +592,11 @@ impl FilterOptions {
         non_negative(
             "filter.min_triangulation_angle_deg",
             self.min_triangulation_angle_deg,
+        )?;
+        non_negative("filter.behind_map_margin_m", self.behind_map_margin_m)?;
+        non_negative(
+            "filter.behind_map_margin_ratio",
+            self.behind_map_margin_ratio,
         )
     }
 }
