@@ -1,10 +1,13 @@
 #!/usr/bin/env bash
 # Runs Debian's COLMAP (CPU, headless) on a synthetic scene folder written by
 # `colmap-lidar synth`: feature_extractor with the true camera of gt/cameras.txt
-# (single camera), then exhaustive_matcher. Prints the database path.
+# (single camera), then exhaustive_matcher (MATCHER=sequential: sequential_matcher
+# as for a video: image i with i + 1..OVERLAP in name order and, COLMAP's default
+# quadratic overlap, i + 2^k for k < OVERLAP). Prints the database path.
 #
 # usage: scripts/make_database.sh SCENE_DIR [DATABASE] 
-# env:   MAX_NUM_FEATURES (default 8192), NUM_THREADS (default 2), COLMAP (default colmap)
+# env:   MAX_NUM_FEATURES (default 8192), NUM_THREADS (default 2), COLMAP (default colmap),
+#        MATCHER (exhaustive|sequential, default exhaustive), OVERLAP (default 10)
 set -euo pipefail
 scene=${1:?usage: make_database.sh SCENE_DIR [DATABASE]}
 db=${2:-$scene/database.db}
@@ -46,5 +49,12 @@ run feature_extractor --database_path "$db" --image_path "$scene/images" \
   --ImageReader.single_camera 1 --ImageReader.camera_model "$model" --ImageReader.camera_params "$params" \
   --SiftExtraction.use_gpu 0 --SiftExtraction.num_threads "${NUM_THREADS:-2}" \
   --SiftExtraction.max_num_features "${MAX_NUM_FEATURES:-8192}"
-run exhaustive_matcher --database_path "$db" --SiftMatching.use_gpu 0 --SiftMatching.num_threads "${NUM_THREADS:-2}"
+case "${MATCHER:-exhaustive}" in
+  exhaustive)
+    run exhaustive_matcher --database_path "$db" --SiftMatching.use_gpu 0 --SiftMatching.num_threads "${NUM_THREADS:-2}" ;;
+  sequential)
+    run sequential_matcher --database_path "$db" --SiftMatching.use_gpu 0 --SiftMatching.num_threads "${NUM_THREADS:-2}" \
+      --SequentialMatching.overlap "${OVERLAP:-10}" --SequentialMatching.loop_detection 0 ;;
+  *) echo "error: MATCHER must be exhaustive or sequential, got '$MATCHER'" >&2; exit 2 ;;
+esac
 echo "$db"

@@ -1,6 +1,7 @@
 //! Runs the real COLMAP (Debian's `colmap`, CPU, headless) on a synthetic
 //! scene: `feature_extractor` with the true camera, then
-//! `exhaustive_matcher`. Returns the database path. Tests use it; the shell
+//! `exhaustive_matcher` (or `sequential_matcher`, as for a video). Returns
+//! the database path. Tests use it; the shell
 //! twin is `scripts/make_database.sh`.
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -23,6 +24,19 @@ pub struct HarnessOptions {
     /// Pass the true camera of `gt/cameras.txt` to the extractor (single
     /// camera). Default true.
     pub use_true_camera: bool,
+    /// Which pairs are matched. Default [`Matcher::Exhaustive`].
+    pub matcher: Matcher,
+}
+
+/// COLMAP's matcher to run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Matcher {
+    /// Every pair (`exhaustive_matcher`).
+    Exhaustive,
+    /// `sequential_matcher` with `overlap`: image i with i + 1..=overlap in
+    /// name order and (COLMAP's default quadratic overlap) i + 2^k for
+    /// k < overlap; loop detection off (it needs a vocabulary tree).
+    Sequential { overlap: usize },
 }
 
 impl Default for HarnessOptions {
@@ -33,6 +47,7 @@ impl Default for HarnessOptions {
             max_num_features: 8192,
             num_threads: 2,
             use_true_camera: true,
+            matcher: Matcher::Exhaustive,
         }
     }
 }
@@ -162,7 +177,7 @@ pub fn make_database(scene_dir: &Path, opts: &HarnessOptions) -> Result<PathBuf,
         s("--SiftExtraction.use_gpu"),
         s("0"),
         s("--SiftExtraction.num_threads"),
-        threads.clone(),
+        threads,
         s("--SiftExtraction.max_num_features"),
         opts.max_num_features.to_string(),
     ];
@@ -176,16 +191,33 @@ pub fn make_database(scene_dir: &Path, opts: &HarnessOptions) -> Result<PathBuf,
         ]);
     }
     run(&opts.colmap, "feature_extractor", &args)?;
-    let args = vec![
+    run_matcher(&db, opts)?;
+    Ok(db)
+}
+
+/// Runs `opts.matcher` on the database `db` (its features extracted).
+pub fn run_matcher(db: &Path, opts: &HarnessOptions) -> Result<(), SynthError> {
+    let s = |v: &str| v.to_string();
+    let mut args = vec![
         s("--database_path"),
         db.display().to_string(),
         s("--SiftMatching.use_gpu"),
         s("0"),
         s("--SiftMatching.num_threads"),
-        threads,
+        opts.num_threads.max(1).to_string(),
     ];
-    run(&opts.colmap, "exhaustive_matcher", &args)?;
-    Ok(db)
+    match opts.matcher {
+        Matcher::Exhaustive => run(&opts.colmap, "exhaustive_matcher", &args),
+        Matcher::Sequential { overlap } => {
+            args.extend([
+                s("--SequentialMatching.overlap"),
+                overlap.to_string(),
+                s("--SequentialMatching.loop_detection"),
+                s("0"),
+            ]);
+            run(&opts.colmap, "sequential_matcher", &args)
+        }
+    }
 }
 
 #[cfg(test)]

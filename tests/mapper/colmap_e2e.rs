@@ -13,7 +13,7 @@ use colmap_lidar::io::database::read_database;
 use colmap_lidar::io::model::read_model;
 use colmap_lidar::io::pose_ply::{read_pose_ply, write_pose_ply};
 use colmap_lidar::scene::{BodyPose, ImageId};
-use colmap_lidar::synth::colmap_harness::{make_database, HarnessOptions};
+use colmap_lidar::synth::colmap_harness::{make_database, run_matcher, HarnessOptions, Matcher};
 use colmap_lidar::synth::generate::{generate_scene, image_name, read_init_pose, SynthOptions};
 use colmap_lidar::synth::scenes::SceneKind;
 
@@ -120,6 +120,63 @@ fn check_run(r: &Run) {
     assert!(rot.median < 0.05, "rotation errors {rot:?}");
     let s = r.none.sim3_scale.unwrap();
     assert!((s - 1.0).abs() < 0.03, "Sim3 scale {s}");
+}
+
+/// A video-like database: COLMAP's sequential matcher (overlap 5 in name
+/// order, COLMAP's default quadratic overlap, no loop detection) over the
+/// shared yard's features. The same bar as with every pair matched.
+#[test]
+fn yard_with_sequential_matches() {
+    let Some(shared) = crate::common::yard_db() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("sequential.db");
+    std::fs::copy(&shared.database, &db).unwrap();
+    rusqlite::Connection::open(&db)
+        .unwrap()
+        .execute_batch("DELETE FROM matches; DELETE FROM two_view_geometries;")
+        .unwrap();
+    run_matcher(
+        &db,
+        &HarnessOptions {
+            matcher: Matcher::Sequential { overlap: 5 },
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let snapshot = read_database(&db).unwrap();
+    let frame = |id: &ImageId| -> i64 {
+        let name = &snapshot.images[id].name;
+        (0..crate::common::YARD_IMAGES)
+            .find(|&k| image_name(k) == *name)
+            .unwrap() as i64
+    };
+    let pairs = &snapshot.two_view_geometries;
+    assert!(
+        pairs.len() >= crate::common::YARD_IMAGES,
+        "{} pairs",
+        pairs.len()
+    );
+    for p in pairs {
+        // Image i with i + 1..=5 and (quadratic overlap) i + 8, i + 16.
+        let gap = (frame(&p.image_id1) - frame(&p.image_id2)).abs();
+        assert!(
+            [1, 2, 3, 4, 5, 8, 16].contains(&gap),
+            "pair {gap} frames apart"
+        );
+    }
+    let exhaustive = read_database(&shared.database).unwrap();
+    eprintln!(
+        "sequential matcher: {} verified pairs (exhaustive: {})",
+        pairs.len(),
+        exhaustive.two_view_geometries.len()
+    );
+    let run = map_scene(&shared.scene, &dir.path().join("out"), |args| {
+        args.database = Some(db.clone());
+    });
+    print_run("yard, sequential matches", &run);
+    check_run(&run);
 }
 
 #[test]
