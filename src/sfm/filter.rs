@@ -128,6 +128,14 @@ pub fn filter_points_behind_map(
     margin_m: f64,
     margin_ratio: f64,
 ) -> Result<usize, ProjectionError> {
+    // Only points off the map are candidates; the projection then splats
+    // only what can reach their pixels.
+    let candidates: BTreeSet<Point3DId> = state
+        .points
+        .iter()
+        .filter(|(_, p)| !is_on_map(nearest, &p.xyz, on_map_radius_m))
+        .map(|(id, _)| *id)
+        .collect();
     let mut behind: BTreeMap<Point3DId, usize> = BTreeMap::new();
     for &image in &state.registration_order {
         let Some(pose) = state.pose(image) else {
@@ -138,8 +146,11 @@ pub fn filter_points_behind_map(
             .point3d
             .iter()
             .zip(&img.keypoints)
-            .filter_map(|(p, xy)| p.map(|p| (p, *xy)))
+            .filter_map(|(p, xy)| p.filter(|p| candidates.contains(p)).map(|p| (p, *xy)))
             .unzip();
+        if points.is_empty() {
+            continue;
+        }
         let hits = project_map_at_pixels(
             nearest.cloud,
             grid,
@@ -162,9 +173,6 @@ pub fn filter_points_behind_map(
                 normal
             };
             let x = state.points[pid].xyz;
-            if is_on_map(nearest, &x, on_map_radius_m) {
-                continue;
-            }
             let depth_behind = nearest.mean_offset(&hit, &normal) - normal.dot(&x);
             if depth_behind > margin_m.max(margin_ratio * (x - centre).norm()) {
                 *behind.entry(*pid).or_default() += 1;

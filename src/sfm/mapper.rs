@@ -457,6 +457,7 @@ pub fn run_mapper_with_priors(
     // that is wrong as a whole, which the solves below cannot (see `align`).
     if lidar_gauge && options.bundle.align_to_map {
         report.alignment = align_whole_model(&mut state, &nearest_associator());
+        stages.done("retriangulation, alignment to the map");
     }
     if lidar_gauge && options.filter.remove_behind_map {
         let removed = filter_points_behind_map(
@@ -470,6 +471,7 @@ pub fn run_mapper_with_priors(
         )?;
         log::info!("{removed} points behind the map removed");
         report.points_behind_map_removed = Some(removed);
+        stages.done("points behind the map");
     }
     // Rounds of re-association + solve until no camera centre moves more
     // than `final_stop_change_m` (the map pulls the model along directions
