@@ -566,8 +566,8 @@ pub struct FilterOptions {
     /// Metres. Default 0.05 (the map's noise and the points' depth noise at
     /// a few metres stay well inside).
     pub behind_map_margin_m: f64,
-    /// Share of the surface's range. Default 0.02 (a far point's depth is
-    /// less certain).
+    /// Share of the point's range from the camera. Default 0.02 (a far
+    /// point's depth is less certain).
     pub behind_map_margin_ratio: f64,
 }
 

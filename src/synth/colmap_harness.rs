@@ -1,8 +1,8 @@
 //! Runs the real COLMAP (Debian's `colmap`, CPU, headless) on a synthetic
 //! scene: `feature_extractor` with the true camera, then
 //! `exhaustive_matcher` (or `sequential_matcher`, as for a video). Returns
-//! the database path. Tests use it; the shell
-//! twin is `scripts/make_database.sh`.
+//! the database path. Tests use it; the shell twin is
+//! `scripts/make_database.sh`.
 use std::fs;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
