@@ -15,7 +15,7 @@ use super::options::{InitOptions, RegisterOptions};
 use super::register::{estimate_pose, PoseOutcome};
 use super::state::MapState;
 use crate::map::grid::FrustumGrid;
-use crate::map::projection::{project_map_at_pixels, ProjectionError, ProjectionOptions};
+use crate::map::projection::{project_map_at_pixels, ProjectionError};
 use crate::map::PointCloud;
 use crate::scene::{ImageId, Rigid3, TrackElement};
 
@@ -102,11 +102,7 @@ pub fn lidar_points_of_image(
 ) -> Result<(BTreeMap<u32, Vector3<f64>>, usize), ProjectionError> {
     let camera = state.camera_of(image);
     let keypoints = &state.images[&image].keypoints;
-    let projection = ProjectionOptions {
-        min_depth_m: options.min_depth_m,
-        max_depth_m: options.max_depth_m,
-        ..Default::default()
-    };
+    let projection = options.projection();
     let hits = project_map_at_pixels(cloud, grid, camera, cam_from_world, keypoints, &projection)?;
     let world_from_cam = cam_from_world.inverse();
     let centre = cam_from_world.camera_center();

@@ -30,7 +30,7 @@ use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulat
 use crate::io::database::DatabaseSnapshot;
 use crate::map::grid::{FrustumGrid, GridError, GridOptions};
 use crate::map::index::{IndexError, MapIndex};
-use crate::map::projection::{ProjectionError, ProjectionOptions};
+use crate::map::projection::ProjectionError;
 use crate::map::PointCloud;
 use crate::scene::{ImageId, Point3DId, Reconstruction, Rigid3};
 use crate::solver::SolverError;
@@ -176,11 +176,6 @@ pub fn run_mapper_with_priors(
     stages.done("map index");
     let nearest;
     let projection;
-    let projection_options = ProjectionOptions {
-        min_depth_m: options.init.min_depth_m,
-        max_depth_m: options.init.max_depth_m,
-        ..Default::default()
-    };
     let nearest_associator = || NearestNeighbourAssociator {
         cloud,
         index: &index,
@@ -196,7 +191,7 @@ pub fn run_mapper_with_priors(
             projection = ProjectionAssociator {
                 nearest: nearest_associator(),
                 grid: &grid,
-                projection: projection_options.clone(),
+                projection: options.init.projection(),
             };
             &projection
         }
@@ -464,7 +459,7 @@ pub fn run_mapper_with_priors(
             &mut state,
             &nearest_associator(),
             &grid,
-            &projection_options,
+            &options.init.projection(),
             options.association.min_radius_m,
             options.filter.behind_map_margin_m,
             options.filter.behind_map_margin_ratio,

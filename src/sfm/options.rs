@@ -4,6 +4,8 @@
 //! unknown keys are errors).
 use serde::Deserialize;
 
+use crate::map::projection::ProjectionOptions;
+
 /// An option out of range: names the option and the value.
 #[derive(Debug, thiserror::Error)]
 #[error("invalid mapper option `{name}`: {message}")]
@@ -73,6 +75,16 @@ impl Default for InitOptions {
 }
 
 impl InitOptions {
+    /// How the map is seen from a camera (its depth range; default splats):
+    /// for the initial image and for the behind-map filter.
+    pub fn projection(&self) -> ProjectionOptions {
+        ProjectionOptions {
+            min_depth_m: self.min_depth_m,
+            max_depth_m: self.max_depth_m,
+            ..Default::default()
+        }
+    }
+
     pub fn validate(&self) -> Result<(), OptionsError> {
         positive("init.min_depth_m", self.min_depth_m)?;
         check(
