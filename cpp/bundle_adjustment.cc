@@ -810,6 +810,65 @@ BaEvaluationFfi EvaluateImpl(BaProblemFfi& p, const BaOptionsFfi& o) {
   return out;
 }
 
+// Block kinds of the Jacobian's columns, shared with Rust (src/solver/ffi.rs).
+constexpr uint32_t kBlockPoint = 0;
+constexpr uint32_t kBlockPoseRotation = 1;
+constexpr uint32_t kBlockPoseTranslation = 2;
+constexpr uint32_t kBlockCamera = 3;
+
+// The Jacobian of every residual with respect to the variable parameter
+// blocks (tangent space; points first, then each pose's rotation and
+// translation, then intrinsics), with the robust losses' corrections applied
+// as the solver sees them, and the corrected residuals.
+BaJacobianFfi JacobianImpl(BaProblemFfi& p, const BaOptionsFfi& o) {
+  SetLogLevel(o.logging);
+  std::unique_ptr<BuiltProblem> built = BuildProblem(p, o);
+  ceres::Problem& problem = *built->problem;
+  BaJacobianFfi out;
+  out.num_rows = 0;
+  out.num_cols = 0;
+  ceres::Problem::EvaluateOptions eval;
+  eval.apply_loss_function = true;
+  eval.num_threads = 1;
+  auto add = [&](double* block, uint32_t kind, size_t index) {
+    if (!problem.HasParameterBlock(block) ||
+        problem.IsParameterBlockConstant(block)) {
+      return;
+    }
+    eval.parameter_blocks.push_back(block);
+    out.block_kind.push_back(kind);
+    out.block_index.push_back(static_cast<uint32_t>(index));
+    out.block_size.push_back(
+        static_cast<uint32_t>(problem.ParameterBlockTangentSize(block)));
+  };
+  for (size_t i = 0; i < p.point_constant.size(); ++i) {
+    add(&p.points[3 * i], kBlockPoint, i);
+  }
+  for (size_t i = 0; i < p.pose_constant.size(); ++i) {
+    add(&p.poses[7 * i], kBlockPoseRotation, i);
+    add(&p.poses[7 * i + 4], kBlockPoseTranslation, i);
+  }
+  for (size_t c = 0; c < p.camera_model_ids.size(); ++c) {
+    add(&p.camera_params[p.camera_param_offsets[c]], kBlockCamera, c);
+  }
+  if (eval.parameter_blocks.empty() || built->records.empty()) return out;
+  double cost = 0.0;
+  std::vector<double> residuals;
+  ceres::CRSMatrix jacobian;
+  if (!problem.Evaluate(eval, &cost, &residuals, nullptr, &jacobian)) {
+    Fail("the Jacobian could not be evaluated (a point behind a camera?)");
+  }
+  out.num_rows = static_cast<uint64_t>(jacobian.num_rows);
+  out.num_cols = static_cast<uint64_t>(jacobian.num_cols);
+  out.row_starts.reserve(jacobian.rows.size());
+  for (int r : jacobian.rows) out.row_starts.push_back(static_cast<uint64_t>(r));
+  out.cols.reserve(jacobian.cols.size());
+  for (int c : jacobian.cols) out.cols.push_back(static_cast<uint32_t>(c));
+  out.values = ToRustVec(jacobian.values);
+  out.residuals = ToRustVec(residuals);
+  return out;
+}
+
 // Turns anything thrown into a std::exception, which cxx passes to Rust.
 template <typename F>
 auto Guard(F&& body) -> decltype(body()) {
@@ -832,6 +891,11 @@ BaSummaryFfi solve_bundle_adjustment(BaProblemFfi& problem,
 BaEvaluationFfi evaluate_bundle_adjustment(BaProblemFfi& problem,
                                            const BaOptionsFfi& options) {
   return Guard([&] { return EvaluateImpl(problem, options); });
+}
+
+BaJacobianFfi jacobian_bundle_adjustment(BaProblemFfi& problem,
+                                         const BaOptionsFfi& options) {
+  return Guard([&] { return JacobianImpl(problem, options); });
 }
 
 bool sparse_linear_algebra_available() {

@@ -9,6 +9,7 @@ struct BaProblemFfi;
 struct BaOptionsFfi;
 struct BaSummaryFfi;
 struct BaEvaluationFfi;
+struct BaJacobianFfi;
 
 // Builds the problem, solves it and writes the solution back into `problem`.
 BaSummaryFfi solve_bundle_adjustment(BaProblemFfi& problem,
@@ -17,6 +18,10 @@ BaSummaryFfi solve_bundle_adjustment(BaProblemFfi& problem,
 // Builds the problem and evaluates every residual without solving.
 BaEvaluationFfi evaluate_bundle_adjustment(BaProblemFfi& problem,
                                            const BaOptionsFfi& options);
+
+// Builds the problem and returns its Jacobian at the current parameters.
+BaJacobianFfi jacobian_bundle_adjustment(BaProblemFfi& problem,
+                                         const BaOptionsFfi& options);
 
 // True when Ceres was built with a sparse linear-algebra library.
 bool sparse_linear_algebra_available();

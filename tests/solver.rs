@@ -1081,3 +1081,211 @@ fn medium_problem_timing() {
         assert!(e.0 < 0.02, "{e:?}");
     }
 }
+
+/// Residuals of `problem` with pose `pose`'s world-frame rotation turned by
+/// `omega` and its centre moved by `dc`, and point `point` moved by `dx`.
+fn perturbed_residuals(
+    problem: &BundleAdjustmentProblem,
+    pose: Option<(usize, Vector3<f64>, Vector3<f64>)>,
+    point: Option<(usize, Vector3<f64>)>,
+) -> Vec<f64> {
+    let mut p = problem.clone();
+    if let Some((i, omega, dc)) = pose {
+        let rigid = p.poses[i].rigid();
+        // world_from_cam turns by exp(omega) on the left, so cam_from_world by
+        // exp(-omega) on the right.
+        let rotation = rigid.rotation * UnitQuaternion::from_scaled_axis(-omega);
+        let centre = rigid.camera_center() + dc;
+        p.poses[i] = BaPose::new(&Rigid3::new(rotation, -(rotation * centre)), false);
+    }
+    if let Some((i, dx)) = point {
+        for k in 0..3 {
+            p.points[i].position_in_world[k] += dx[k];
+        }
+    }
+    reference::residuals(&p)
+}
+
+/// The covariance through the bridge (Ceres' Jacobian, Schur complement,
+/// tangent-to-world conversion) against `(J^T J)^-1` from central differences
+/// of the Rust reference residuals in world-frame rotation and centre
+/// coordinates, with a pose prior, planes, a constant pose and a point seen
+/// once (no information: must not change anything).
+#[test]
+fn pose_covariance_matches_finite_differences() {
+    let scene = room_scene(6, 10, 6, 3);
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let mut problem = problem_from_scene(&scene, 0.3, Some(200.0), &mut rng);
+    problem.poses[5].constant = true;
+    let c0 = scene.poses[0].camera_center();
+    problem.pose_priors.push(PosePrior {
+        pose_idx: 0,
+        position_in_world: Some([c0.x + 0.01, c0.y, c0.z]),
+        cam_from_world_rotation: Some(scene.poses[0].quaternion_wxyz()),
+        position_weight: 100.0,
+        rotation_weight: 50.0,
+    });
+    let options = SolverOptions::default();
+    let summary = solver::solve(&mut problem, &options).expect("solve");
+    assert!(summary.usable, "{}", summary.message);
+    let cov = solver::pose_covariances(&problem, &options).expect("covariance");
+    assert_eq!(cov.num_degenerate_points, 0);
+    assert!(cov.poses[5].is_none(), "constant pose");
+
+    // Numerical Jacobian over the variable poses (6 each) and all points.
+    let variable: Vec<usize> = (0..problem.poses.len())
+        .filter(|&i| !problem.poses[i].constant)
+        .collect();
+    let n = 6 * variable.len() + 3 * problem.points.len();
+    let r0 = reference::residuals(&problem);
+    let m = r0.len();
+    let h = 1e-6;
+    let mut jac = nalgebra::DMatrix::<f64>::zeros(m, n);
+    let mut col = 0;
+    let mut put = |jac: &mut nalgebra::DMatrix<f64>, plus: Vec<f64>, minus: Vec<f64>| {
+        for r in 0..m {
+            jac[(r, col)] = (plus[r] - minus[r]) / (2.0 * h);
+        }
+        col += 1;
+    };
+    for &i in &variable {
+        for k in 0..6 {
+            let mut d = [0.0; 6];
+            d[k] = h;
+            let omega = Vector3::new(d[0], d[1], d[2]);
+            let dc = Vector3::new(d[3], d[4], d[5]);
+            let plus = perturbed_residuals(&problem, Some((i, omega, dc)), None);
+            let minus = perturbed_residuals(&problem, Some((i, -omega, -dc)), None);
+            put(&mut jac, plus, minus);
+        }
+    }
+    for p in 0..problem.points.len() {
+        for k in 0..3 {
+            let mut dx = Vector3::zeros();
+            dx[k] = h;
+            let plus = perturbed_residuals(&problem, None, Some((p, dx)));
+            let minus = perturbed_residuals(&problem, None, Some((p, -dx)));
+            put(&mut jac, plus, minus);
+        }
+    }
+    let variance = r0.iter().map(|r| r * r).sum::<f64>() / (m - n) as f64;
+    assert!(
+        (cov.residual_variance - variance).abs() < 1e-9 * variance,
+        "residual variance {} vs {variance}",
+        cov.residual_variance
+    );
+    assert_eq!(cov.redundancy, m - n);
+    let full = (jac.transpose() * &jac)
+        .cholesky()
+        .expect("full rank")
+        .inverse()
+        * variance;
+    for (k, &i) in variable.iter().enumerate() {
+        let expected = full.view((6 * k, 6 * k), (6, 6)).into_owned();
+        let got = cov.poses[i].expect("variable pose");
+        let diff = (got - &expected).norm() / expected.norm();
+        assert!(
+            diff < 1e-4,
+            "pose {i}: relative difference {diff:.2e}\n{got}\n{expected}"
+        );
+    }
+    let sigma = cov.centre_sigma_m(1).expect("pose 1");
+    assert!(sigma.min() > 0.0 && sigma.max() < 0.05, "sigma {sigma}");
+
+    // A point seen once, without a plane, adds no information.
+    let mut with_single = problem.clone();
+    with_single
+        .points
+        .push(BaPoint::new(&Vector3::new(4.0, 6.0, 1.0), false));
+    let pixel = observe(&scene, 2, 0).expect("visible");
+    with_single.observations.push(BaObservation::new(
+        2,
+        camera_of_pose(&scene, 2) as u32,
+        (with_single.points.len() - 1) as u32,
+        [pixel.x + 3.0, pixel.y - 2.0],
+    ));
+    let single = solver::pose_covariances(&with_single, &options).expect("covariance");
+    assert_eq!(single.num_degenerate_points, 1);
+    for &i in &variable {
+        // Same information; the variance estimate differs only through the
+        // redundancy (2 more rows, 3 more columns).
+        let scale = cov.residual_variance / single.residual_variance;
+        let a = cov.poses[i].expect("pose");
+        let b = single.poses[i].expect("pose") * scale;
+        assert!((a - b).norm() < 1e-8 * a.norm(), "pose {i}");
+    }
+}
+
+/// Reprojections alone leave a similarity free: no covariance, an error
+/// that says so; one constant pose still leaves the scale free.
+#[test]
+fn pose_covariance_of_a_free_gauge_is_an_error() {
+    let scene = room_scene(6, 10, 6, 3);
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let mut problem = problem_from_scene(&scene, 0.3, None, &mut rng);
+    let options = SolverOptions::default();
+    let err = solver::pose_covariances(&problem, &options).unwrap_err();
+    assert!(matches!(err, solver::CovarianceError::Singular), "{err}");
+    problem.poses[0].constant = true;
+    let err = solver::pose_covariances(&problem, &options).unwrap_err();
+    assert!(matches!(err, solver::CovarianceError::Singular), "{err}");
+    // Two constant poses fix it.
+    problem.poses[5].constant = true;
+    let cov = solver::pose_covariances(&problem, &options).expect("fixed gauge");
+    assert!(cov.poses[0].is_none() && cov.poses[2].is_some());
+}
+
+/// The predicted centre and rotation covariances against the scatter of
+/// solutions over many noise draws (the statistical meaning of the numbers
+/// report.json gives the user).
+#[test]
+fn pose_covariance_predicts_the_scatter_of_solutions() {
+    let scene = room_scene(6, 12, 0, 5);
+    // Solved to the optimum: a solve stopped early stays near its start (the
+    // truth here) and would look more precise than it is.
+    let options = SolverOptions {
+        function_tolerance: 1e-14,
+        gradient_tolerance: 1e-16,
+        parameter_tolerance: 1e-14,
+        ..Default::default()
+    };
+    let trials = 300;
+    let mut chi2_centre = 0.0;
+    let mut chi2_rotation = 0.0;
+    let mut count = 0.0;
+    let mut variance_sum = 0.0;
+    for trial in 0..trials {
+        let mut rng = ChaCha8Rng::seed_from_u64(100 + trial);
+        let mut problem = problem_from_scene(&scene, 0.5, Some(100.0), &mut rng);
+        // Map noise as the weights say: 0.5 px / 100 px per metre = 5 mm.
+        let map_noise = Normal::new(0.0, 0.005).expect("valid sigma");
+        for plane in &mut problem.planes {
+            plane.offset_m += map_noise.sample(&mut rng);
+        }
+        let summary = solver::solve(&mut problem, &options).expect("solve");
+        assert!(summary.usable, "{}", summary.message);
+        let cov = solver::pose_covariances(&problem, &options).expect("covariance");
+        variance_sum += cov.residual_variance;
+        for (i, truth) in scene.poses.iter().enumerate() {
+            let rigid = problem.poses[i].rigid();
+            let dc = rigid.camera_center() - truth.camera_center();
+            // World-frame rotation error of world_from_cam.
+            let omega = (rigid.rotation.inverse() * truth.rotation).scaled_axis();
+            let sc = cov.centre_covariance(i).expect("variable");
+            let sr = cov.rotation_covariance(i).expect("variable");
+            chi2_centre += dc.dot(&(sc.try_inverse().expect("invertible") * dc));
+            chi2_rotation += omega.dot(&(sr.try_inverse().expect("invertible") * omega));
+            count += 1.0;
+        }
+    }
+    // Each is a 3-degree-of-freedom chi-square: mean 3.
+    let (mc, mr) = (chi2_centre / count, chi2_rotation / count);
+    eprintln!(
+        "covariance check: mean chi2 centre {mc:.2}, rotation {mr:.2} (expected 3), residual variance {:.4} (0.25)",
+        variance_sum / trials as f64
+    );
+    assert!((2.5..3.5).contains(&mc), "centre chi2 mean {mc}");
+    assert!((2.5..3.5).contains(&mr), "rotation chi2 mean {mr}");
+    let v = variance_sum / trials as f64;
+    assert!((0.2..0.3).contains(&v), "residual variance {v}");
+}

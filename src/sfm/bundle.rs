@@ -12,8 +12,9 @@ use super::options::BundleOptions;
 use super::state::{MapState, PointPlane};
 use crate::scene::{CameraId, ImageId, Point3DId, Rigid3};
 use crate::solver::{
-    solve, BaCamera, BaObservation, BaPoint, BaPose, BundleAdjustmentProblem, ConstantParams,
-    LossFunction, PlaneFamily, PosePrior, SolverError, SolverOptions,
+    pose_covariances, solve, BaCamera, BaObservation, BaPoint, BaPose, BundleAdjustmentProblem,
+    ConstantParams, CovarianceError, LossFunction, PlaneFamily, PosePrior, SolverError,
+    SolverOptions,
 };
 
 /// What varies in one solve.
@@ -138,16 +139,21 @@ fn reprojection_errors(state: &MapState, points: &[Point3DId]) -> Vec<f64> {
     errors
 }
 
-/// Runs one bundle adjustment on `state`. The variable points are those
+/// A solve's problem with what maps it back onto the state.
+struct BuiltBundle {
+    problem: BundleAdjustmentProblem,
+    pose_idx: BTreeMap<ImageId, u32>,
+    camera_idx: BTreeMap<CameraId, u32>,
+    point_list: Vec<Point3DId>,
+    queries: Vec<AssociationQuery>,
+    /// The solve's local frame: `X_local = X_world - origin`.
+    origin: Vector3<f64>,
+}
+
+/// The problem of one solve, without planes. The variable points are those
 /// observed by a variable image; every other registered image observing them
 /// joins as a constant pose.
-pub fn bundle_adjust(
-    state: &mut MapState,
-    config: &BundleConfig,
-    kind: SolveKind,
-    associator: &dyn PlaneAssociator,
-    options: &BundleOptions,
-) -> Result<SolveRecord, SolverError> {
+fn build_bundle(state: &MapState, config: &BundleConfig) -> BuiltBundle {
     let point_ids: BTreeSet<Point3DId> = config
         .variable_images
         .iter()
@@ -183,8 +189,6 @@ pub fn bundle_adjust(
     };
     let to_local =
         |pose: &Rigid3| Rigid3::new(pose.rotation, pose.translation + pose.rotation * origin);
-    let to_world =
-        |pose: &Rigid3| Rigid3::new(pose.rotation, pose.translation - pose.rotation * origin);
     for &image in &images_needed {
         let variable =
             config.variable_images.contains(&image) && !config.fixed_images.contains(&image);
@@ -250,13 +254,88 @@ pub fn bundle_adjust(
             rotation_weight: prior.rotation_weight,
         });
     }
-    let num_variable_poses = problem.poses.iter().filter(|p| !p.constant).count();
-    if problem.observations.is_empty() || num_variable_poses == 0 && point_list.is_empty() {
+    BuiltBundle {
+        problem,
+        pose_idx,
+        camera_idx,
+        point_list,
+        queries,
+        origin,
+    }
+}
+
+/// The solve's planes from `associator`, moved into the solve's local frame,
+/// and each point's plane in the world frame.
+fn add_planes(
+    built: &mut BuiltBundle,
+    state: &MapState,
+    kind: SolveKind,
+    associator: &dyn PlaneAssociator,
+) -> BTreeMap<u32, PointPlane> {
+    let origin = built.origin;
+    built.problem.planes = associator.associate(kind, state, &built.queries);
+    for plane in &mut built.problem.planes {
+        plane.offset_m -= Vector3::from(plane.normal).dot(&origin);
+    }
+    built
+        .problem
+        .planes
+        .iter()
+        .map(|p| {
+            let normal = Vector3::from(p.normal);
+            (
+                p.point_idx,
+                PointPlane {
+                    family: p.family,
+                    normal,
+                    // Back from the solve's local frame to the world frame.
+                    offset_m: p.offset_m + normal.dot(&origin),
+                },
+            )
+        })
+        .collect()
+}
+
+/// The solver options of a solve of `kind`.
+fn solver_options(
+    kind: SolveKind,
+    associator: &dyn PlaneAssociator,
+    options: &BundleOptions,
+) -> SolverOptions {
+    SolverOptions {
+        reprojection_loss: LossFunction::SoftL1 {
+            scale: options.reprojection_loss_px,
+        },
+        plane_loss: LossFunction::Trivial,
+        plane_family_losses: associator.losses(kind),
+        max_iterations: match kind {
+            SolveKind::Local | SolveKind::LocalRefine => options.local_max_iterations,
+            _ => options.global_max_iterations,
+        },
+        num_threads: options.num_threads,
+        function_tolerance: options.function_tolerance,
+        ..Default::default()
+    }
+}
+
+/// Runs one bundle adjustment on `state` (see [`build_bundle`] for what varies).
+pub fn bundle_adjust(
+    state: &mut MapState,
+    config: &BundleConfig,
+    kind: SolveKind,
+    associator: &dyn PlaneAssociator,
+    options: &BundleOptions,
+) -> Result<SolveRecord, SolverError> {
+    let mut built = build_bundle(state, config);
+    let num_variable_poses = built.problem.poses.iter().filter(|p| !p.constant).count();
+    if built.problem.observations.is_empty()
+        || num_variable_poses == 0 && built.point_list.is_empty()
+    {
         return Ok(SolveRecord {
             kind,
             num_registered: state.num_registered(),
             num_variable_poses,
-            num_constant_poses: problem.poses.len() - num_variable_poses,
+            num_constant_poses: built.problem.poses.len() - num_variable_poses,
             num_points: 0,
             num_observations: 0,
             num_planes: 0,
@@ -276,27 +355,16 @@ pub fn bundle_adjust(
         });
     }
     let association_start = std::time::Instant::now();
-    problem.planes = associator.associate(kind, state, &queries);
+    let plane_of_point = add_planes(&mut built, state, kind, associator);
     let association_time_s = association_start.elapsed().as_secs_f64();
-    for plane in &mut problem.planes {
-        plane.offset_m -= Vector3::from(plane.normal).dot(&origin);
-    }
-    let plane_of_point: BTreeMap<u32, PointPlane> = problem
-        .planes
-        .iter()
-        .map(|p| {
-            let normal = Vector3::from(p.normal);
-            (
-                p.point_idx,
-                PointPlane {
-                    family: p.family,
-                    normal,
-                    // Back from the solve's local frame to the world frame.
-                    offset_m: p.offset_m + normal.dot(&origin),
-                },
-            )
-        })
-        .collect();
+    let BuiltBundle {
+        mut problem,
+        pose_idx,
+        camera_idx,
+        point_list,
+        origin,
+        ..
+    } = built;
     let plane_distances = |state: &MapState| -> Vec<f64> {
         plane_of_point
             .iter()
@@ -305,25 +373,13 @@ pub fn bundle_adjust(
     };
     let plane_distance_before_m = DistanceStats::of(plane_distances(state));
     let reprojection_before_px = ErrorStats::of(&reprojection_errors(state, &point_list));
-    let solver_options = SolverOptions {
-        reprojection_loss: LossFunction::SoftL1 {
-            scale: options.reprojection_loss_px,
-        },
-        plane_loss: LossFunction::Trivial,
-        plane_family_losses: associator.losses(kind),
-        max_iterations: match kind {
-            SolveKind::Local | SolveKind::LocalRefine => options.local_max_iterations,
-            _ => options.global_max_iterations,
-        },
-        num_threads: options.num_threads,
-        function_tolerance: options.function_tolerance,
-        ..Default::default()
-    };
+    let solver_options = solver_options(kind, associator, options);
     let summary = solve(&mut problem, &solver_options)?;
     if summary.usable {
         for (&image, &pi) in &pose_idx {
             if !problem.poses[pi as usize].constant {
-                let pose = to_world(&problem.poses[pi as usize].rigid());
+                let local = problem.poses[pi as usize].rigid();
+                let pose = Rigid3::new(local.rotation, local.translation - local.rotation * origin);
                 state.register(image, pose);
             }
         }
@@ -370,4 +426,63 @@ pub fn bundle_adjust(
         time_s: summary.time_s,
         association_time_s,
     })
+}
+
+/// One image's pose uncertainty (one standard deviation) at the final
+/// solution: first-order, from the information the final solve's residuals
+/// hold with the associations fixed, scaled by the residual variance the fit
+/// estimates (see [`crate::solver::covariance`]).
+#[derive(Clone, Debug, Serialize)]
+pub struct PoseUncertainty {
+    /// Camera centre along the map's x, y and z axes, metres.
+    pub centre_sigma_m: [f64; 3],
+    /// Along the centre's least determined direction, metres.
+    pub centre_sigma_major_m: f64,
+    /// That direction (unit, map frame; sign: largest component positive).
+    pub centre_major_axis: [f64; 3],
+    /// About the rotation's least determined axis, degrees.
+    pub rotation_sigma_deg: f64,
+}
+
+/// Pose uncertainties of the variable images of `config`, from a solve of
+/// `kind` at the current state (planes associated afresh); also the residual
+/// standard deviation (pixels) and the number of points whose own position
+/// was not fully determined.
+pub fn pose_uncertainty(
+    state: &MapState,
+    config: &BundleConfig,
+    kind: SolveKind,
+    associator: &dyn PlaneAssociator,
+    options: &BundleOptions,
+) -> Result<(BTreeMap<ImageId, PoseUncertainty>, f64, usize), CovarianceError> {
+    let mut built = build_bundle(state, config);
+    add_planes(&mut built, state, kind, associator);
+    let cov = pose_covariances(&built.problem, &solver_options(kind, associator, options))?;
+    let mut out = BTreeMap::new();
+    for (&image, &pi) in &built.pose_idx {
+        let pi = pi as usize;
+        let (Some(centre), Some(rotation)) =
+            (cov.centre_covariance(pi), cov.rotation_covariance(pi))
+        else {
+            continue;
+        };
+        let sigma = cov.centre_sigma_m(pi).unwrap_or_default();
+        let eig = centre.symmetric_eigen();
+        let k = eig.eigenvalues.imax();
+        let mut axis: Vector3<f64> = eig.eigenvectors.column(k).into_owned();
+        if axis[axis.iamax()] < 0.0 {
+            axis = -axis;
+        }
+        let rotation_max = rotation.symmetric_eigen().eigenvalues.max();
+        out.insert(
+            image,
+            PoseUncertainty {
+                centre_sigma_m: [sigma.x, sigma.y, sigma.z],
+                centre_sigma_major_m: eig.eigenvalues[k].max(0.0).sqrt(),
+                centre_major_axis: [axis.x, axis.y, axis.z],
+                rotation_sigma_deg: rotation_max.max(0.0).sqrt().to_degrees(),
+            },
+        );
+    }
+    Ok((out, cov.residual_variance.sqrt(), cov.num_degenerate_points))
 }

@@ -17,14 +17,14 @@ use super::align::{align_to_map, apply_sim3, count_points_on_map, AlignOptions, 
 use super::associate::{
     NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
 };
-use super::bundle::{bundle_adjust, BundleConfig, SoftPosePrior};
+use super::bundle::{bundle_adjust, pose_uncertainty, BundleConfig, SoftPosePrior};
 use super::filter::{filter_observations, filter_points_behind_map, filter_small_angle_points};
 use super::initialize::{initialize, InitError};
 use super::options::{AssociationKind, MapperOptions, OptionsError};
 use super::register::{
     next_best_images, register_at_known_pose, register_image, PoseOutcome, RegistrationOutcome,
 };
-use super::report::{AlignmentRecord, ImageRecord, MapReport, StageRecord};
+use super::report::{AlignmentRecord, ImageRecord, MapReport, StageRecord, UncertaintySummary};
 use super::state::MapState;
 use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulate_image};
 use crate::io::database::DatabaseSnapshot;
@@ -517,6 +517,18 @@ pub fn run_mapper_with_priors(
         }
     }
     report.finish(&state);
+    if lidar_gauge {
+        let fixed = fixed_for(&state);
+        estimate_uncertainty(
+            &state,
+            fixed,
+            &pose_priors,
+            associator,
+            options,
+            &mut report,
+        );
+        stages.done("pose uncertainty");
+    }
     report.stages = stages.records;
     log::info!(
         "registered {}/{} images, {} points, mean reprojection error {:.3} px",
@@ -590,6 +602,75 @@ fn align_whole_model(
         record.time_s
     );
     Some(record)
+}
+
+/// Each image's pose uncertainty at the final solution into the report
+/// (skipped above `bundle.uncertainty_max_images` images; a failure is
+/// logged, never fatal: the model is complete without it).
+fn estimate_uncertainty(
+    state: &MapState,
+    fixed_images: BTreeSet<ImageId>,
+    priors: &[SoftPosePrior],
+    associator: &dyn PlaneAssociator,
+    options: &MapperOptions,
+    report: &mut MapReport,
+) {
+    let n = state.num_registered();
+    let max = options.bundle.uncertainty_max_images;
+    if n > max {
+        log::info!(
+            "pose uncertainty skipped: {n} images registered (bundle.uncertainty_max_images = {max})"
+        );
+        return;
+    }
+    let t = Instant::now();
+    let config = BundleConfig {
+        variable_images: state.registration_order.iter().copied().collect(),
+        fixed_images,
+        refine_intrinsics: options.bundle.refine_intrinsics,
+        pose_priors: priors.to_vec(),
+    };
+    let (poses, residual_sigma_px, num_degenerate_points) = match pose_uncertainty(
+        state,
+        &config,
+        SolveKind::Final,
+        associator,
+        &options.bundle,
+    ) {
+        Ok(u) => u,
+        Err(e) => {
+            log::warn!("pose uncertainty not computed: {e}");
+            return;
+        }
+    };
+    let mut major: Vec<f64> = poses.values().map(|u| u.centre_sigma_major_m).collect();
+    let mut rotation: Vec<f64> = poses.values().map(|u| u.rotation_sigma_deg).collect();
+    for (image, u) in poses {
+        if let Some(rec) = report.record_mut(image) {
+            rec.pose_uncertainty = Some(u);
+        }
+    }
+    let median = |v: &mut Vec<f64>| crate::eval::Stats::of(v).map_or(0.0, |s| s.median);
+    let max_of = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
+    let summary = UncertaintySummary {
+        residual_sigma_px,
+        median_centre_sigma_major_m: median(&mut major),
+        max_centre_sigma_major_m: max_of(&major),
+        median_rotation_sigma_deg: median(&mut rotation),
+        max_rotation_sigma_deg: max_of(&rotation),
+        num_degenerate_points,
+        time_s: t.elapsed().as_secs_f64(),
+    };
+    log::info!(
+        "pose uncertainty (1 sigma, from the final solve): centre median {:.2} mm, max {:.2} mm along the least determined direction; rotation median {:.4} deg, max {:.4} deg; residual sigma {:.3} px ({:.2} s)",
+        summary.median_centre_sigma_major_m * 1e3,
+        summary.max_centre_sigma_major_m * 1e3,
+        summary.median_rotation_sigma_deg,
+        summary.max_rotation_sigma_deg,
+        summary.residual_sigma_px,
+        summary.time_s
+    );
+    report.pose_uncertainty = Some(summary);
 }
 
 /// Centres of the registered images in registration order.

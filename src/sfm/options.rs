@@ -296,6 +296,11 @@ pub struct BundleOptions {
     /// Threads of the Ceres solver. More than one may change the last bits
     /// between runs. Default 1 (byte-identical output).
     pub num_threads: usize,
+    /// After the final rounds, each image's pose uncertainty (report.json)
+    /// is computed when at most this many images are registered (a dense
+    /// matrix of 6 rows per image is inverted: 300 images take a few
+    /// seconds). 0 disables. Default 300.
+    pub uncertainty_max_images: usize,
 }
 
 impl Default for BundleOptions {
@@ -321,6 +326,7 @@ impl Default for BundleOptions {
             initial_prior_rotation_deg: 3.0,
             align_to_map: true,
             num_threads: 1,
+            uncertainty_max_images: 300,
         }
     }
 }

@@ -2,7 +2,7 @@
 //! it is deterministic except the `time_s` fields.
 use serde::Serialize;
 
-use super::bundle::SolveRecord;
+use super::bundle::{PoseUncertainty, SolveRecord};
 use super::initialize::InitSummary;
 use super::state::MapState;
 use crate::scene::ImageId;
@@ -35,6 +35,26 @@ pub struct ImageRecord {
     pub num_ground_planes: usize,
     /// Mean distance of those points to their planes, metres.
     pub mean_plane_distance_m: Option<f64>,
+    /// The pose's uncertainty after the final solve (with LiDAR constraints).
+    pub pose_uncertainty: Option<PoseUncertainty>,
+}
+
+/// The pose uncertainties over all images (see `bundle::PoseUncertainty`).
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct UncertaintySummary {
+    /// Standard deviation of a unit-weight residual, as the fit estimates it
+    /// (pixels): the scale of every uncertainty.
+    pub residual_sigma_px: f64,
+    /// Over the images: the centre's sigma along its least determined
+    /// direction, metres.
+    pub median_centre_sigma_major_m: f64,
+    pub max_centre_sigma_major_m: f64,
+    /// Over the images: the rotation's sigma about its least determined axis.
+    pub median_rotation_sigma_deg: f64,
+    pub max_rotation_sigma_deg: f64,
+    /// 3D points whose own position the data do not fully fix.
+    pub num_degenerate_points: usize,
+    pub time_s: f64,
 }
 
 /// The whole-model alignment to the map (see `sfm::align`).
@@ -79,6 +99,9 @@ pub struct MapReport {
     /// Points deleted before the final rounds because they lie behind the
     /// surface the map shows at their features (with LiDAR constraints).
     pub points_behind_map_removed: Option<usize>,
+    /// Pose uncertainties after the final solve (with LiDAR constraints, up
+    /// to `bundle.uncertainty_max_images` images).
+    pub pose_uncertainty: Option<UncertaintySummary>,
     pub images: Vec<ImageRecord>,
     pub solves: Vec<SolveRecord>,
     pub stages: Vec<StageRecord>,

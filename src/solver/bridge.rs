@@ -256,6 +256,18 @@ pub(crate) fn evaluate(
     })
 }
 
+/// Validates, converts and returns the Jacobian at the current parameters.
+pub(crate) fn jacobian(
+    problem: &BundleAdjustmentProblem,
+    options: &SolverOptions,
+) -> Result<ffi::BaJacobianFfi, SolverError> {
+    problem.validate()?;
+    options.validate()?;
+    let mut p = to_ffi_problem(problem);
+    let o = to_ffi_options(problem, options, LinearSolver::DenseSchur);
+    ffi::jacobian_bundle_adjustment(&mut p, &o).map_err(|e| SolverError::Ceres(e.what().to_owned()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

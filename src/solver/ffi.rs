@@ -97,6 +97,29 @@ pub(crate) mod ffi {
         num_failed_blocks: u32,
     }
 
+    /// The Jacobian at the current parameters, in compressed rows: one column
+    /// per tangent dimension of each variable parameter block, blocks in the
+    /// order points, then each pose's rotation and translation, then
+    /// intrinsics. Robust losses are applied as the solver applies them.
+    struct BaJacobianFfi {
+        num_rows: u64,
+        num_cols: u64,
+        /// num_rows + 1 offsets into `cols` and `values`.
+        row_starts: Vec<u64>,
+        cols: Vec<u32>,
+        values: Vec<f64>,
+        /// The residuals, loss-corrected like the rows.
+        residuals: Vec<f64>,
+        /// Per variable block, in column order: 0 point, 1 pose rotation
+        /// (Ceres' quaternion tangent: `q <- [cos|d|, sin|d| d/|d|] * q`),
+        /// 2 pose translation, 3 camera intrinsics.
+        block_kind: Vec<u32>,
+        /// Index of the point, pose or camera in the problem's arrays.
+        block_index: Vec<u32>,
+        /// Tangent size (the block's number of columns).
+        block_size: Vec<u32>,
+    }
+
     unsafe extern "C++" {
         include!("colmap-lidar/cpp/camera_bridge.h");
 
@@ -127,6 +150,13 @@ pub(crate) mod ffi {
             problem: &mut BaProblemFfi,
             options: &BaOptionsFfi,
         ) -> Result<BaEvaluationFfi>;
+
+        /// Builds the Ceres problem and returns its Jacobian and residuals at the
+        /// current parameters (the problem is not changed).
+        fn jacobian_bundle_adjustment(
+            problem: &mut BaProblemFfi,
+            options: &BaOptionsFfi,
+        ) -> Result<BaJacobianFfi>;
 
         /// True when this Ceres build has a sparse linear-algebra library
         /// (SuiteSparse, Eigen sparse or CXSparse) for SPARSE_SCHUR.

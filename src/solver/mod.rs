@@ -6,7 +6,9 @@
 //! Ceres, and the solution is written back in place. [`solve`] returns a
 //! [`SolveSummary`]; [`evaluate_residuals`] evaluates without solving (for
 //! reports and for the tests that compare the C++ residuals with the Rust
-//! references in [`reference`]).
+//! references in [`reference`]); [`pose_covariances`] gives each variable
+//! pose's covariance at a solution (Ceres' Jacobian, points eliminated in
+//! Rust, see [`covariance`]).
 //!
 //! Residuals (formulas also above each C++ functor):
 //! * reprojection: `w * (project(K, R X + t) - x_obs)`, pixels;
@@ -24,12 +26,14 @@
 //! Schur with the Schur-Jacobi preconditioner for huge ones. Points form the
 //! first elimination group, poses and intrinsics the second.
 pub(crate) mod bridge;
+pub mod covariance;
 pub(crate) mod ffi;
 pub mod options;
 pub mod problem;
 pub mod reference;
 pub mod summary;
 
+pub use covariance::{pose_covariances, CovarianceError, PoseCovariances};
 pub use options::{LinearSolver, LossFunction, SolverOptions};
 pub use problem::{
     BaCamera, BaObservation, BaPoint, BaPose, BundleAdjustmentProblem, ConstantParams,

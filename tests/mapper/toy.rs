@@ -244,6 +244,23 @@ fn toy_room_registers_in_the_map_frame() {
     assert_eq!(out.report.num_registered, 14);
     assert!(out.report.mean_reprojection_error_px < 0.7);
     assert!(err < 0.03, "max centre error {err} m");
+    // Every registered image has its pose uncertainty, and the largest
+    // sigma is not far below the largest error (the toy's noise is the
+    // model's: 0.3 px, map 3 cm).
+    let unc = out.report.pose_uncertainty.as_ref().expect("uncertainty");
+    assert_eq!(
+        out.report
+            .images
+            .iter()
+            .filter(|r| r.pose_uncertainty.is_some())
+            .count(),
+        14
+    );
+    assert!(
+        unc.max_centre_sigma_major_m > 0.0 && err < 10.0 * unc.max_centre_sigma_major_m,
+        "max error {err} m, max sigma {} m",
+        unc.max_centre_sigma_major_m
+    );
     // Points lie on the room's planes (the map holds them).
     let o = origin();
     let mut off = 0usize;
@@ -274,6 +291,8 @@ fn toy_room_without_lidar_terms_keeps_the_initial_frame() {
         out.report.num_registered, out.report.num_images
     );
     assert_eq!(out.report.num_registered, 10);
+    // Without the map no uncertainty in its frame is reported.
+    assert!(out.report.pose_uncertainty.is_none());
     // The first two images (fixed) carry the map's frame and scale.
     assert!(err < 0.1, "max centre error {err} m");
 }

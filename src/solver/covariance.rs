@@ -1,0 +1,265 @@
+//! Pose uncertainty at a bundle-adjustment solution: the covariance of each
+//! variable pose with every point (and any free intrinsics) marginalised.
+//!
+//! The bridge returns the Jacobian `J` (robust losses applied as the solver
+//! applies them). With the points first, the normal matrix
+//! `H = J^T J = [[Hpp, Hpc], [Hcp, Hcc]]` has a 3x3 block per point in `Hpp`,
+//! so the reduced camera matrix `S = Hcc - Hcp Hpp^-1 Hpc` is built point by
+//! point and inverted densely; `S^-1`'s diagonal blocks are the poses'
+//! covariances in units of the residuals' variance. A point whose own block
+//! is singular (one view, no plane) uses the pseudo-inverse: the directions
+//! it cannot fix carry no information to the cameras, as they should.
+//!
+//! The result is the usual first-order (Gauss-Newton) covariance with the
+//! associations held fixed, scaled by the residual variance the fit itself
+//! estimates (`sum r^2 / (rows - columns)`). It says how well the data fix
+//! each pose under the solve's own noise model; a systematic error of the
+//! map or the features is not in it.
+use nalgebra::{DMatrix, Matrix3, Matrix6, Vector3};
+
+use super::bridge;
+use super::options::SolverOptions;
+use super::problem::BundleAdjustmentProblem;
+use super::SolverError;
+
+/// Column block kinds, as the bridge numbers them.
+const BLOCK_POINT: u32 = 0;
+const BLOCK_POSE_ROTATION: u32 = 1;
+const BLOCK_POSE_TRANSLATION: u32 = 2;
+
+/// Covariances of the variable poses of a problem.
+#[derive(Clone, Debug)]
+pub struct PoseCovariances {
+    /// Per pose of the problem (same index): the 6x6 covariance of
+    /// `[rotation, centre]`, where the rotation is the world-frame rotation
+    /// vector of `world_from_cam` (radians) and the centre is in the
+    /// problem's frame (metres); already scaled by `residual_variance`.
+    /// `None` for constant poses and poses without residuals.
+    pub poses: Vec<Option<Matrix6<f64>>>,
+    /// Variance of a unit-weight residual, estimated from the fit
+    /// (pixels squared for reprojections).
+    pub residual_variance: f64,
+    /// Residual rows minus parameter columns.
+    pub redundancy: usize,
+    /// Points whose own 3x3 information was rank deficient.
+    pub num_degenerate_points: usize,
+}
+
+impl PoseCovariances {
+    /// Standard deviations of the camera centre along the frame's axes, metres.
+    pub fn centre_sigma_m(&self, pose: usize) -> Option<Vector3<f64>> {
+        let c = self.poses.get(pose)?.as_ref()?;
+        Some(Vector3::new(c[(3, 3)], c[(4, 4)], c[(5, 5)]).map(|v| v.max(0.0).sqrt()))
+    }
+
+    /// The camera centre's covariance, square metres.
+    pub fn centre_covariance(&self, pose: usize) -> Option<Matrix3<f64>> {
+        let c = self.poses.get(pose)?.as_ref()?;
+        Some(c.fixed_view::<3, 3>(3, 3).into_owned())
+    }
+
+    /// The rotation's covariance (world-frame rotation vector), square radians.
+    pub fn rotation_covariance(&self, pose: usize) -> Option<Matrix3<f64>> {
+        let c = self.poses.get(pose)?.as_ref()?;
+        Some(c.fixed_view::<3, 3>(0, 0).into_owned())
+    }
+}
+
+/// Why no covariance could be computed.
+#[derive(Debug, thiserror::Error)]
+pub enum CovarianceError {
+    #[error(transparent)]
+    Solver(#[from] SolverError),
+    /// The reduced camera matrix is singular: some pose direction is not
+    /// fixed at all (a free gauge).
+    #[error("the poses are not fully determined (free gauge): no covariance")]
+    Singular,
+    /// As many parameters as residuals: the residual variance is unknown.
+    #[error("no redundancy ({rows} residuals for {cols} parameters)")]
+    NoRedundancy { rows: usize, cols: usize },
+    /// The bridge returned a layout this code does not expect.
+    #[error("unexpected Jacobian layout: {0}")]
+    Layout(String),
+}
+
+/// Pose covariances of `problem` at its current parameters (normally a
+/// solution), with `options`' robust losses. Dense in the camera side: the
+/// caller bounds its size.
+pub fn pose_covariances(
+    problem: &BundleAdjustmentProblem,
+    options: &SolverOptions,
+) -> Result<PoseCovariances, CovarianceError> {
+    let jac = bridge::jacobian(problem, options)?;
+    let rows = jac.num_rows as usize;
+    let cols = jac.num_cols as usize;
+    let layout = |what: String| CovarianceError::Layout(what);
+    if jac.row_starts.len() != rows + 1 || jac.residuals.len() != rows {
+        return Err(layout(format!(
+            "{} row starts, {} residuals for {rows} rows",
+            jac.row_starts.len(),
+            jac.residuals.len()
+        )));
+    }
+    // Column ranges of the blocks; points must come first, 3 columns each.
+    let mut start = 0usize;
+    let mut num_point_cols = 0usize;
+    let mut pose_cols: Vec<[Option<usize>; 2]> = vec![[None, None]; problem.poses.len()];
+    for ((&kind, &index), &size) in jac
+        .block_kind
+        .iter()
+        .zip(&jac.block_index)
+        .zip(&jac.block_size)
+    {
+        let index = index as usize;
+        match kind {
+            BLOCK_POINT => {
+                if size != 3 || start != num_point_cols {
+                    return Err(layout("point blocks must lead, 3 columns each".into()));
+                }
+                num_point_cols += 3;
+            }
+            BLOCK_POSE_ROTATION | BLOCK_POSE_TRANSLATION => {
+                if size != 3 || index >= pose_cols.len() {
+                    return Err(layout(format!("pose block {index} of size {size}")));
+                }
+                pose_cols[index][(kind - BLOCK_POSE_ROTATION) as usize] =
+                    Some(start - num_point_cols);
+            }
+            _ => {}
+        }
+        start += size as usize;
+    }
+    if start != cols {
+        return Err(layout(format!("blocks cover {start} of {cols} columns")));
+    }
+    if rows <= cols {
+        return Err(CovarianceError::NoRedundancy { rows, cols });
+    }
+    let residual_variance = jac.residuals.iter().map(|r| r * r).sum::<f64>() / (rows - cols) as f64;
+    let num_points = num_point_cols / 3;
+    let nc = cols - num_point_cols;
+
+    // Accumulate Hcc (dense), Hpp (3x3 per point) and Hpc (sparse per point).
+    let mut hcc = DMatrix::<f64>::zeros(nc, nc);
+    let mut hpp = vec![Matrix3::<f64>::zeros(); num_points];
+    let mut hpc: Vec<Vec<(usize, Vector3<f64>)>> = vec![Vec::new(); num_points];
+    let mut cam: Vec<(usize, f64)> = Vec::new();
+    for r in 0..rows {
+        let (begin, end) = (jac.row_starts[r] as usize, jac.row_starts[r + 1] as usize);
+        let mut jp = Vector3::zeros();
+        let mut point = None;
+        cam.clear();
+        for k in begin..end {
+            let c = jac.cols[k] as usize;
+            let v = jac.values[k];
+            if c < num_point_cols {
+                point = Some(c / 3);
+                jp[c % 3] = v;
+            } else {
+                cam.push((c - num_point_cols, v));
+            }
+        }
+        for &(a, va) in &cam {
+            for &(b, vb) in &cam {
+                hcc[(a, b)] += va * vb;
+            }
+        }
+        if let Some(p) = point {
+            hpp[p] += jp * jp.transpose();
+            for &(a, va) in &cam {
+                let entry = &mut hpc[p];
+                match entry.iter_mut().find(|(col, _)| *col == a) {
+                    Some((_, acc)) => *acc += jp * va,
+                    None => entry.push((a, jp * va)),
+                }
+            }
+        }
+    }
+    // Eliminate the points: S = Hcc - sum_p Hcp Hpp^+ Hpc.
+    let mut num_degenerate_points = 0;
+    for (h, b) in hpp.iter().zip(&hpc) {
+        if b.is_empty() {
+            continue;
+        }
+        let (inv, full_rank) = pseudo_inverse(h);
+        if !full_rank {
+            num_degenerate_points += 1;
+        }
+        let w: Vec<Vector3<f64>> = b.iter().map(|(_, v)| inv * v).collect();
+        for (a, va) in b {
+            for ((c, _), wc) in b.iter().zip(&w) {
+                hcc[(*a, *c)] -= va.dot(wc);
+            }
+        }
+    }
+    // A pivot far below its diagonal entry is a direction nothing fixes
+    // (rounding keeps an exactly singular S from failing the factorisation).
+    let diagonal = hcc.diagonal();
+    let cholesky = hcc.cholesky().ok_or(CovarianceError::Singular)?;
+    let pivots = cholesky.l_dirty().diagonal();
+    if !pivots
+        .iter()
+        .zip(diagonal.iter())
+        .all(|(l, d)| l * l > 1e-12 * d)
+    {
+        return Err(CovarianceError::Singular);
+    }
+    let inverse = cholesky.inverse();
+
+    let mut poses = vec![None; problem.poses.len()];
+    for (pose, cols) in pose_cols.iter().enumerate() {
+        let [Some(rc), Some(tc)] = *cols else {
+            continue;
+        };
+        // Tangent covariance, order [d (rotation tangent), dt].
+        let idx = [rc, rc + 1, rc + 2, tc, tc + 1, tc + 2];
+        let tangent = Matrix6::from_fn(|i, j| inverse[(idx[i], idx[j])]) * residual_variance;
+        let rigid = problem.poses[pose].rigid();
+        let r = rigid.rotation.to_rotation_matrix().into_inner();
+        let t = rigid.translation;
+        // Ceres' quaternion tangent d turns q into exp(2 d) q (left), so
+        // world_from_cam = R^T turns by the world-frame vector -2 R^T d; the
+        // centre C = -R^T t moves by -2 R^T [t]x d - R^T dt.
+        let mut jacobian = Matrix6::zeros();
+        jacobian
+            .fixed_view_mut::<3, 3>(0, 0)
+            .copy_from(&(-2.0 * r.transpose()));
+        jacobian
+            .fixed_view_mut::<3, 3>(3, 0)
+            .copy_from(&(-2.0 * r.transpose() * t.cross_matrix()));
+        jacobian
+            .fixed_view_mut::<3, 3>(3, 3)
+            .copy_from(&(-r.transpose()));
+        let c = jacobian * tangent * jacobian.transpose();
+        poses[pose] = Some((c + c.transpose()) * 0.5);
+    }
+    Ok(PoseCovariances {
+        poses,
+        residual_variance,
+        redundancy: rows - cols,
+        num_degenerate_points,
+    })
+}
+
+/// Pseudo-inverse of a symmetric positive semi-definite 3x3 matrix; eigen
+/// directions below 1e-10 of the largest carry no information. Also whether
+/// all three directions were kept.
+fn pseudo_inverse(h: &Matrix3<f64>) -> (Matrix3<f64>, bool) {
+    let eig = h.symmetric_eigen();
+    let max = eig.eigenvalues.max();
+    if max <= 0.0 || !max.is_finite() {
+        return (Matrix3::zeros(), false);
+    }
+    let mut inv = Matrix3::zeros();
+    let mut full = true;
+    for k in 0..3 {
+        let l = eig.eigenvalues[k];
+        if l > 1e-10 * max {
+            let v = eig.eigenvectors.column(k);
+            inv += v * v.transpose() / l;
+        } else {
+            full = false;
+        }
+    }
+    (inv, full)
+}
