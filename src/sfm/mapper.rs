@@ -604,6 +604,10 @@ fn align_whole_model(
     Some(record)
 }
 
+/// Above this centre uncertainty (one sigma, metres) an image is named in a
+/// warning.
+const WEAK_POSE_SIGMA_M: f64 = 0.05;
+
 /// Each image's pose uncertainty at the final solution into the report
 /// (skipped above `bundle.uncertainty_max_images` images; a failure is
 /// logged, never fatal: the model is complete without it).
@@ -645,10 +649,26 @@ fn estimate_uncertainty(
     };
     let mut major: Vec<f64> = poses.values().map(|u| u.centre_sigma_major_m).collect();
     let mut rotation: Vec<f64> = poses.values().map(|u| u.rotation_sigma_deg).collect();
+    let mut weak = Vec::new();
     for (image, u) in poses {
         if let Some(rec) = report.record_mut(image) {
+            if u.centre_sigma_major_m > WEAK_POSE_SIGMA_M {
+                weak.push(format!(
+                    "{} ({:.0} mm)",
+                    rec.name,
+                    u.centre_sigma_major_m * 1e3
+                ));
+            }
             rec.pose_uncertainty = Some(u);
         }
+    }
+    if !weak.is_empty() {
+        log::warn!(
+            "{} image(s) placed with a centre uncertainty above {:.0} mm (the data hardly fix them): {}",
+            weak.len(),
+            WEAK_POSE_SIGMA_M * 1e3,
+            weak.join(", ")
+        );
     }
     let median = |v: &mut Vec<f64>| crate::eval::Stats::of(v).map_or(0.0, |s| s.median);
     let max_of = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
