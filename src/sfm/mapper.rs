@@ -453,6 +453,8 @@ pub fn run_mapper_with_priors(
     if lidar_gauge && options.bundle.align_to_map {
         report.alignment = align_whole_model(&mut state, &nearest_associator());
         stages.done("retriangulation, alignment to the map");
+    } else {
+        stages.done("retriangulation");
     }
     if lidar_gauge && options.filter.remove_behind_map {
         let removed = filter_points_behind_map(

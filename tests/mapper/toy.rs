@@ -261,6 +261,20 @@ fn toy_room_registers_in_the_map_frame() {
         "max error {err} m, max sigma {} m",
         unc.max_centre_sigma_major_m
     );
+    // Every stage after registration is timed under its own name.
+    let stages: Vec<&str> = out.report.stages.iter().map(|s| s.name.as_str()).collect();
+    let tail = &stages[stages.len() - 5..];
+    assert_eq!(
+        tail,
+        [
+            "incremental registration",
+            "retriangulation, alignment to the map",
+            "points behind the map",
+            "final bundle adjustment",
+            "pose uncertainty"
+        ],
+        "{stages:?}"
+    );
     // Points lie on the room's planes (the map holds them).
     let o = origin();
     let mut off = 0usize;
@@ -291,8 +305,19 @@ fn toy_room_without_lidar_terms_keeps_the_initial_frame() {
         out.report.num_registered, out.report.num_images
     );
     assert_eq!(out.report.num_registered, 10);
-    // Without the map no uncertainty in its frame is reported.
+    // Without the map no uncertainty in its frame is reported, and no
+    // alignment or behind-map stage runs.
     assert!(out.report.pose_uncertainty.is_none());
+    let stages: Vec<&str> = out.report.stages.iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(
+        &stages[stages.len() - 3..],
+        [
+            "incremental registration",
+            "retriangulation",
+            "final bundle adjustment"
+        ],
+        "{stages:?}"
+    );
     // The first two images (fixed) carry the map's frame and scale.
     assert!(err < 0.1, "max centre error {err} m");
 }
