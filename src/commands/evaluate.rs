@@ -3,7 +3,9 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 
-use crate::eval::{evaluate, load_poses, Alignment};
+use std::collections::BTreeMap;
+
+use crate::eval::{evaluate, load_poses, Alignment, ReportedSigma};
 use crate::io::atomic::write_file_atomically;
 
 /// Compare a model with reference poses (matched by image name).
@@ -26,7 +28,15 @@ pub struct EvaluateArgs {
 pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
     let model = load_poses(&args.model).context("cannot read the model")?;
     let reference = load_poses(&args.reference).context("cannot read the reference")?;
-    let report = evaluate(&model, &reference, args.align)?;
+    let mut report = evaluate(&model, &reference, args.align)?;
+    // A model written by `map` reports its own pose uncertainty: with no
+    // alignment, say how the true errors compare with it.
+    let own = args.model.join("report.json");
+    if args.align == Alignment::None && own.is_file() {
+        let sigmas = reported_sigmas(&own)
+            .with_context(|| format!("cannot read the uncertainties in {}", own.display()))?;
+        report.compare_with_uncertainty(&sigmas);
+    }
     print!("{}", report.table());
     if let Some(path) = &args.json {
         write_file_atomically(path, |w| -> std::io::Result<()> {
@@ -36,4 +46,28 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot write {}", path.display()))?;
     }
     Ok(())
+}
+
+/// Per image name, the sigmas of `report.json` (`images[].pose_uncertainty`);
+/// empty when the report has none.
+fn reported_sigmas(path: &std::path::Path) -> anyhow::Result<BTreeMap<String, ReportedSigma>> {
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path)?)?;
+    let mut out = BTreeMap::new();
+    for image in report["images"].as_array().into_iter().flatten() {
+        let u = &image["pose_uncertainty"];
+        if let (Some(name), Some(c), Some(r)) = (
+            image["name"].as_str(),
+            u["centre_sigma_major_m"].as_f64(),
+            u["rotation_sigma_deg"].as_f64(),
+        ) {
+            out.insert(
+                name.to_string(),
+                ReportedSigma {
+                    centre_m: c,
+                    rotation_deg: r,
+                },
+            );
+        }
+    }
+    Ok(out)
 }

@@ -181,6 +181,28 @@ pub struct EvaluationReport {
     pub rotation_error_deg: Option<Stats>,
     pub within: Vec<ThresholdShare>,
     pub images: Vec<ImageError>,
+    /// Errors over the uncertainties the model reported for itself (see
+    /// [`EvaluationReport::compare_with_uncertainty`]).
+    pub error_over_sigma: Option<ErrorOverSigma>,
+}
+
+/// One image's reported uncertainty (one sigma): the camera centre along its
+/// least determined direction, metres, and the rotation about its least
+/// determined axis, degrees.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ReportedSigma {
+    pub centre_m: f64,
+    pub rotation_deg: f64,
+}
+
+/// Errors divided by the reported sigmas over the images that have both.
+/// With calibrated sigmas the centre ratio's median is about 1 or below
+/// (the error vector's length over the largest axis' sigma).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct ErrorOverSigma {
+    pub count: usize,
+    pub centre: Stats,
+    pub rotation: Stats,
 }
 
 /// Compares `model` to `reference` (both name -> `cam_from_world`).
@@ -263,10 +285,36 @@ pub fn evaluate(
         rotation_error_deg: Stats::of(&rotations),
         within,
         images,
+        error_over_sigma: None,
     })
 }
 
 impl EvaluationReport {
+    /// Fills `error_over_sigma` from the model's own sigmas (by image name;
+    /// images without a positive, finite sigma are skipped).
+    pub fn compare_with_uncertainty(&mut self, sigmas: &BTreeMap<String, ReportedSigma>) {
+        let mut centre = Vec::new();
+        let mut rotation = Vec::new();
+        for e in &self.images {
+            let Some(s) = sigmas.get(&e.name) else {
+                continue;
+            };
+            let ok = |v: f64| v.is_finite() && v > 0.0;
+            if ok(s.centre_m) && ok(s.rotation_deg) {
+                centre.push(e.centre_error_m / s.centre_m);
+                rotation.push(e.rotation_error_deg / s.rotation_deg);
+            }
+        }
+        self.error_over_sigma = match (Stats::of(&centre), Stats::of(&rotation)) {
+            (Some(c), Some(r)) => Some(ErrorOverSigma {
+                count: centre.len(),
+                centre: c,
+                rotation: r,
+            }),
+            _ => None,
+        };
+    }
+
     /// A human-readable table.
     pub fn table(&self) -> String {
         let mut s = String::new();
@@ -293,6 +341,16 @@ impl EvaluationReport {
             s += &format!(
                 "rotation error (deg) {:<12.4} {:<12.4} {:.4}\n",
                 r.median, r.p90, r.max
+            );
+        }
+        if let Some(e) = &self.error_over_sigma {
+            s += &format!(
+                "error / own sigma    {:<12.2} {:<12.2} {:.2}   (centre; {} images)\n",
+                e.centre.median, e.centre.p90, e.centre.max, e.count
+            );
+            s += &format!(
+                "                     {:<12.2} {:<12.2} {:.2}   (rotation)\n",
+                e.rotation.median, e.rotation.p90, e.rotation.max
             );
         }
         for t in &self.within {
@@ -323,6 +381,46 @@ mod tests {
                 (format!("im{i:02}.jpg"), Rigid3::new(r, -(r * centre)))
             })
             .collect()
+    }
+
+    #[test]
+    fn errors_over_reported_sigmas() {
+        let reference = reference();
+        let mut model = reference.clone();
+        // im01 moved 3 mm along x; im02 turned 0.02 deg.
+        let r1 = reference["im01.jpg"];
+        let c1 = r1.camera_center() + Vector3::new(0.003, 0.0, 0.0);
+        model.insert(
+            "im01.jpg".into(),
+            Rigid3::new(r1.rotation, -(r1.rotation * c1)),
+        );
+        let r2 = reference["im02.jpg"];
+        let turned =
+            r2.rotation * UnitQuaternion::from_euler_angles(0.02f64.to_radians(), 0.0, 0.0);
+        let c2 = r2.camera_center();
+        model.insert("im02.jpg".into(), Rigid3::new(turned, -(turned * c2)));
+        let mut report = evaluate(&model, &reference, Alignment::None).unwrap();
+        assert!(report.error_over_sigma.is_none());
+        let sigma = |c: f64, r: f64| ReportedSigma {
+            centre_m: c,
+            rotation_deg: r,
+        };
+        let sigmas: BTreeMap<String, ReportedSigma> = [
+            ("im01.jpg".to_string(), sigma(0.001, 0.01)),
+            ("im02.jpg".to_string(), sigma(0.002, 0.01)),
+            ("im03.jpg".to_string(), sigma(f64::NAN, 0.01)),
+            ("not_there.jpg".to_string(), sigma(0.001, 0.01)),
+        ]
+        .into();
+        report.compare_with_uncertainty(&sigmas);
+        let e = report.error_over_sigma.expect("two images");
+        assert_eq!(e.count, 2);
+        // Centres: 3 mm / 1 mm and 0 / 2 mm; rotations: 0 and 0.02 / 0.01 deg.
+        assert!((e.centre.max - 3.0).abs() < 1e-6, "{e:?}");
+        assert!((e.centre.median - 1.5).abs() < 1e-6, "{e:?}");
+        assert!((e.rotation.max - 2.0).abs() < 1e-6, "{e:?}");
+        assert!((e.rotation.median - 1.0).abs() < 1e-6, "{e:?}");
+        assert!(report.table().contains("error / own sigma"));
     }
 
     #[test]

@@ -237,6 +237,21 @@ fn yard_with_colmap_database() {
     print_run("yard (shared CI scene)", &a);
     check_run(&a);
     check_uncertainty(&a);
+    // `evaluate` compares the errors with the model's own sigmas.
+    let eval_json = dir.path().join("evaluation.json");
+    colmap_lidar::commands::evaluate::run(&colmap_lidar::commands::evaluate::EvaluateArgs {
+        model: dir.path().join("a"),
+        reference: scene.join("gt"),
+        align: Alignment::None,
+        json: Some(eval_json.clone()),
+    })
+    .unwrap();
+    let evaluation: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&eval_json).unwrap()).unwrap();
+    let over = &evaluation["error_over_sigma"];
+    assert_eq!(over["count"].as_u64(), Some(a.none.num_registered as u64));
+    let median = over["centre"]["median"].as_f64().unwrap();
+    assert!((0.2..10.0).contains(&median), "{over}");
     // Same inputs and seed: byte-identical model files.
     let b = map_scene(&scene, &dir.path().join("b"), |_| {});
     for f in ["cameras.txt", "images.txt", "points3D.txt"] {
