@@ -1089,7 +1089,20 @@ fn perturbed_residuals(
     pose: Option<(usize, Vector3<f64>, Vector3<f64>)>,
     point: Option<(usize, Vector3<f64>)>,
 ) -> Vec<f64> {
+    perturbed_residuals_with(problem, pose, point, None)
+}
+
+/// [`perturbed_residuals`], also with intrinsic `k` of camera `c` moved by `dv`.
+fn perturbed_residuals_with(
+    problem: &BundleAdjustmentProblem,
+    pose: Option<(usize, Vector3<f64>, Vector3<f64>)>,
+    point: Option<(usize, Vector3<f64>)>,
+    intrinsic: Option<(usize, usize, f64)>,
+) -> Vec<f64> {
     let mut p = problem.clone();
+    if let Some((c, k, dv)) = intrinsic {
+        p.cameras[c].params[k] += dv;
+    }
     if let Some((i, omega, dc)) = pose {
         let rigid = p.poses[i].rigid();
         // world_from_cam turns by exp(omega) on the left, so cam_from_world by
@@ -1109,14 +1122,17 @@ fn perturbed_residuals(
 /// The covariance through the bridge (Ceres' Jacobian, Schur complement,
 /// tangent-to-world conversion) against `(J^T J)^-1` from central differences
 /// of the Rust reference residuals in world-frame rotation and centre
-/// coordinates, with a pose prior, planes, a constant pose and a point seen
-/// once (no information: must not change anything).
+/// coordinates, with a pose prior, planes, a constant pose, a free focal
+/// length (marginalised like the points) and a point seen once (no
+/// information: must not change anything).
 #[test]
 fn pose_covariance_matches_finite_differences() {
     let scene = room_scene(6, 10, 6, 3);
     let mut rng = ChaCha8Rng::seed_from_u64(4);
     let mut problem = problem_from_scene(&scene, 0.3, Some(200.0), &mut rng);
     problem.poses[5].constant = true;
+    // Camera 0 (pinhole): fx refined, the rest held.
+    problem.cameras[0].constant = ConstantParams::Mask(vec![false, true, true, true]);
     let c0 = scene.poses[0].camera_center();
     problem.pose_priors.push(PosePrior {
         pose_idx: 0,
@@ -1136,7 +1152,7 @@ fn pose_covariance_matches_finite_differences() {
     let variable: Vec<usize> = (0..problem.poses.len())
         .filter(|&i| !problem.poses[i].constant)
         .collect();
-    let n = 6 * variable.len() + 3 * problem.points.len();
+    let n = 6 * variable.len() + 3 * problem.points.len() + 1;
     let r0 = reference::residuals(&problem);
     let m = r0.len();
     let h = 1e-6;
@@ -1168,6 +1184,9 @@ fn pose_covariance_matches_finite_differences() {
             put(&mut jac, plus, minus);
         }
     }
+    let plus = perturbed_residuals_with(&problem, None, None, Some((0, 0, h)));
+    let minus = perturbed_residuals_with(&problem, None, None, Some((0, 0, -h)));
+    put(&mut jac, plus, minus);
     let variance = r0.iter().map(|r| r * r).sum::<f64>() / (m - n) as f64;
     assert!(
         (cov.residual_variance - variance).abs() < 1e-9 * variance,
@@ -1206,9 +1225,11 @@ fn pose_covariance_matches_finite_differences() {
     ));
     let single = solver::pose_covariances(&with_single, &options).expect("covariance");
     assert_eq!(single.num_degenerate_points, 1);
+    // 2 more rows, 2 more directions fitted (the third is not fixed).
+    assert_eq!(single.redundancy, cov.redundancy);
     for &i in &variable {
-        // Same information; the variance estimate differs only through the
-        // redundancy (2 more rows, 3 more columns).
+        // Same information; the variance estimate differs through the new
+        // residual (the point was not solved).
         let scale = cov.residual_variance / single.residual_variance;
         let a = cov.poses[i].expect("pose");
         let b = single.poses[i].expect("pose") * scale;

@@ -30,12 +30,17 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
     let reference = load_poses(&args.reference).context("cannot read the reference")?;
     let mut report = evaluate(&model, &reference, args.align)?;
     // A model written by `map` reports its own pose uncertainty: with no
-    // alignment, say how the true errors compare with it.
+    // alignment, say how the true errors compare with it (an optional extra:
+    // a report that cannot be read is skipped with a warning).
     let own = args.model.join("report.json");
     if args.align == Alignment::None && own.is_file() {
-        let sigmas = reported_sigmas(&own)
-            .with_context(|| format!("cannot read the uncertainties in {}", own.display()))?;
-        report.compare_with_uncertainty(&sigmas);
+        match reported_sigmas(&own) {
+            Ok(sigmas) => report.compare_with_uncertainty(&sigmas),
+            Err(e) => log::warn!(
+                "{}: uncertainties not read ({e:#}); errors not compared with them",
+                own.display()
+            ),
+        }
     }
     print!("{}", report.table());
     if let Some(path) = &args.json {

@@ -12,9 +12,9 @@ use super::options::BundleOptions;
 use super::state::{MapState, PointPlane};
 use crate::scene::{CameraId, ImageId, Point3DId, Rigid3};
 use crate::solver::{
-    pose_covariances, solve, BaCamera, BaObservation, BaPoint, BaPose, BundleAdjustmentProblem,
-    ConstantParams, CovarianceError, LossFunction, PlaneFamily, PosePrior, SolverError,
-    SolverOptions,
+    pose_covariances, sigma_of_variance, solve, BaCamera, BaObservation, BaPoint, BaPose,
+    BundleAdjustmentProblem, ConstantParams, CovarianceError, LossFunction, PlaneFamily, PosePrior,
+    SolverError, SolverOptions,
 };
 
 /// What varies in one solve.
@@ -429,9 +429,10 @@ pub fn bundle_adjust(
 }
 
 /// One image's pose uncertainty (one standard deviation) at the final
-/// solution: first-order, from the information the final solve's residuals
-/// hold with the associations fixed, scaled by the residual variance the fit
-/// estimates (see [`crate::solver::covariance`]).
+/// state: first-order, from the information the final solve's residuals hold
+/// there (planes associated afresh, then held fixed), every residual scaled by
+/// the residual variance the fit estimates (pose priors too: their weights
+/// are pixel equivalents like the planes'); see [`crate::solver::covariance`].
 #[derive(Clone, Debug, Serialize)]
 pub struct PoseUncertainty {
     /// Camera centre along the map's x, y and z axes, metres.
@@ -440,6 +441,8 @@ pub struct PoseUncertainty {
     pub centre_sigma_major_m: f64,
     /// That direction (unit, map frame; sign: largest component positive).
     pub centre_major_axis: [f64; 3],
+    /// The centre's full covariance in the map frame, square metres (rows).
+    pub centre_covariance_m2: [[f64; 3]; 3],
     /// About the rotation's least determined axis, degrees.
     pub rotation_sigma_deg: f64,
 }
@@ -478,9 +481,14 @@ pub fn pose_uncertainty(
             image,
             PoseUncertainty {
                 centre_sigma_m: [sigma.x, sigma.y, sigma.z],
-                centre_sigma_major_m: eig.eigenvalues[k].max(0.0).sqrt(),
+                centre_sigma_major_m: sigma_of_variance(eig.eigenvalues[k]),
                 centre_major_axis: [axis.x, axis.y, axis.z],
-                rotation_sigma_deg: rotation_max.max(0.0).sqrt().to_degrees(),
+                centre_covariance_m2: [
+                    [centre[(0, 0)], centre[(0, 1)], centre[(0, 2)]],
+                    [centre[(1, 0)], centre[(1, 1)], centre[(1, 2)]],
+                    [centre[(2, 0)], centre[(2, 1)], centre[(2, 2)]],
+                ],
+                rotation_sigma_deg: sigma_of_variance(rotation_max).to_degrees(),
             },
         );
     }

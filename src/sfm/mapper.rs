@@ -649,8 +649,12 @@ fn estimate_uncertainty(
             return;
         }
     };
-    let mut major: Vec<f64> = poses.values().map(|u| u.centre_sigma_major_m).collect();
-    let mut rotation: Vec<f64> = poses.values().map(|u| u.rotation_sigma_deg).collect();
+    if poses.is_empty() {
+        log::info!("pose uncertainty: no image's pose varies in the final solve");
+        return;
+    }
+    let major: Vec<f64> = poses.values().map(|u| u.centre_sigma_major_m).collect();
+    let rotation: Vec<f64> = poses.values().map(|u| u.rotation_sigma_deg).collect();
     let mut weak = Vec::new();
     for (image, u) in poses {
         if let Some(rec) = report.record_mut(image) {
@@ -672,13 +676,13 @@ fn estimate_uncertainty(
             weak.join(", ")
         );
     }
-    let median = |v: &mut Vec<f64>| crate::eval::Stats::of(v).map_or(0.0, |s| s.median);
+    let median = |v: &[f64]| crate::eval::Stats::of(v).map_or(0.0, |s| s.median);
     let max_of = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
     let summary = UncertaintySummary {
         residual_sigma_px,
-        median_centre_sigma_major_m: median(&mut major),
+        median_centre_sigma_major_m: median(&major),
         max_centre_sigma_major_m: max_of(&major),
-        median_rotation_sigma_deg: median(&mut rotation),
+        median_rotation_sigma_deg: median(&rotation),
         max_rotation_sigma_deg: max_of(&rotation),
         num_degenerate_points,
         time_s: t.elapsed().as_secs_f64(),

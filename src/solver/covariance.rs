@@ -39,7 +39,8 @@ pub struct PoseCovariances {
     /// Variance of a unit-weight residual, estimated from the fit
     /// (pixels squared for reprojections).
     pub residual_variance: f64,
-    /// Residual rows minus parameter columns.
+    /// Residual rows minus the parameter directions the data fix (a point's
+    /// unfixed directions do not count).
     pub redundancy: usize,
     /// Points whose own 3x3 information was rank deficient.
     pub num_degenerate_points: usize,
@@ -49,7 +50,7 @@ impl PoseCovariances {
     /// Standard deviations of the camera centre along the frame's axes, metres.
     pub fn centre_sigma_m(&self, pose: usize) -> Option<Vector3<f64>> {
         let c = self.poses.get(pose)?.as_ref()?;
-        Some(Vector3::new(c[(3, 3)], c[(4, 4)], c[(5, 5)]).map(|v| v.max(0.0).sqrt()))
+        Some(Vector3::new(c[(3, 3)], c[(4, 4)], c[(5, 5)]).map(sigma_of_variance))
     }
 
     /// The camera centre's covariance, square metres.
@@ -62,6 +63,15 @@ impl PoseCovariances {
     pub fn rotation_covariance(&self, pose: usize) -> Option<Matrix3<f64>> {
         let c = self.poses.get(pose)?.as_ref()?;
         Some(c.fixed_view::<3, 3>(0, 0).into_owned())
+    }
+}
+
+/// Square root of a variance; NaN (not 0) for a negative or NaN one.
+pub fn sigma_of_variance(v: f64) -> f64 {
+    if v >= 0.0 {
+        v.sqrt()
+    } else {
+        f64::NAN
     }
 }
 
@@ -132,10 +142,6 @@ pub fn pose_covariances(
     if start != cols {
         return Err(layout(format!("blocks cover {start} of {cols} columns")));
     }
-    if rows <= cols {
-        return Err(CovarianceError::NoRedundancy { rows, cols });
-    }
-    let residual_variance = jac.residuals.iter().map(|r| r * r).sum::<f64>() / (rows - cols) as f64;
     let num_points = num_point_cols / 3;
     let nc = cols - num_point_cols;
 
@@ -153,6 +159,9 @@ pub fn pose_covariances(
             let c = jac.cols[k] as usize;
             let v = jac.values[k];
             if c < num_point_cols {
+                if point.is_some_and(|p| p != c / 3) {
+                    return Err(layout(format!("row {r} touches two points")));
+                }
                 point = Some(c / 3);
                 jp[c % 3] = v;
             } else {
@@ -177,13 +186,15 @@ pub fn pose_covariances(
     }
     // Eliminate the points: S = Hcc - sum_p Hcp Hpp^+ Hpc.
     let mut num_degenerate_points = 0;
+    let mut rank_deficit = 0;
     for (h, b) in hpp.iter().zip(&hpc) {
+        let (inv, rank) = pseudo_inverse(h);
+        if rank < 3 {
+            num_degenerate_points += 1;
+            rank_deficit += 3 - rank;
+        }
         if b.is_empty() {
             continue;
-        }
-        let (inv, full_rank) = pseudo_inverse(h);
-        if !full_rank {
-            num_degenerate_points += 1;
         }
         let w: Vec<Vector3<f64>> = b.iter().map(|(_, v)| inv * v).collect();
         for (a, va) in b {
@@ -192,6 +203,13 @@ pub fn pose_covariances(
             }
         }
     }
+    // Directions of points the data do not fix are not fitted parameters.
+    let fitted = cols - rank_deficit;
+    if rows <= fitted {
+        return Err(CovarianceError::NoRedundancy { rows, cols: fitted });
+    }
+    let residual_variance =
+        jac.residuals.iter().map(|r| r * r).sum::<f64>() / (rows - fitted) as f64;
     // A pivot far below its diagonal entry is a direction nothing fixes
     // (rounding keeps an exactly singular S from failing the factorisation).
     let diagonal = hcc.diagonal();
@@ -236,30 +254,29 @@ pub fn pose_covariances(
     Ok(PoseCovariances {
         poses,
         residual_variance,
-        redundancy: rows - cols,
+        redundancy: rows - fitted,
         num_degenerate_points,
     })
 }
 
 /// Pseudo-inverse of a symmetric positive semi-definite 3x3 matrix; eigen
-/// directions below 1e-10 of the largest carry no information. Also whether
-/// all three directions were kept.
-fn pseudo_inverse(h: &Matrix3<f64>) -> (Matrix3<f64>, bool) {
+/// directions below 1e-10 of the largest carry no information. Also the
+/// number of directions kept.
+fn pseudo_inverse(h: &Matrix3<f64>) -> (Matrix3<f64>, usize) {
     let eig = h.symmetric_eigen();
     let max = eig.eigenvalues.max();
     if max <= 0.0 || !max.is_finite() {
-        return (Matrix3::zeros(), false);
+        return (Matrix3::zeros(), 0);
     }
     let mut inv = Matrix3::zeros();
-    let mut full = true;
+    let mut rank = 0;
     for k in 0..3 {
         let l = eig.eigenvalues[k];
         if l > 1e-10 * max {
             let v = eig.eigenvectors.column(k);
             inv += v * v.transpose() / l;
-        } else {
-            full = false;
+            rank += 1;
         }
     }
-    (inv, full)
+    (inv, rank)
 }

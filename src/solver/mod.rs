@@ -33,7 +33,7 @@ pub mod problem;
 pub mod reference;
 pub mod summary;
 
-pub use covariance::{pose_covariances, CovarianceError, PoseCovariances};
+pub use covariance::{pose_covariances, sigma_of_variance, CovarianceError, PoseCovariances};
 pub use options::{LinearSolver, LossFunction, SolverOptions};
 pub use problem::{
     BaCamera, BaObservation, BaPoint, BaPose, BundleAdjustmentProblem, ConstantParams,
