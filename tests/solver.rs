@@ -232,7 +232,7 @@ fn perturb(
         let rotation = UnitQuaternion::from_scaled_axis(random_unit(rng) * angle_deg.to_radians())
             * rigid.rotation;
         let center = rigid.camera_center() + random_unit(rng) * offset_m;
-        *pose = BaPose::new(&Rigid3::new(rotation, -(rotation * center)), false);
+        *pose = BaPose::new(&Rigid3::from_rotation_and_center(rotation, &center), false);
     }
     for point in problem.points.iter_mut().filter(|p| !p.constant) {
         let d = random_unit(rng) * offset_m;
@@ -253,7 +253,10 @@ fn apply_similarity(
         let rigid = pose.rigid();
         let center = r * rigid.camera_center() * s + t;
         let rotation = rigid.rotation * r.inverse();
-        *pose = BaPose::new(&Rigid3::new(rotation, -(rotation * center)), pose.constant);
+        *pose = BaPose::new(
+            &Rigid3::from_rotation_and_center(rotation, &center),
+            pose.constant,
+        );
     }
     for point in &mut problem.points {
         let x = r * Vector3::from(point.position_in_world) * s + t;
@@ -1083,17 +1086,9 @@ fn medium_problem_timing() {
 }
 
 /// Residuals of `problem` with pose `pose`'s world-frame rotation turned by
-/// `omega` and its centre moved by `dc`, and point `point` moved by `dx`.
+/// `omega` and its centre moved by `dc`, point `point` moved by `dx`, and
+/// intrinsic `k` of camera `c` moved by `dv`.
 fn perturbed_residuals(
-    problem: &BundleAdjustmentProblem,
-    pose: Option<(usize, Vector3<f64>, Vector3<f64>)>,
-    point: Option<(usize, Vector3<f64>)>,
-) -> Vec<f64> {
-    perturbed_residuals_with(problem, pose, point, None)
-}
-
-/// [`perturbed_residuals`], also with intrinsic `k` of camera `c` moved by `dv`.
-fn perturbed_residuals_with(
     problem: &BundleAdjustmentProblem,
     pose: Option<(usize, Vector3<f64>, Vector3<f64>)>,
     point: Option<(usize, Vector3<f64>)>,
@@ -1109,7 +1104,7 @@ fn perturbed_residuals_with(
         // exp(-omega) on the right.
         let rotation = rigid.rotation * UnitQuaternion::from_scaled_axis(-omega);
         let centre = rigid.camera_center() + dc;
-        p.poses[i] = BaPose::new(&Rigid3::new(rotation, -(rotation * centre)), false);
+        p.poses[i] = BaPose::new(&Rigid3::from_rotation_and_center(rotation, &centre), false);
     }
     if let Some((i, dx)) = point {
         for k in 0..3 {
@@ -1170,8 +1165,8 @@ fn pose_covariance_matches_finite_differences() {
             d[k] = h;
             let omega = Vector3::new(d[0], d[1], d[2]);
             let dc = Vector3::new(d[3], d[4], d[5]);
-            let plus = perturbed_residuals(&problem, Some((i, omega, dc)), None);
-            let minus = perturbed_residuals(&problem, Some((i, -omega, -dc)), None);
+            let plus = perturbed_residuals(&problem, Some((i, omega, dc)), None, None);
+            let minus = perturbed_residuals(&problem, Some((i, -omega, -dc)), None, None);
             put(&mut jac, plus, minus);
         }
     }
@@ -1179,13 +1174,13 @@ fn pose_covariance_matches_finite_differences() {
         for k in 0..3 {
             let mut dx = Vector3::zeros();
             dx[k] = h;
-            let plus = perturbed_residuals(&problem, None, Some((p, dx)));
-            let minus = perturbed_residuals(&problem, None, Some((p, -dx)));
+            let plus = perturbed_residuals(&problem, None, Some((p, dx)), None);
+            let minus = perturbed_residuals(&problem, None, Some((p, -dx)), None);
             put(&mut jac, plus, minus);
         }
     }
-    let plus = perturbed_residuals_with(&problem, None, None, Some((0, 0, h)));
-    let minus = perturbed_residuals_with(&problem, None, None, Some((0, 0, -h)));
+    let plus = perturbed_residuals(&problem, None, None, Some((0, 0, h)));
+    let minus = perturbed_residuals(&problem, None, None, Some((0, 0, -h)));
     put(&mut jac, plus, minus);
     let variance = r0.iter().map(|r| r * r).sum::<f64>() / (m - n) as f64;
     assert!(

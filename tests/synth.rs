@@ -265,7 +265,7 @@ fn synth_evaluate_command_on_ground_truth() {
         .iter()
         .map(|(k, p)| {
             let c = p.camera_center() + Vector3::new(0.01, 0.0, 0.0);
-            (k.clone(), Rigid3::new(p.rotation, -(p.rotation * c)))
+            (k.clone(), Rigid3::from_rotation_and_center(p.rotation, &c))
         })
         .collect();
     let rep = evaluate(&moved, &gt, Alignment::None).unwrap();

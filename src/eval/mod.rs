@@ -379,7 +379,10 @@ mod tests {
                 let f = i as f64;
                 let r = UnitQuaternion::from_euler_angles(0.1 * f, -0.05 * f, 0.3 + 0.2 * f);
                 let centre = Vector3::new(f, 0.3 * f * f, 1.0 + (f * 0.7).sin());
-                (format!("im{i:02}.jpg"), Rigid3::new(r, -(r * centre)))
+                (
+                    format!("im{i:02}.jpg"),
+                    Rigid3::from_rotation_and_center(r, &centre),
+                )
             })
             .collect()
     }
@@ -393,13 +396,16 @@ mod tests {
         let c1 = r1.camera_center() + Vector3::new(0.003, 0.0, 0.0);
         model.insert(
             "im01.jpg".into(),
-            Rigid3::new(r1.rotation, -(r1.rotation * c1)),
+            Rigid3::from_rotation_and_center(r1.rotation, &c1),
         );
         let r2 = reference["im02.jpg"];
         let turned =
             r2.rotation * UnitQuaternion::from_euler_angles(0.02f64.to_radians(), 0.0, 0.0);
         let c2 = r2.camera_center();
-        model.insert("im02.jpg".into(), Rigid3::new(turned, -(turned * c2)));
+        model.insert(
+            "im02.jpg".into(),
+            Rigid3::from_rotation_and_center(turned, &c2),
+        );
         let mut report = evaluate(&model, &reference, Alignment::None).unwrap();
         assert!(report.error_over_sigma.is_none());
         let sigma = |c: f64, r: f64| ReportedSigma {
@@ -477,14 +483,14 @@ mod tests {
         let c = p.camera_center() + Vector3::new(0.0, 0.03, 0.0);
         model.insert(
             "im02.jpg".into(),
-            Rigid3::new(p.rotation, -(p.rotation * c)),
+            Rigid3::from_rotation_and_center(p.rotation, &c),
         );
         // Rotate another by 0.2 deg about its own optical axis, keeping its centre.
         let p = model["im05.jpg"];
         let c = p.camera_center();
         let r =
             UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.2f64.to_radians()) * p.rotation;
-        model.insert("im05.jpg".into(), Rigid3::new(r, -(r * c)));
+        model.insert("im05.jpg".into(), Rigid3::from_rotation_and_center(r, &c));
         // Drop one and add one the reference does not know.
         model.remove("im09.jpg");
         model.insert("extra.jpg".into(), Rigid3::identity());

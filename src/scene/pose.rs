@@ -83,6 +83,12 @@ impl Rigid3 {
         -(self.rotation.inverse() * self.translation)
     }
 
+    /// The `cam_from_world` with this rotation whose camera centre is
+    /// `centre` (world coordinates): the inverse of [`Self::camera_center`].
+    pub fn from_rotation_and_center(rotation: UnitQuaternion<f64>, centre: &Vector3<f64>) -> Self {
+        Self::new(rotation, -(rotation * centre))
+    }
+
     pub fn from_rotation_matrix(r: &Matrix3<f64>, t: Vector3<f64>) -> Self {
         let rot = Rotation3::from_matrix_unchecked(*r);
         Self {

@@ -30,7 +30,7 @@ fn perturb(pose: &Rigid3, delta: &Vector6<f64>) -> Rigid3 {
     let dq = UnitQuaternion::from_scaled_axis(omega);
     let rotation = dq * pose.rotation;
     let centre = pose.camera_center() + Vector3::new(delta[3], delta[4], delta[5]);
-    Rigid3::new(rotation, -(rotation * centre))
+    Rigid3::from_rotation_and_center(rotation, &centre)
 }
 
 /// Refines `cam_from_world` by Levenberg-Marquardt on the reprojection errors
