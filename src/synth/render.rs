@@ -1,8 +1,9 @@
 //! Ray-cast rendering of a scene into a photo-like image.
 //!
 //! Per pixel: a ray through the (distorted) camera model, nearest-surface hit
-//! with correct occlusion, procedural albedo band-limited by the pixel
-//! footprint (so textures do not alias); pixels on a geometric or shadow edge
+//! with correct occlusion, procedural albedo averaged over the pixel's
+//! footprint on the surface (anisotropic filtering: sharp across the view
+//! direction, no aliasing along it, at any angle); pixels on a geometric or shadow edge
 //! (a 4-neighbour sees another surface or shadow state) are re-rendered with
 //! `supersample x supersample` rays and averaged (adaptive anti-aliasing); Lambert shading with a directional
 //! light (and cast shadows outdoors) plus ambient; then per-image exposure
@@ -16,7 +17,7 @@ use rayon::prelude::*;
 
 use super::geometry::Scene;
 use super::lens;
-use super::texture::{hash64, Rgb};
+use super::texture::{hash64, Rgb, Texture};
 use crate::scene::{Camera, Rigid3};
 
 /// Photometric settings of one rendered image.
@@ -99,6 +100,44 @@ fn sky_colour(dir: &Vector3<f64>) -> Rgb {
     ]
 }
 
+/// Albedo seen by one pixel: the texture averaged over the pixel's footprint.
+///
+/// On a surface seen at incidence `cos_view` (|cos| of the angle between the
+/// ray and the normal) a pixel covers `minor_m` (distance times pixel angle)
+/// across the view direction and `minor_m / cos_view` along it (`long_axis`,
+/// in texture coordinates, any length). One isotropic band limit cannot
+/// represent that: the long side's would blur the short side (by up to 8x
+/// at grazing angles, a blur no camera has, and one that moved SIFT's
+/// keypoints with the viewing angle), the short side's would alias the long
+/// one. So the footprint is cut along its long axis into `ceil(1 / cos_view)`
+/// cells (at most 8), each sampled at its centre band-limited by `minor_m`,
+/// and their mean is returned: anisotropic filtering.
+fn footprint_albedo(
+    texture: &Texture,
+    (s_m, t_m): (f64, f64),
+    long_axis: (f64, f64),
+    minor_m: f64,
+    cos_view: f64,
+) -> Rgb {
+    let cos_view = cos_view.clamp(0.125, 1.0);
+    let cells = (1.0 / cos_view).ceil() as usize;
+    let len = long_axis.0.hypot(long_axis.1);
+    if cells <= 1 || len < 1e-12 {
+        return texture.albedo(s_m, t_m, minor_m);
+    }
+    let (ds, dt) = (long_axis.0 / len, long_axis.1 / len);
+    let major_m = minor_m / cos_view;
+    let mut sum = [0.0f32; 3];
+    for k in 0..cells {
+        let offset = major_m * ((k as f64 + 0.5) / cells as f64 - 0.5);
+        let c = texture.albedo(s_m + offset * ds, t_m + offset * dt, minor_m);
+        for (acc, v) in sum.iter_mut().zip(c) {
+            *acc += v;
+        }
+    }
+    sum.map(|v| v / cells as f32)
+}
+
 /// Linear radiance seen along a world ray, and a key of what was hit
 /// (`-1` sky, else `2 * quad + shadowed`) for edge detection.
 fn shade(
@@ -118,15 +157,25 @@ fn shade(
         );
     };
     let quad = &scene.quads[hit.quad];
-    let cos_view = quad.normal.dot(dir).abs().max(0.125);
-    let footprint_m = hit.t * pixel_angle_rad / cos_view;
     // Textures take the vertical coordinate second on walls.
-    let (s_m, t_m) = if quad.u_axis.z.abs() > 0.9 {
-        (hit.b_m, hit.a_m)
-    } else {
-        (hit.a_m, hit.b_m)
+    let texture_coords = |a: f64, b: f64| {
+        if quad.u_axis.z.abs() > 0.9 {
+            (b, a)
+        } else {
+            (a, b)
+        }
     };
-    let albedo = quad.texture.albedo(s_m, t_m, footprint_m);
+    let (s_m, t_m) = texture_coords(hit.a_m, hit.b_m);
+    // The footprint's long axis: the view direction's component in the surface.
+    let along = dir - quad.normal * quad.normal.dot(dir);
+    let long_axis = texture_coords(along.dot(&quad.u_axis), along.dot(&quad.v_axis));
+    let albedo = footprint_albedo(
+        &quad.texture,
+        (s_m, t_m),
+        long_axis,
+        hit.t * pixel_angle_rad,
+        quad.normal.dot(dir).abs(),
+    );
     // The side facing the viewer.
     let normal = if quad.normal.dot(dir) < 0.0 {
         quad.normal
@@ -229,4 +278,69 @@ pub fn render(
         }
     });
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::texture::Material;
+
+    /// The box average over an oblique footprint (`minor_m` across, `minor_m /
+    /// cos` along the `s` axis), from a dense grid of nearly unfiltered samples.
+    fn box_average(texture: &Texture, s: f64, t: f64, minor_m: f64, cos: f64) -> Rgb {
+        let (across, along) = (8, (8.0 / cos).ceil() as usize);
+        let mut sum = [0.0f32; 3];
+        for i in 0..across {
+            for j in 0..along {
+                let dt = minor_m * ((i as f64 + 0.5) / across as f64 - 0.5);
+                let ds = minor_m / cos * ((j as f64 + 0.5) / along as f64 - 0.5);
+                let c = texture.albedo(s + ds, t + dt, minor_m / 8.0);
+                for k in 0..3 {
+                    sum[k] += c[k];
+                }
+            }
+        }
+        sum.map(|v| v / (across * along) as f32)
+    }
+
+    fn rms(a: &[Rgb], b: &[Rgb]) -> f64 {
+        let sq: f64 = a
+            .iter()
+            .zip(b)
+            .map(|(x, y)| (0..3).map(|k| f64::from(x[k] - y[k]).powi(2)).sum::<f64>())
+            .sum();
+        (sq / (3 * a.len()) as f64).sqrt()
+    }
+
+    #[test]
+    fn oblique_footprint_is_averaged_not_blurred() {
+        let texture = Texture::new(Material::Ground, 11);
+        let minor_m = 0.004;
+        // Normal incidence: one sample, the isotropic band limit.
+        assert_eq!(
+            footprint_albedo(&texture, (1.3, 2.7), (1.0, 0.0), minor_m, 1.0),
+            texture.albedo(1.3, 2.7, minor_m)
+        );
+        for cos in [0.5, 0.25, 0.125] {
+            let (mut truth, mut aniso, mut long_side, mut short_side) =
+                (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            for i in 0..400 {
+                let (s, t) = (0.0137 * i as f64, 0.3 + 0.0071 * i as f64);
+                truth.push(box_average(&texture, s, t, minor_m, cos));
+                aniso.push(footprint_albedo(&texture, (s, t), (2.0, 0.0), minor_m, cos));
+                long_side.push(texture.albedo(s, t, minor_m / cos));
+                short_side.push(texture.albedo(s, t, minor_m));
+            }
+            let (e_aniso, e_long, e_short) = (
+                rms(&aniso, &truth),
+                rms(&long_side, &truth),
+                rms(&short_side, &truth),
+            );
+            // Measured: 0.0047 / 0.042 / 0.012 at cos 0.5, 0.0033 / 0.084 / 0.043 at 0.125.
+            assert!(
+                e_aniso < 0.5 * e_long.min(e_short),
+                "cos {cos}: {e_aniso} {e_long} {e_short}"
+            );
+        }
+    }
 }

@@ -9,7 +9,8 @@
 //! Anti-aliasing: every layer is band-limited by the pixel footprint (the size of
 //! one pixel on the surface, in metres). Detail much smaller than the footprint
 //! fades to its mean, and blob edges are smoothed over one footprint, the
-//! equivalent of mip-mapping for a procedural texture.
+//! equivalent of mip-mapping for a procedural texture. Oblique footprints are
+//! the renderer's job (`render::footprint_albedo` averages along the long axis).
 
 /// Linear RGB colour, components in [0, 1].
 pub type Rgb = [f32; 3];
