@@ -10,10 +10,13 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
 
+use nalgebra::Vector3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::align::{align_to_map, apply_sim3, count_points_on_map, AlignOptions, INLIER_M};
+use super::align::{
+    align_to_map, apply_sim3, count_points_on_map, within_bounds, AlignOptions, INLIER_M,
+};
 use super::associate::{
     NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
 };
@@ -291,6 +294,13 @@ pub fn run_mapper_with_priors(
     };
     local_ba(&mut state, &config, associator, options, &mut report)?;
     filter_observations(&mut state, None, options.filter.max_reprojection_error_px);
+    // The initial points are the map seen from the given pose: when that pose
+    // is off, they are a moved copy of the map, and moving them back onto it
+    // corrects the pose before anything is built on it (see `align`).
+    if lidar_gauge && options.bundle.align_to_map {
+        report.initial_alignment =
+            align_whole_model(&mut state, &nearest_associator(), "initial pair");
+    }
     progress(state.num_registered(), state.images.len());
     stages.done("initialisation");
 
@@ -451,7 +461,7 @@ pub fn run_mapper_with_priors(
     // The whole model onto the map first (shape held): undoes a placement
     // that is wrong as a whole, which the solves below cannot (see `align`).
     if lidar_gauge && options.bundle.align_to_map {
-        report.alignment = align_whole_model(&mut state, &nearest_associator());
+        report.alignment = align_whole_model(&mut state, &nearest_associator(), "whole model");
         stages.done("retriangulation, alignment to the map");
     } else {
         stages.done("retriangulation");
@@ -577,30 +587,45 @@ fn local_ba(
 fn align_whole_model(
     state: &mut MapState,
     nearest: &NearestNeighbourAssociator,
+    what: &str,
 ) -> Option<AlignmentRecord> {
     let t = Instant::now();
     let a = align_to_map(state, nearest, &AlignOptions::default())?;
-    let applied = a.inliers_after > a.inliers_before;
+    // How far the model's centroid moves (the similarity's own translation is
+    // about the world origin, hundreds of metres for a small turn in
+    // georeferenced coordinates).
+    let centroid = state.points.values().map(|p| p.xyz).sum::<Vector3<f64>>()
+        / state.points.len().max(1) as f64;
+    let centroid_shift_m = (a.sim3.transform_point(&centroid) - centroid).norm();
+    let within_bounds = within_bounds(&a.sim3, centroid_shift_m);
+    let applied = a.inliers_after > a.inliers_before && within_bounds;
     if applied {
         apply_sim3(state, &a.sim3);
     }
     let record = AlignmentRecord {
         scale: a.sim3.scale,
         rotation_deg: a.sim3.rotation.angle().to_degrees(),
-        translation_m: a.sim3.translation.norm(),
+        translation_m: centroid_shift_m,
         points_on_map_before: a.inliers_before,
         points_on_map_after: a.inliers_after,
+        within_bounds,
         applied,
         time_s: t.elapsed().as_secs_f64(),
     };
     log::info!(
-        "map alignment: scale {:.5}, rotation {:.3} deg, translation {:.3} m; points on the map {} -> {} ({}; {:.2} s)",
+        "map alignment of the {what}: scale {:.5}, rotation {:.3} deg, centroid moved {:.3} m; points on the map {} -> {} ({}; {:.2} s)",
         record.scale,
         record.rotation_deg,
         record.translation_m,
         record.points_on_map_before,
         record.points_on_map_after,
-        if applied { "applied" } else { "kept the model where it was" },
+        if applied {
+            "applied"
+        } else if within_bounds {
+            "kept the model where it was"
+        } else {
+            "out of bounds: kept the model where it was"
+        },
         record.time_s
     );
     Some(record)

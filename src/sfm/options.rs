@@ -264,12 +264,15 @@ pub struct BundleOptions {
     /// Standard deviation of the prior's rotation, degrees. 0 disables.
     /// Default 3.
     pub initial_prior_rotation_deg: f64,
-    /// Before the final rounds, move the whole model (shape held) onto the
-    /// map: point-to-plane ICP over a similarity, coarse to fine (1 m to
-    /// 0.1 m), kept only when more points end within 2 cm of the map. It
-    /// undoes a placement that is wrong as a whole, which the solves do not
-    /// (measured with the initial pose 0.3 m / 3 deg off: seed-2 corridor
-    /// 0.36 m -> 1.7 mm, yard 0.58 m -> 12 mm). Default true.
+    /// After the initial pair and again before the final rounds, move the
+    /// whole model (shape held) onto the map: point-to-plane ICP over a
+    /// similarity, coarse to fine (1 m to 0.1 m), kept only when more points
+    /// end within 2 cm of the map. It undoes a placement that is wrong as a
+    /// whole, which the solves do not (measured with the initial pose 0.3 m /
+    /// 3 deg off: seed-2 corridor 0.36 m -> 1.7 mm, yard 0.58 m -> 12 mm
+    /// before the final rounds; on the re-rendered seed-2 yard the model
+    /// ended 7 % small and 0.57 m off until the initial pair was aligned
+    /// too: 1.1 mm). Default true.
     pub align_to_map: bool,
     /// Most final global bundle adjustments, each after a re-association (an
     /// ICP-like loop: the map pulls the model a little further each round

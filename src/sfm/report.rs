@@ -62,12 +62,15 @@ pub struct UncertaintySummary {
 pub struct AlignmentRecord {
     pub scale: f64,
     pub rotation_deg: f64,
-    /// Length of the similarity's translation, metres.
+    /// How far the similarity moves the model's centroid, metres.
     pub translation_m: f64,
     /// Points within 2 cm of the map before and after.
     pub points_on_map_before: usize,
     pub points_on_map_after: usize,
-    /// Applied only when more points end on the map.
+    /// Whether the move is within `sfm::align`'s bounds (scale, rotation,
+    /// centroid shift).
+    pub within_bounds: bool,
+    /// Applied only when more points end on the map and within bounds.
     pub applied: bool,
     pub time_s: f64,
 }
@@ -91,6 +94,8 @@ pub struct MapReport {
     pub mean_track_length: f64,
     pub mean_reprojection_error_px: f64,
     pub init: Option<InitSummary>,
+    /// The alignment of the initial pair's model to the map, when run.
+    pub initial_alignment: Option<AlignmentRecord>,
     /// The whole-model alignment to the map before the final rounds, when run.
     pub alignment: Option<AlignmentRecord>,
     /// Share of the final 3D points within 2 cm of a map surface (with LiDAR

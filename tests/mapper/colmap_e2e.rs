@@ -286,12 +286,23 @@ fn yard_with_colmap_database() {
     });
     print_run("yard, perturbed initial pose", &perturbed_run);
     check_run(&perturbed_run);
-    let alignment = &perturbed_run.report["alignment"];
-    let (before, after) = (
-        alignment["points_on_map_before"].as_u64().unwrap(),
-        alignment["points_on_map_after"].as_u64().unwrap(),
-    );
-    assert_eq!(alignment["applied"].as_bool(), Some(after > before));
+    for key in ["initial_alignment", "alignment"] {
+        let alignment = &perturbed_run.report[key];
+        let (before, after) = (
+            alignment["points_on_map_before"].as_u64().unwrap(),
+            alignment["points_on_map_after"].as_u64().unwrap(),
+        );
+        assert_eq!(
+            alignment["applied"].as_bool(),
+            Some(after > before),
+            "{key}"
+        );
+        // The model's centroid moves by at most about the initial pose's error.
+        assert!(
+            alignment["translation_m"].as_f64().unwrap() < 1.5,
+            "{alignment}"
+        );
+    }
 
     // Known poses (the true ones, as a user's pose.ply) with the perturbed
     // initial pose: soft priors in every solve.
