@@ -125,7 +125,7 @@ fn check_run(r: &Run) {
 /// report.json's pose uncertainties: one per registered image, finite, and
 /// of the size of the actual errors. They are formal (from the final solve's
 /// information, scaled by its residual variance): on the 24-image scenes the
-/// median centre error measured 1.0-4.7x the median sigma along the least
+/// median centre error measured 1.0-3.8x the median sigma along the least
 /// determined direction (systematic errors are not in the noise model), so
 /// the bound is loose; a unit or conversion slip is off by orders of magnitude.
 fn check_uncertainty(r: &Run) {
