@@ -58,6 +58,10 @@ pub struct Alignment {
     /// Points within 2 cm of a map plane (at the smallest radius) before and after.
     pub inliers_before: usize,
     pub inliers_after: usize,
+    /// How far the similarity moves the model's centroid, metres (its own
+    /// translation is about the world origin: hundreds of metres for a small
+    /// turn in georeferenced coordinates).
+    pub centroid_shift_m: f64,
 }
 
 /// Distance below which a point counts as lying on the map, metres.
@@ -190,10 +194,12 @@ pub fn align_to_map(
         }
     }
     let inliers_after = count_points_on_map(nearest, &current, finest);
+    let mean = |points: &[Vector3<f64>]| points.iter().sum::<Vector3<f64>>() / points.len() as f64;
     Some(Alignment {
         sim3,
         inliers_before,
         inliers_after,
+        centroid_shift_m: (mean(&current) - mean(&model)).norm(),
     })
 }
 

@@ -10,7 +10,6 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
 
-use nalgebra::Vector3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
@@ -591,13 +590,7 @@ fn align_whole_model(
 ) -> Option<AlignmentRecord> {
     let t = Instant::now();
     let a = align_to_map(state, nearest, &AlignOptions::default())?;
-    // How far the model's centroid moves (the similarity's own translation is
-    // about the world origin, hundreds of metres for a small turn in
-    // georeferenced coordinates).
-    let centroid = state.points.values().map(|p| p.xyz).sum::<Vector3<f64>>()
-        / state.points.len().max(1) as f64;
-    let centroid_shift_m = (a.sim3.transform_point(&centroid) - centroid).norm();
-    let within_bounds = within_bounds(&a.sim3, centroid_shift_m);
+    let within_bounds = within_bounds(&a.sim3, a.centroid_shift_m);
     let applied = a.inliers_after > a.inliers_before && within_bounds;
     if applied {
         apply_sim3(state, &a.sim3);
@@ -605,7 +598,7 @@ fn align_whole_model(
     let record = AlignmentRecord {
         scale: a.sim3.scale,
         rotation_deg: a.sim3.rotation.angle().to_degrees(),
-        translation_m: centroid_shift_m,
+        translation_m: a.centroid_shift_m,
         points_on_map_before: a.inliers_before,
         points_on_map_after: a.inliers_after,
         within_bounds,
