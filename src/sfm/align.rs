@@ -335,11 +335,8 @@ mod tests {
             planarity: None,
         };
         let index = MapIndex::build(&cloud).unwrap();
-        let nearest = NearestNeighbourAssociator {
-            cloud: &cloud,
-            index: &index,
-            options: AssociationOptions::default(),
-        };
+        let nearest =
+            NearestNeighbourAssociator::new(&cloud, &index, AssociationOptions::default());
         let (mut state, _) = two_view_state();
         state.points.clear();
         let truth = Sim3 {

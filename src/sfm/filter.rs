@@ -112,8 +112,8 @@ pub fn filter_small_angle_points(state: &mut MapState, min_angle_deg: f64) -> us
 /// triangulate consistently enough to pass the reprojection test but lie
 /// behind a wall. The surface is the map point seen at the feature's pixel
 /// ([`project_map_at_pixels`]) with its normal, the plane's offset averaged
-/// over its neighbours ([`NearestNeighbourAssociator::mean_offset`]: the
-/// map's range noise); a view where the map shows nothing, or a map point
+/// around it ([`NearestNeighbourAssociator::plane_offset_at`]: the map's
+/// range noise); a view where the map shows nothing, or a map point
 /// without a normal, does not count. Measured along the normal, the test
 /// does not grow with the range at grazing angles. A point on the map
 /// ([`is_on_map`], searched within `on_map_radius_m`) stays: a splat
@@ -161,9 +161,13 @@ pub fn filter_points_behind_map(
         )?;
         let centre = pose.camera_center();
         for (pid, hit) in points.iter().zip(hits) {
-            let Some((hit, normal)) =
-                hit.and_then(|h| Some((h.point_in_map, h.normal_in_map?.try_normalize(1e-9)?)))
-            else {
+            let Some((hit, normal, offset)) = hit.and_then(|h| {
+                Some((
+                    h.point_in_map,
+                    h.normal_in_map?.try_normalize(1e-9)?,
+                    nearest.plane_offset_at(h.point_idx as usize)?,
+                ))
+            }) else {
                 continue;
             };
             // Along the normal toward the camera (the offset is averaged
@@ -174,7 +178,7 @@ pub fn filter_points_behind_map(
                 1.0
             };
             let x = state.points[pid].xyz;
-            let depth_behind = toward * (nearest.mean_offset(&hit, &normal) - normal.dot(&x));
+            let depth_behind = toward * (offset - normal.dot(&x));
             if depth_behind > margin_m.max(margin_ratio * (x - centre).norm()) {
                 *behind.entry(*pid).or_default() += 1;
             }
@@ -226,11 +230,8 @@ mod tests {
         };
         let index = MapIndex::build(&cloud).unwrap();
         let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
-        let nearest = NearestNeighbourAssociator {
-            cloud: &cloud,
-            index: &index,
-            options: AssociationOptions::default(),
-        };
+        let nearest =
+            NearestNeighbourAssociator::new(&cloud, &index, AssociationOptions::default());
         let seen = Vector3::new(0.1, 0.2, 0.0);
         let (mut state, point) = two_view_state_seeing(&seen, &(seen + Vector3::z() * z));
         let removed = filter_points_behind_map(

@@ -10,13 +10,13 @@ use std::collections::BTreeMap;
 use nalgebra::Vector3;
 use rand_chacha::ChaCha8Rng;
 
+use super::associate::NearestNeighbourAssociator;
 use super::geometry::intersect_ray_plane;
 use super::options::{InitOptions, RegisterOptions};
 use super::register::{estimate_pose, PoseOutcome};
 use super::state::MapState;
 use crate::map::grid::FrustumGrid;
 use crate::map::projection::{project_map_at_pixels, ProjectionError};
-use crate::map::PointCloud;
 use crate::scene::{ImageId, Rigid3, TrackElement};
 
 /// One second-image candidate that was tried.
@@ -96,14 +96,21 @@ pub fn lidar_points_of_image(
     state: &MapState,
     image: ImageId,
     cam_from_world: &Rigid3,
-    cloud: &PointCloud,
+    map: &NearestNeighbourAssociator,
     grid: &FrustumGrid,
     options: &InitOptions,
 ) -> Result<(BTreeMap<u32, Vector3<f64>>, usize), ProjectionError> {
     let camera = state.camera_of(image);
     let keypoints = &state.images[&image].keypoints;
     let projection = options.projection();
-    let hits = project_map_at_pixels(cloud, grid, camera, cam_from_world, keypoints, &projection)?;
+    let hits = project_map_at_pixels(
+        map.cloud,
+        grid,
+        camera,
+        cam_from_world,
+        keypoints,
+        &projection,
+    )?;
     let world_from_cam = cam_from_world.inverse();
     let centre = cam_from_world.camera_center();
     let focal_px = camera.mean_focal_length();
@@ -120,18 +127,30 @@ pub fn lidar_points_of_image(
             continue;
         };
         let dir = world_from_cam.rotation * ray_in_cam;
-        let offset = normal.dot(&hit.point_in_map);
-        let Some(x) = intersect_ray_plane(&centre, &dir, &normal, offset, min_cos) else {
+        // The plane of the map's surface there, not through the hit itself:
+        // the nearest of the splats at a pixel is one that the map's noise
+        // moved toward the camera (see `plane_offset_at`).
+        let Some(offset) = map.plane_offset_at(hit.point_idx as usize) else {
             continue;
         };
         // A feature inside the LiDAR point's splat lies within the splat's
-        // half-diagonal of the point (in the plane); farther means the ray
-        // hit another surface (depth edges): its plane is the wrong one.
+        // half-diagonal of the point (in the plane through it); farther
+        // means the ray hit another surface (depth edges): its plane is the
+        // wrong one.
+        let through_hit = normal.dot(&hit.point_in_map);
+        let Some(on_hit_plane) = intersect_ray_plane(&centre, &dir, &normal, through_hit, min_cos)
+        else {
+            continue;
+        };
         let splat_m = projection.splat.half_size_px(hit.depth_m, focal_px) * hit.depth_m / focal_px
             * std::f64::consts::SQRT_2;
-        if (x - hit.point_in_map).norm() > splat_m.min(options.max_plane_extrapolation_m) {
+        if (on_hit_plane - hit.point_in_map).norm() > splat_m.min(options.max_plane_extrapolation_m)
+        {
             continue;
         }
+        let Some(x) = intersect_ray_plane(&centre, &dir, &normal, offset, min_cos) else {
+            continue;
+        };
         out.insert(k as u32, x);
     }
     Ok((out, num_hits))
@@ -144,14 +163,14 @@ pub fn initialize(
     state: &mut MapState,
     image: ImageId,
     cam_from_world: &Rigid3,
-    cloud: &PointCloud,
+    map: &NearestNeighbourAssociator,
     grid: &FrustumGrid,
     options: &InitOptions,
     register: &RegisterOptions,
     rng: &mut ChaCha8Rng,
 ) -> Result<InitSummary, InitError> {
     let (lidar, num_hits) =
-        lidar_points_of_image(state, image, cam_from_world, cloud, grid, options)?;
+        lidar_points_of_image(state, image, cam_from_world, map, grid, options)?;
     let name = state.images[&image].name.clone();
     let num_features = state.images[&image].keypoints.len();
     if lidar.len() < options.min_lidar_features {
@@ -258,4 +277,63 @@ pub fn initialize(
         num_supported: lidar.len(),
         attempts,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::database::{DatabaseSnapshot, DbImage};
+    use crate::map::grid::GridOptions;
+    use crate::map::index::MapIndex;
+    use crate::scene::CameraId;
+    use crate::sfm::associate::plane_offset_tests::noisy_floor;
+    use crate::sfm::associate::tests::test_camera;
+    use crate::sfm::options::AssociationOptions;
+    use nalgebra::{Matrix3, Vector2};
+
+    #[test]
+    fn initial_points_lie_on_the_maps_surface_not_on_the_nearest_splat() {
+        // A camera 2 m above the noisy floor (15 mm noise, georeferenced),
+        // looking straight down, with features on a grid of pixels.
+        let (cloud, _) = noisy_floor();
+        let index = MapIndex::build(&cloud).unwrap();
+        let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+        let map = NearestNeighbourAssociator::new(&cloud, &index, AssociationOptions::default());
+        let mut db = DatabaseSnapshot::default();
+        db.cameras.insert(CameraId(1), test_camera());
+        let id = ImageId(1);
+        db.images.insert(
+            id,
+            DbImage {
+                id,
+                name: "down.png".into(),
+                camera_id: CameraId(1),
+            },
+        );
+        let pixels: Vec<Vector2<f64>> = (0..30)
+            .flat_map(|i| {
+                (0..40).map(move |j| Vector2::new(10.0 + 16.0 * j as f64, 5.0 + 16.0 * i as f64))
+            })
+            .collect();
+        db.keypoints.insert(id, pixels);
+        let state = MapState::new(&db, 1);
+        let down = Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0));
+        let centre = cloud.origin + Vector3::new(0.1, -0.2, 2.0);
+        let pose = Rigid3::from_rotation_matrix(&down, -(down * centre));
+        let (points, hits) =
+            lidar_points_of_image(&state, id, &pose, &map, &grid, &InitOptions::default()).unwrap();
+        assert_eq!(hits, 1200);
+        assert!(
+            points.len() > 1000,
+            "{} of 1200 features got a point",
+            points.len()
+        );
+        // The floor is z = 200 (the map's own noise averages out): the nearest
+        // splat at a pixel sits about a sigma above it.
+        let mean_z = points.values().map(|p| p.z - 200.0).sum::<f64>() / points.len() as f64;
+        assert!(
+            mean_z.abs() < 0.001,
+            "initial points {mean_z} m off the floor"
+        );
+    }
 }

@@ -176,22 +176,15 @@ pub fn run_mapper_with_priors(
     let grid = FrustumGrid::build(cloud, &GridOptions::default())?;
     log::info!("map: {} points", cloud.len());
     stages.done("map index");
-    let nearest;
+    // One associator for every stage: it caches the map's plane offsets.
+    let nearest = NearestNeighbourAssociator::new(cloud, &index, options.association.clone());
     let projection;
-    let nearest_associator = || NearestNeighbourAssociator {
-        cloud,
-        index: &index,
-        options: options.association.clone(),
-    };
     let associator: &dyn PlaneAssociator = match options.association.kind {
         AssociationKind::None => &NoAssociation,
-        AssociationKind::Nearest => {
-            nearest = nearest_associator();
-            &nearest
-        }
+        AssociationKind::Nearest => &nearest,
         AssociationKind::Projection => {
             projection = ProjectionAssociator {
-                nearest: nearest_associator(),
+                nearest: &nearest,
                 grid: &grid,
                 projection: options.init.projection(),
             };
@@ -219,7 +212,7 @@ pub fn run_mapper_with_priors(
         &mut state,
         init_image,
         init_cam_from_world,
-        cloud,
+        &nearest,
         &grid,
         &options.init,
         &options.register,
@@ -297,8 +290,7 @@ pub fn run_mapper_with_priors(
     // is off, they are a moved copy of the map, and moving them back onto it
     // corrects the pose before anything is built on it (see `align`).
     if lidar_gauge && options.bundle.align_to_map {
-        report.initial_alignment =
-            align_whole_model(&mut state, &nearest_associator(), "initial pair");
+        report.initial_alignment = align_whole_model(&mut state, &nearest, "initial pair");
     }
     progress(state.num_registered(), state.images.len());
     stages.done("initialisation");
@@ -460,7 +452,7 @@ pub fn run_mapper_with_priors(
     // The whole model onto the map first (shape held): undoes a placement
     // that is wrong as a whole, which the solves below cannot (see `align`).
     if lidar_gauge && options.bundle.align_to_map {
-        report.alignment = align_whole_model(&mut state, &nearest_associator(), "whole model");
+        report.alignment = align_whole_model(&mut state, &nearest, "whole model");
         stages.done("retriangulation, alignment to the map");
     } else {
         stages.done("retriangulation");
@@ -468,7 +460,7 @@ pub fn run_mapper_with_priors(
     if lidar_gauge && options.filter.remove_behind_map {
         let removed = filter_points_behind_map(
             &mut state,
-            &nearest_associator(),
+            &nearest,
             &grid,
             &options.init.projection(),
             options.association.min_radius_m,
@@ -511,11 +503,7 @@ pub fn run_mapper_with_priors(
 
     if lidar_gauge && !state.points.is_empty() {
         let points: Vec<_> = state.points.values().map(|p| p.xyz).collect();
-        let on_map = count_points_on_map(
-            &nearest_associator(),
-            &points,
-            options.association.min_radius_m,
-        );
+        let on_map = count_points_on_map(&nearest, &points, options.association.min_radius_m);
         let share = on_map as f64 / points.len() as f64;
         report.points_on_map_share = Some(share);
         let min_share = options.association.min_points_on_map_share;

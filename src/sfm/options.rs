@@ -453,11 +453,22 @@ pub struct AssociationOptions {
     /// removes most of their harm (room 3.9 -> 2.5 mm, corridor 7.9 -> 7.4,
     /// yard 2.4).
     pub final_max_on_plane_error_px: f64,
-    /// Map points searched per association. Default 10.
+    /// Map points searched per association (the one whose tangent plane
+    /// lies closest to the 3D point gives the normal). Default 10.
     pub num_neighbours: usize,
-    /// Neighbours whose normals are within this angle share the plane (its
+    /// Map points whose normals are within this angle share the plane (its
     /// offset is their mean), degrees. Default 15.
     pub same_plane_max_angle_deg: f64,
+    /// A plane's offset is the mean over the map points on it within this
+    /// distance of the plane's map point, measured along the surface,
+    /// metres: the map's range noise shrinks by the square root of their
+    /// number (about 80 at 2 cm spacing). A few times the map's spacing.
+    /// Default 0.1.
+    pub plane_radius_m: f64,
+    /// ... and within this distance of the plane along its normal, metres
+    /// (several sigmas of the map's noise; less than the depth of the
+    /// smallest step between parallel surfaces). Default 0.1.
+    pub plane_window_m: f64,
     /// The run fails (no output) when fewer of the final model's 3D points
     /// than this share lie within 2 cm of a map surface: the model does not
     /// fit the map (an initial pose far off, a map of another place). 0
@@ -489,6 +500,8 @@ impl Default for AssociationOptions {
             final_max_on_plane_error_px: 0.0,
             num_neighbours: 10,
             same_plane_max_angle_deg: 15.0,
+            plane_radius_m: 0.1,
+            plane_window_m: 0.1,
             min_points_on_map_share: 0.6,
         }
     }
@@ -561,6 +574,8 @@ impl AssociationOptions {
             "association.same_plane_max_angle_deg",
             "must be in [0, 90]",
         )?;
+        positive("association.plane_radius_m", self.plane_radius_m)?;
+        positive("association.plane_window_m", self.plane_window_m)?;
         check(
             (0.0..=1.0).contains(&self.min_points_on_map_share),
             "association.min_points_on_map_share",

@@ -597,11 +597,7 @@ fn plane_bias() {
     let cloud =
         colmap_lidar::commands::map::load_map(&Path::new(&scene).join("lidar.ply")).unwrap();
     let index = MapIndex::build(&cloud).unwrap();
-    let assoc = NearestNeighbourAssociator {
-        cloud: &cloud,
-        index: &index,
-        options: Default::default(),
-    };
+    let assoc = NearestNeighbourAssociator::new(&cloud, &index, Default::default());
     let pts: Vec<Vector3<f64>> = rec.points3d.values().map(|p| p.xyz).collect();
     let queries: Vec<AssociationQuery> = pts
         .iter()
