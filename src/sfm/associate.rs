@@ -2,11 +2,13 @@
 //!
 //! Before every solve the mapper asks a [`PlaneAssociator`] for planes of the
 //! solve's variable 3D points; each plane becomes a residual
-//! `w * (n . X - n . l)`. Two associators exist: [`NoAssociation`] (plain SfM,
-//! option `--no-lidar-constraints`) and [`NearestNeighbourAssociator`] (nearest
-//! map point within a radius that shrinks as the point takes part in global
-//! BAs, its tangent plane). Projection associations and per-kind weights are
-//! the next step; they plug in through the same trait.
+//! `w * (n . X - n . l)`. Three associators exist: [`NoAssociation`] (plain
+//! SfM, option `--no-lidar-constraints`), [`NearestNeighbourAssociator`]
+//! (nearest map point within a radius that shrinks as the point takes part in
+//! global BAs) and [`ProjectionAssociator`] (short tracks: the map point seen
+//! at the point's features; longer ones: nearest). A plane is a map point's
+//! normal with the offset of the map's surface around it
+//! ([`NearestNeighbourAssociator::plane_offset_at`]).
 use nalgebra::Vector3;
 
 use super::options::AssociationOptions;
