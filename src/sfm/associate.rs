@@ -198,12 +198,13 @@ impl NearestNeighbourAssociator<'_> {
     /// large inside rooms and corridors. Cached per map point.
     pub fn plane_offset_at(&self, i: usize) -> Option<f64> {
         let normal = self.normal_of(i)?;
-        let own = normal.dot(&self.cloud.point_in_map(i));
+        let point = self.cloud.point_in_map(i);
+        let own = normal.dot(&point);
         let cached = self.offsets[i].load(Ordering::Relaxed);
         if cached != NOT_YET {
             return Some(own + f64::from(f32::from_bits(cached)));
         }
-        let offset = self.surface_offset(&self.cloud.point_in_map(i), &normal);
+        let offset = self.surface_offset(&point, &normal);
         // Stored relative to the point's own offset: centimetres, exact
         // enough in f32 at any map coordinates.
         let delta = (offset - own) as f32;
@@ -219,7 +220,7 @@ impl NearestNeighbourAssociator<'_> {
     /// The cylinder mean of [`Self::plane_offset_at`] around `at` (a point
     /// on or near the surface) for the plane normal `normal`; `n . at` when
     /// no map point qualifies.
-    pub fn surface_offset(&self, at: &Vector3<f64>, normal: &Vector3<f64>) -> f64 {
+    fn surface_offset(&self, at: &Vector3<f64>, normal: &Vector3<f64>) -> f64 {
         let (r, g) = (self.options.plane_radius_m, self.options.plane_window_m);
         let cos_same = self.options.same_plane_max_angle_deg.to_radians().cos();
         // Candidates: same normal, within the radius across the normal.
@@ -260,9 +261,8 @@ impl NearestNeighbourAssociator<'_> {
     /// The map's plane near `x` (world frame): among the `num_neighbours`
     /// nearest map points within `radius_m`, the one whose tangent plane
     /// lies closest to `x` (at a corner the nearest point may belong to the
-    /// other surface) gives the normal; the offset is
-    /// [`Self::plane_offset`] over the neighbours. `None` without a
-    /// neighbour with a normal.
+    /// other surface) gives the plane: its normal and
+    /// [`Self::plane_offset_at`]. `None` without a neighbour with a normal.
     pub fn plane_near(&self, x: &Vector3<f64>, radius_m: f64) -> Option<(Vector3<f64>, f64)> {
         let neighbours = self
             .index
