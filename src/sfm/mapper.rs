@@ -20,9 +20,12 @@ use super::associate::{
     NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
 };
 use super::bundle::{bundle_adjust, pose_uncertainty, BundleConfig, SoftPosePrior};
-use super::filter::{filter_observations, filter_points_behind_map, filter_small_angle_points};
+use super::filter::{
+    count_points_on_seen_surface, filter_observations, filter_points_behind_map,
+    filter_small_angle_points,
+};
 use super::initialize::{initialize, InitError};
-use super::options::{AssociationKind, MapperOptions, OptionsError};
+use super::options::{AssociationKind, BundleOptions, MapperOptions, OptionsError};
 use super::register::{
     next_best_images, register_at_known_pose, register_image, PoseOutcome, RegistrationOutcome,
 };
@@ -61,7 +64,7 @@ pub enum MapperError {
     #[error("bundle adjustment failed: {0}")]
     Solver(#[from] SolverError),
     #[error(
-        "the model does not fit the map: {:.0} % of its {points} 3D points lie within {:.0} cm of a map surface (at least {:.0} % expected, option association.min_points_on_map_share); is the initial pose right, and is the map of the place the images show?",
+        "the model does not fit the map: {:.0} % of its {points} 3D points lie within {:.0} cm of the map surface their images see there (at least {:.0} % expected, option association.min_points_on_map_share); is the initial pose right, and is the map of the place the images show?",
         share * 100.0, INLIER_M * 100.0, min_share * 100.0
     )]
     OffMap {
@@ -69,12 +72,51 @@ pub enum MapperError {
         points: usize,
         min_share: f64,
     },
+    #[error(
+        "the initial image ended {moved_m:.2} m and {turned_deg:.1} deg from its given pose (at most {max_m} m and {max_deg} deg accepted, options bundle.max_initial_pose_change_m and _deg): the given pose is too far off for the result to be trusted (the map may have drawn the model to a wrong place); give the initial pose to within a few decimetres and degrees"
+    )]
+    InitialPoseFarOff {
+        moved_m: f64,
+        turned_deg: f64,
+        max_m: f64,
+        max_deg: f64,
+    },
 }
 
 /// The result of a run.
 pub struct MapperOutput {
     pub reconstruction: Reconstruction,
     pub report: MapReport,
+}
+
+/// Fails when the initial image ended farther from its given pose than
+/// `bundle.max_initial_pose_change_m` / `_deg` allow (0: no limit).
+fn check_initial_pose(
+    state: &MapState,
+    init_image: ImageId,
+    given: &Rigid3,
+    options: &BundleOptions,
+) -> Result<(), MapperError> {
+    let Some(pose) = state.pose(init_image) else {
+        return Ok(());
+    };
+    let moved_m = (pose.camera_center() - given.camera_center()).norm();
+    let turned_deg = (pose.rotation * given.rotation.inverse())
+        .angle()
+        .to_degrees();
+    let (max_m, max_deg) = (
+        options.max_initial_pose_change_m,
+        options.max_initial_pose_change_deg,
+    );
+    if (max_m > 0.0 && moved_m > max_m) || (max_deg > 0.0 && turned_deg > max_deg) {
+        return Err(MapperError::InitialPoseFarOff {
+            moved_m,
+            turned_deg,
+            max_m,
+            max_deg,
+        });
+    }
+    Ok(())
 }
 
 /// Called after every registration with (registered, total).
@@ -506,14 +548,29 @@ pub fn run_mapper_with_priors(
         let on_map = count_points_on_map(&nearest, &points, options.association.min_radius_m);
         let share = on_map as f64 / points.len() as f64;
         report.points_on_map_share = Some(share);
+        let on_seen = count_points_on_seen_surface(
+            &state,
+            &nearest,
+            &grid,
+            &options.init.projection(),
+            INLIER_M,
+        )?;
+        let seen_share = on_seen as f64 / points.len() as f64;
+        report.points_on_seen_surface_share = Some(seen_share);
+        log::info!(
+            "3D points on the map: {:.1} % near a surface, {:.1} % on the surface their images see",
+            share * 100.0,
+            seen_share * 100.0
+        );
         let min_share = options.association.min_points_on_map_share;
-        if share < min_share {
+        if seen_share < min_share {
             return Err(MapperError::OffMap {
-                share,
+                share: seen_share,
                 points: points.len(),
                 min_share,
             });
         }
+        check_initial_pose(&state, init_image, init_cam_from_world, &options.bundle)?;
     }
     report.finish(&state);
     if lidar_gauge {

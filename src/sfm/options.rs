@@ -264,6 +264,17 @@ pub struct BundleOptions {
     /// Standard deviation of the prior's rotation, degrees. 0 disables.
     /// Default 3.
     pub initial_prior_rotation_deg: f64,
+    /// The run fails (no output) when the initial image ends farther than
+    /// this from its given position, metres: the given pose was too far off
+    /// for the result to be trusted. Measured on the seed-7 yard from poses
+    /// 0.57-1.2 m and 0-8 deg off: three runs ended 1.8-2.0 m off at a wrong
+    /// scale with 66-79 % of their points on the surface their images see
+    /// (above `min_points_on_map_share`), their initial image 1.1-1.8 m
+    /// from the given pose. 0 disables. Default 1 (3.3 sigmas of the
+    /// default prior).
+    pub max_initial_pose_change_m: f64,
+    /// The same for the rotation, degrees. 0 disables. Default 10.
+    pub max_initial_pose_change_deg: f64,
     /// After the initial pair and again before the final rounds, move the
     /// whole model (shape held) onto the map: point-to-plane ICP over a
     /// similarity, coarse to fine (1 m to 0.1 m), kept only when more points
@@ -327,6 +338,8 @@ impl Default for BundleOptions {
             fix_initial_for: 0,
             initial_prior_position_m: 0.3,
             initial_prior_rotation_deg: 3.0,
+            max_initial_pose_change_m: 1.0,
+            max_initial_pose_change_deg: 10.0,
             align_to_map: true,
             num_threads: 1,
             uncertainty_max_images: 300,
@@ -361,6 +374,14 @@ impl BundleOptions {
         non_negative(
             "bundle.initial_prior_rotation_deg",
             self.initial_prior_rotation_deg,
+        )?;
+        non_negative(
+            "bundle.max_initial_pose_change_m",
+            self.max_initial_pose_change_m,
+        )?;
+        non_negative(
+            "bundle.max_initial_pose_change_deg",
+            self.max_initial_pose_change_deg,
         )?;
         check(
             (1..=256).contains(&self.num_threads),
@@ -470,12 +491,14 @@ pub struct AssociationOptions {
     /// smallest step between parallel surfaces). Default 0.1.
     pub plane_window_m: f64,
     /// The run fails (no output) when fewer of the final model's 3D points
-    /// than this share lie within 2 cm of a map surface: the model does not
-    /// fit the map (an initial pose far off, a map of another place). 0
-    /// turns the check off. Default 0.6: right models of the synthetic
-    /// scenes measured 0.90-0.96; the yard mapped from an initial pose 1.1 m
-    /// and 9 deg off 0.47 (6 of 24 images registered, 0.85 m off), the
-    /// seed-2 room 0.55 m off 0.56. Real maps with more noise, or places
+    /// than this share lie within 2 cm of the map surface seen at their
+    /// feature in one of their images: the model does not fit the map (an
+    /// initial pose far off, a map of another place). 0 turns the check
+    /// off. Default 0.6: right models of the synthetic scenes measured
+    /// 0.85-0.95; the seed-7 yard mapped from an initial pose 2.2 m and
+    /// 12 deg off, a model 439 times too small, 0.32 (with 0.997 within
+    /// 2 cm of the nearest surface, the test this replaced); from poses
+    /// 1.1-1.7 m and 8 deg off 0.35-0.39. Real maps with more noise, or places
     /// changed since the scan, may need less.
     pub min_points_on_map_share: f64,
 }

@@ -101,6 +101,10 @@ pub struct MapReport {
     /// Share of the final 3D points within 2 cm of a map surface (with LiDAR
     /// constraints).
     pub points_on_map_share: Option<f64>,
+    /// Share of the final 3D points within 2 cm of the surface the map shows
+    /// at their feature in at least one of their images (with LiDAR
+    /// constraints).
+    pub points_on_seen_surface_share: Option<f64>,
     /// Points deleted before the final rounds because they lie behind the
     /// surface the map shows at their features (with LiDAR constraints).
     pub points_behind_map_removed: Option<usize>,

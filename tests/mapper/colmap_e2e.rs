@@ -120,6 +120,12 @@ fn check_run(r: &Run) {
     assert!(rot.median < 0.05, "rotation errors {rot:?}");
     let s = r.none.sim3_scale.unwrap();
     assert!((s - 1.0).abs() < 0.03, "Sim3 scale {s}");
+    // With the map's constraints: most points lie on the surface their
+    // images see (0.95 measured on the seed-7 yard, 0.87-0.97 on the
+    // synthetic scenes; models in the wrong place 0.32-0.79).
+    if let Some(seen) = r.report["points_on_seen_surface_share"].as_f64() {
+        assert!(seen > 0.85, "points on the seen surface: {seen}");
+    }
 }
 
 /// report.json's pose uncertainties: one per registered image, finite, and
@@ -361,45 +367,31 @@ fn yard_with_colmap_database() {
         "{err:#}"
     );
     assert!(!out.exists());
-    // An initial pose 1.1 m and 8 deg off: either the map pulls the model in
-    // or the run fails (the model does not fit the map) and writes nothing;
-    // never a wrong model without an error. (On the yard of seed 7 made by
-    // scripts/make_database.sh this pose gave 7 % of the points on the map
-    // and the error; poses as far off in other directions were pulled in.)
+    // An initial pose 1.1 m and 8 deg off: the run fails and writes
+    // nothing, never a wrong model without an error. The initial image
+    // cannot end within the default 1 m of that pose and be right; from
+    // such poses the map pulls the model in on some databases and draws it
+    // to a wrong place on others (the seed-7 yard of one COLMAP run: 1.54 m
+    // off with enough points near map surfaces to pass that test), which
+    // COLMAP's matching, different run to run, decides.
     let mut far = exact;
     far[0] += 1.0;
     far[1] -= 0.5;
     far[5] += 8.0;
     let far_out = dir.path().join("far");
-    match run_map(&MapArgs {
+    let err = run_map(&MapArgs {
         init_pose: Some(far.map(|v| v.to_string()).join(",")),
         output: Some(far_out.clone()),
         ..base.clone()
-    }) {
-        Ok(()) => {
-            let model = load_poses(&far_out).unwrap();
-            let e = evaluate(
-                &model,
-                &load_poses(&scene.join("gt")).unwrap(),
-                Alignment::None,
-            )
-            .unwrap();
-            let c = e.centre_error_m.unwrap();
-            eprintln!(
-                "far-off initial pose: pulled in, centre error median {:.4} m",
-                c.median
-            );
-            assert!(c.median < 0.02, "far-off initial pose: centre errors {c:?}");
-        }
-        Err(err) => {
-            eprintln!("far-off initial pose: {err:#}");
-            assert!(
-                format!("{err:#}").contains("does not fit the map"),
-                "{err:#}"
-            );
-            assert!(!far_out.exists());
-        }
-    }
+    })
+    .unwrap_err();
+    eprintln!("far-off initial pose: {err:#}");
+    let msg = format!("{err:#}");
+    assert!(
+        msg.contains("from its given pose") || msg.contains("does not fit the map"),
+        "{msg}"
+    );
+    assert!(!far_out.exists());
     // The check itself: a share no real model reaches fails the run, names
     // the inputs, and nothing is written.
     let strict = dir.path().join("strict.toml");
