@@ -571,6 +571,7 @@ pub fn run_mapper_with_priors(
             });
         }
         check_initial_pose(&state, init_image, init_cam_from_world, &options.bundle)?;
+        stages.done("fit to the map");
     }
     report.finish(&state);
     if lidar_gauge {

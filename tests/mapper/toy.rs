@@ -263,7 +263,7 @@ fn toy_room_registers_in_the_map_frame() {
     );
     // Every stage after registration is timed under its own name.
     let stages: Vec<&str> = out.report.stages.iter().map(|s| s.name.as_str()).collect();
-    let tail = &stages[stages.len() - 5..];
+    let tail = &stages[stages.len() - 6..];
     assert_eq!(
         tail,
         [
@@ -271,10 +271,14 @@ fn toy_room_registers_in_the_map_frame() {
             "retriangulation, alignment to the map",
             "points behind the map",
             "final bundle adjustment",
+            "fit to the map",
             "pose uncertainty"
         ],
         "{stages:?}"
     );
+    // Nearly every point lies on the wall its images see there.
+    let seen = out.report.points_on_seen_surface_share.unwrap();
+    assert!(seen > 0.9, "points on the seen surface: {seen}");
     // Points lie on the room's planes (the map holds them).
     let o = origin();
     let mut off = 0usize;
