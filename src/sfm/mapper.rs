@@ -636,7 +636,8 @@ fn align_whole_model(
 ) -> Option<AlignmentRecord> {
     let t = Instant::now();
     let a = align_to_map(state, nearest, &AlignOptions::default())?;
-    let within_bounds = within_bounds(&a.sim3, a.centroid_shift_m);
+    let gain = a.inliers_after as f64 / a.inliers_before.max(1) as f64;
+    let within_bounds = within_bounds(&a.sim3, a.centroid_shift_m, gain);
     let applied = a.inliers_after > a.inliers_before && within_bounds;
     if applied {
         apply_sim3(state, &a.sim3);

@@ -267,11 +267,11 @@ pub struct BundleOptions {
     /// The run fails (no output) when the initial image ends farther than
     /// this from its given position, metres: the given pose was too far off
     /// for the result to be trusted. Measured on the seed-7 yard from poses
-    /// 0.57-1.2 m and 0-8 deg off: three runs ended 1.8-2.0 m off at a wrong
-    /// scale with 66-79 % of their points on the surface their images see
-    /// (above `min_points_on_map_share`), their initial image 1.1-1.8 m
-    /// from the given pose. 0 disables. Default 1 (3.3 sigmas of the
-    /// default prior).
+    /// 0.57-1.2 m and 0-8 deg off, before the alignment could move a model
+    /// more than 2 m: four runs ended 1.6-2.0 m off at a wrong scale with
+    /// 62-79 % of their points on the surface their images see (above
+    /// `min_points_on_map_share`), their initial image 1.1-1.8 m from the
+    /// given pose. 0 disables. Default 1 (3.3 sigmas of the default prior).
     pub max_initial_pose_change_m: f64,
     /// The same for the rotation, degrees. 0 disables. Default 10.
     pub max_initial_pose_change_deg: f64,
