@@ -253,7 +253,9 @@ pub fn filter_points_behind_map(
 /// at the feature's pixel ([`project_map_at_pixels`], offset from
 /// [`NearestNeighbourAssociator::plane_offset_at`]) in at least one of their
 /// views. A view where the map shows nothing there is a miss (the map does
-/// not cover what the image shows).
+/// not cover what the image shows). Counts over every k-th point (in id
+/// order) so that at most `max_points` are looked up; returns (on the
+/// surface, looked up).
 ///
 /// A stricter test of the model's placement than the nearest surface
 /// ([`super::align::count_points_on_map`]): a model in the wrong place or
@@ -268,12 +270,15 @@ pub fn count_points_on_seen_surface(
     grid: &FrustumGrid,
     projection: &ProjectionOptions,
     tolerance_m: f64,
-) -> Result<usize, ProjectionError> {
+    max_points: usize,
+) -> Result<(usize, usize), ProjectionError> {
+    let stride = state.points.len().div_ceil(max_points.max(1)).max(1);
+    let sample: BTreeSet<Point3DId> = state.points.keys().step_by(stride).copied().collect();
     let mut on_surface: BTreeSet<Point3DId> = BTreeSet::new();
     for &image in &state.registration_order {
         // A point found on its surface in one view needs no other.
         let seen = seen_planes(state, nearest, grid, projection, image, |p| {
-            !on_surface.contains(p)
+            sample.contains(p) && !on_surface.contains(p)
         })?;
         for SeenPlane {
             point,
@@ -287,7 +292,7 @@ pub fn count_points_on_seen_surface(
             }
         }
     }
-    Ok(on_surface.len())
+    Ok((on_surface.len(), sample.len()))
 }
 
 #[cfg(test)]
@@ -373,15 +378,16 @@ mod tests {
         // `point`.
         let on_seen_surface = |seen: Vector3<f64>, point: Vector3<f64>| {
             let (state, _) = two_view_state_seeing(&seen, &point);
-            let n = count_points_on_seen_surface(
+            let (n, of) = count_points_on_seen_surface(
                 &state,
                 &nearest,
                 &grid,
                 &ProjectionOptions::default(),
                 0.02,
+                10,
             )
             .unwrap();
-            assert!(n <= 1);
+            assert_eq!(of, 1);
             n == 1
         };
         let seen = Vector3::new(0.1, 0.2, 0.0);
