@@ -115,8 +115,8 @@ struct SeenPlane {
 
 /// The surfaces the map shows at the features of `image` whose 3D points
 /// `wanted` accepts ([`project_map_at_pixels`]); features where the map
-/// shows nothing, or a point without a normal, are left out. None for an
-/// unregistered image.
+/// shows nothing, or a point without a normal, are left out; nothing for
+/// an unregistered image.
 fn seen_planes(
     state: &MapState,
     nearest: &NearestNeighbourAssociator,
@@ -236,18 +236,6 @@ pub fn filter_points_behind_map(
     Ok(doomed.len())
 }
 
-/// How many of the model's 3D points lie on the surface the map shows at
-/// their features: within `tolerance_m` of the plane of the map point seen
-/// at the feature's pixel ([`project_map_at_pixels`], offset from
-/// [`NearestNeighbourAssociator::plane_offset_at`]) in at least one of their
-/// views. Returns (that count, the number of points).
-///
-/// A stricter test of the placement than the nearest surface
-/// ([`super::align::count_points_on_map`]): a model put in the wrong place
-/// or at the wrong scale can still have most points near *some* surface
-/// (a yard's ground, a collapsed model on one wall), but not on the surface
-/// its cameras would see there. A view where the map shows nothing counts
-/// as a miss (the map does not cover what the image shows).
 /// How many of the model's 3D points lie on the surface the map shows at
 /// their features: within `tolerance_m` of the plane of the map point seen
 /// at the feature's pixel ([`project_map_at_pixels`], offset from
