@@ -292,9 +292,6 @@ mod tests {
     use crate::sfm::associate::tests::two_view_state_seeing;
     use crate::sfm::options::AssociationOptions;
 
-    /// Whether the filter deletes a point at height `z` above the floor
-    /// whose two views (3 m up) see the floor at (0.1, 0.2, 0); the map's
-    /// normals point up or (`flipped`) down.
     /// A 3 x 3 m floor patch z = 0 (x, y in -1.5..1.5 m), 2 cm spacing,
     /// range noise in a fixed pattern: every third point 3 cm up, the others
     /// 1.5 cm down (mean 0), a 30 cm hole around (-0.5, -0.5); normals up or
@@ -330,6 +327,9 @@ mod tests {
         }
     }
 
+    /// Whether the filter deletes a point at height `z` above the floor
+    /// whose two views (3 m up) see the floor at (0.1, 0.2, 0); the map's
+    /// normals point up or (`flipped`) down.
     fn deleted_at(z: f64, flipped: bool) -> bool {
         // The camera sees a raised point of the floor (the nearest splat):
         // 4 cm under the floor is 7 cm under it, beyond the margin, unless

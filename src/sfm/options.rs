@@ -495,7 +495,7 @@ pub struct AssociationOptions {
     /// feature in one of their images: the model does not fit the map (an
     /// initial pose far off, a map of another place). 0 turns the check
     /// off. Default 0.6: right models of the synthetic scenes measured
-    /// 0.85-0.95; the seed-7 yard mapped from an initial pose 2.2 m and
+    /// 0.87-0.97; the seed-7 yard mapped from an initial pose 2.2 m and
     /// 12 deg off, a model 439 times too small, 0.32 (with 0.997 within
     /// 2 cm of the nearest surface, the test this replaced); from poses
     /// 1.1-1.7 m and 8 deg off 0.35-0.39. Real maps with more noise, or places

@@ -103,7 +103,7 @@ pub struct MapReport {
     pub points_on_map_share: Option<f64>,
     /// Share of the final 3D points within 2 cm of the surface the map shows
     /// at their feature in at least one of their images (with LiDAR
-    /// constraints).
+    /// constraints; over at most 20000 of them, every k-th by id).
     pub points_on_seen_surface_share: Option<f64>,
     /// Points deleted before the final rounds because they lie behind the
     /// surface the map shows at their features (with LiDAR constraints).
