@@ -535,6 +535,23 @@ pub(crate) mod tests {
 
     /// The cameras of [`two_view_state`] seeing `x` exactly; the state's
     /// point is at `point`.
+    /// Adds image `id` ("{id}.png", camera 1) with `keypoints` to `db`.
+    pub(crate) fn add_test_image(
+        db: &mut DatabaseSnapshot,
+        id: ImageId,
+        keypoints: Vec<nalgebra::Vector2<f64>>,
+    ) {
+        db.images.insert(
+            id,
+            DbImage {
+                id,
+                name: format!("{}.png", id.0),
+                camera_id: CameraId(1),
+            },
+        );
+        db.keypoints.insert(id, keypoints);
+    }
+
     /// A 640 x 480 pinhole camera, focal length 500 px, id 1.
     pub(crate) fn test_camera() -> Camera {
         Camera {
@@ -559,15 +576,7 @@ pub(crate) mod tests {
             let id = ImageId(i as u32 + 1);
             let pose = Rigid3::from_rotation_matrix(&down, -(down * Vector3::new(cx, 0.0, 3.0)));
             let pixel = camera.project(&pose.transform_point(x)).expect("in front");
-            db.images.insert(
-                id,
-                DbImage {
-                    id,
-                    name: format!("{i}.png"),
-                    camera_id: CameraId(1),
-                },
-            );
-            db.keypoints.insert(id, vec![pixel]);
+            add_test_image(&mut db, id, vec![pixel]);
             poses.push((id, pose));
         }
         let mut state = MapState::new(&db, 1);

@@ -29,7 +29,9 @@ use super::options::{AssociationKind, BundleOptions, MapperOptions, OptionsError
 use super::register::{
     next_best_images, register_at_known_pose, register_image, PoseOutcome, RegistrationOutcome,
 };
-use super::report::{AlignmentRecord, ImageRecord, MapReport, StageRecord, UncertaintySummary};
+use super::report::{
+    AlignmentRecord, ImageRecord, MapReport, RoundRecord, StageRecord, UncertaintySummary,
+};
 use super::state::MapState;
 use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulate_image};
 use crate::io::database::DatabaseSnapshot;
@@ -73,7 +75,8 @@ pub enum MapperError {
         min_share: f64,
     },
     #[error(
-        "the initial image ended {moved_m:.2} m and {turned_deg:.1} deg from its given pose (at most {max_m} m and {max_deg} deg accepted, options bundle.max_initial_pose_change_m and _deg): the given pose is too far off for the result to be trusted (the map may have drawn the model to a wrong place); give the initial pose to within a few decimetres and degrees"
+        "the initial image ended {moved_m:.2} m and {turned_deg:.1} deg from its given pose ({} accepted, options bundle.max_initial_pose_change_m and _deg): the given pose is too far off for the result to be trusted (the map may have drawn the model to a wrong place); give the initial pose to within a few decimetres and degrees",
+        pose_change_limits(.max_m, .max_deg)
     )]
     InitialPoseFarOff {
         moved_m: f64,
@@ -81,6 +84,38 @@ pub enum MapperError {
         max_m: f64,
         max_deg: f64,
     },
+}
+
+/// "at most 1 m and 10 deg"; a limit of 0 is off and left out.
+fn pose_change_limits(max_m: &f64, max_deg: &f64) -> String {
+    match (*max_m > 0.0, *max_deg > 0.0) {
+        (true, true) => format!("at most {max_m} m and {max_deg} deg"),
+        (true, false) => format!("at most {max_m} m, any rotation"),
+        (false, true) => format!("any distance, at most {max_deg} deg"),
+        (false, false) => "no limit".to_string(),
+    }
+}
+
+/// The images of a periodic ("sphere") BA around `newest`: registered
+/// images whose centres lie within `global_radius_m` of its centre, the
+/// `global_max_images` nearest of them (ties by id) when that is not 0.
+fn sphere_images(state: &MapState, newest: ImageId, options: &BundleOptions) -> BTreeSet<ImageId> {
+    let Some(centre) = state.pose(newest).map(|p| p.camera_center()) else {
+        return state.registration_order.iter().copied().collect();
+    };
+    let mut near: Vec<(f64, ImageId)> = state
+        .registration_order
+        .iter()
+        .filter_map(|&i| {
+            let d = (state.pose(i)?.camera_center() - centre).norm();
+            (d <= options.global_radius_m).then_some((d, i))
+        })
+        .collect();
+    near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    if options.global_max_images > 0 {
+        near.truncate(options.global_max_images);
+    }
+    near.into_iter().map(|(_, i)| i).collect()
 }
 
 /// The result of a run.
@@ -442,21 +477,16 @@ pub fn run_mapper_with_priors(
             && state.num_registered() as f64
                 >= last_global_size as f64 * (1.0 + options.bundle.global_growth_ratio);
         if since_global >= options.bundle.global_every_images || grown {
-            // Sphere BA: images within `global_radius_m` of the newest one vary.
-            let mut fixed = fixed_for(&state);
-            if let Some(centre) = state.pose(image).map(|p| p.camera_center()) {
-                for &i in &state.registration_order {
-                    let far = state.pose(i).is_some_and(|p| {
-                        (p.camera_center() - centre).norm() > options.bundle.global_radius_m
-                    });
-                    if far {
-                        fixed.insert(i);
-                    }
-                }
-            }
+            // Sphere BA: the images nearest the newest one (within
+            // `global_radius_m`, at most `global_max_images`) vary, with the
+            // points they see; the images outside that see those points join
+            // as constants, the rest stay out of the solve.
+            let variable = sphere_images(&state, image, &options.bundle);
+            let fixed = fixed_for(&state);
             global_ba(
                 &mut state,
                 SolveKind::Global,
+                &variable,
                 &fixed,
                 &pose_priors,
                 associator,
@@ -519,25 +549,35 @@ pub fn run_mapper_with_priors(
     for round in 0..options.bundle.final_rounds {
         let before = camera_centres(&state);
         let fixed = fixed_for(&state);
+        let all: BTreeSet<ImageId> = state.registration_order.iter().copied().collect();
         global_ba(
             &mut state,
             SolveKind::Final,
+            &all,
             &fixed,
             &pose_priors,
             associator,
             options,
             &mut report,
         )?;
-        let moved = camera_centres(&state)
+        let mut moves: Vec<f64> = camera_centres(&state)
             .iter()
             .zip(&before)
             .map(|(a, b)| (a - b).norm())
-            .fold(0.0f64, f64::max);
+            .collect();
+        moves.sort_by(f64::total_cmp);
+        let record = RoundRecord {
+            median_move_m: moves.get(moves.len() / 2).copied().unwrap_or(0.0),
+            max_move_m: moves.last().copied().unwrap_or(0.0),
+        };
         log::info!(
-            "final round {}: cameras moved up to {moved:.2e} m",
-            round + 1
+            "final round {}: cameras moved {:.2e} m (median), up to {:.2e} m",
+            round + 1,
+            record.median_move_m,
+            record.max_move_m
         );
-        if moved < options.bundle.final_stop_change_m {
+        report.final_rounds.push(record);
+        if record.max_move_m < options.bundle.final_stop_change_m {
             break;
         }
     }
@@ -783,6 +823,7 @@ fn camera_centres(state: &MapState) -> Vec<nalgebra::Vector3<f64>> {
 fn global_ba(
     state: &mut MapState,
     kind: SolveKind,
+    variable: &BTreeSet<ImageId>,
     fixed: &BTreeSet<ImageId>,
     priors: &[SoftPosePrior],
     associator: &dyn PlaneAssociator,
@@ -790,7 +831,7 @@ fn global_ba(
     report: &mut MapReport,
 ) -> Result<(), MapperError> {
     let config = BundleConfig {
-        variable_images: state.registration_order.iter().copied().collect(),
+        variable_images: variable.clone(),
         fixed_images: fixed.clone(),
         refine_intrinsics: options.bundle.refine_intrinsics && kind == SolveKind::Final,
         pose_priors: priors.to_vec(),
@@ -815,4 +856,87 @@ fn global_ba(
         complete_and_merge_point(state, p, &options.triangulate);
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Images 1..=6 registered with centres at x = 0, 1, 2, 3, 10, 50 m
+    /// (image 7 is not registered).
+    fn line_of_images() -> MapState {
+        use crate::io::database::DatabaseSnapshot;
+        use crate::scene::CameraId;
+        use crate::sfm::associate::tests::{add_test_image, test_camera};
+        let mut db = DatabaseSnapshot::default();
+        db.cameras.insert(CameraId(1), test_camera());
+        for i in 1..=7 {
+            add_test_image(&mut db, ImageId(i), Vec::new());
+        }
+        let mut state = MapState::new(&db, 1);
+        for (i, x) in [(1, 0.0), (2, 1.0), (3, 2.0), (4, 3.0), (5, 10.0), (6, 50.0)] {
+            let centre = nalgebra::Vector3::new(x, 0.0, 0.0);
+            state.register(
+                ImageId(i),
+                Rigid3::from_rotation_and_center(nalgebra::UnitQuaternion::identity(), &centre),
+            );
+        }
+        state
+    }
+
+    #[test]
+    fn sphere_holds_the_nearest_images_within_the_radius() {
+        let state = line_of_images();
+        let ids = |v: &[u32]| v.iter().map(|&i| ImageId(i)).collect::<BTreeSet<_>>();
+        let mut options = BundleOptions {
+            global_radius_m: 40.0,
+            global_max_images: 0,
+            ..BundleOptions::default()
+        };
+        // Around image 3 (x = 2): all but image 6 (48 m away) and 7 (not registered).
+        assert_eq!(
+            sphere_images(&state, ImageId(3), &options),
+            ids(&[1, 2, 3, 4, 5])
+        );
+        // The cap keeps the nearest: 3 itself, then 2 and 4 (1 m), then 1 (2 m).
+        options.global_max_images = 4;
+        assert_eq!(
+            sphere_images(&state, ImageId(3), &options),
+            ids(&[1, 2, 3, 4])
+        );
+        // A tie at 1 m goes to the smaller id.
+        options.global_max_images = 2;
+        assert_eq!(sphere_images(&state, ImageId(3), &options), ids(&[2, 3]));
+        // A smaller radius (7.5 m) around image 5 (x = 10) leaves it with 4 (7 m).
+        options.global_max_images = 0;
+        options.global_radius_m = 7.5;
+        assert_eq!(sphere_images(&state, ImageId(5), &options), ids(&[4, 5]));
+    }
+
+    #[test]
+    fn far_off_pose_message_leaves_out_disabled_limits() {
+        let message = |max_m, max_deg| {
+            MapperError::InitialPoseFarOff {
+                moved_m: 1.234,
+                turned_deg: 12.0,
+                max_m,
+                max_deg,
+            }
+            .to_string()
+        };
+        let both = message(1.0, 10.0);
+        assert!(both.contains("ended 1.23 m and 12.0 deg"), "{both}");
+        assert!(both.contains("(at most 1 m and 10 deg accepted"), "{both}");
+        let no_rotation = message(1.0, 0.0);
+        assert!(
+            no_rotation.contains("(at most 1 m, any rotation accepted"),
+            "{no_rotation}"
+        );
+        assert!(!no_rotation.contains("0 deg accepted"), "{no_rotation}");
+        let no_distance = message(0.0, 10.0);
+        assert!(
+            no_distance.contains("(any distance, at most 10 deg accepted"),
+            "{no_distance}"
+        );
+    }
 }

@@ -307,6 +307,11 @@ pub struct BundleOptions {
     /// Periodic global BAs vary the images whose centres lie within this
     /// distance of the newest image (the others are held), metres. Default 40.
     pub global_radius_m: f64,
+    /// ... and at most this many of them, the nearest to the newest image
+    /// (0: no cap). A long model then costs each periodic BA the same, not
+    /// more with every image: the final rounds solve the whole model anyway.
+    /// Default 60.
+    pub global_max_images: usize,
     /// Threads of the Ceres solver. More than one may change the last bits
     /// between runs. Default 1 (byte-identical output).
     pub num_threads: usize,
@@ -324,6 +329,7 @@ impl Default for BundleOptions {
             final_rounds: 12,
             local_passes: 1,
             global_radius_m: 40.0,
+            global_max_images: 60,
             prior_position_weight: 100.0,
             prior_rotation_weight: 10.0,
             final_stop_change_m: 0.0002,

@@ -113,7 +113,16 @@ pub struct MapReport {
     pub pose_uncertainty: Option<UncertaintySummary>,
     pub images: Vec<ImageRecord>,
     pub solves: Vec<SolveRecord>,
+    /// How far the camera centres moved in each final round, metres.
+    pub final_rounds: Vec<RoundRecord>,
     pub stages: Vec<StageRecord>,
+}
+
+/// One final round: how far its solve moved the camera centres, metres.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct RoundRecord {
+    pub median_move_m: f64,
+    pub max_move_m: f64,
 }
 
 impl MapReport {
