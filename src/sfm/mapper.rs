@@ -543,9 +543,10 @@ pub fn run_mapper_with_priors(
         report.points_behind_map_removed = Some(removed);
         stages.done("points behind the map");
     }
-    // Rounds of re-association + solve until no camera centre moves more
-    // than `final_stop_change_m` (the map pulls the model along directions
-    // it constrains weakly, e.g. along a corridor, a little each round).
+    // Rounds of re-association + solve until half the camera centres move
+    // less than `final_stop_change_m` (the map pulls the model along
+    // directions it constrains weakly, e.g. along a corridor, a little each
+    // round).
     for round in 0..options.bundle.final_rounds {
         let before = camera_centres(&state);
         let fixed = fixed_for(&state);
@@ -577,7 +578,7 @@ pub fn run_mapper_with_priors(
             record.max_move_m
         );
         report.final_rounds.push(record);
-        if record.max_move_m < options.bundle.final_stop_change_m {
+        if record.median_move_m < options.bundle.final_stop_change_m {
             break;
         }
     }

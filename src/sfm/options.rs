@@ -289,8 +289,14 @@ pub struct BundleOptions {
     /// ICP-like loop: the map pulls the model a little further each round
     /// along directions it constrains weakly). Default 12.
     pub final_rounds: usize,
-    /// The final rounds stop once no camera centre moved more than this in
-    /// a round, metres. Default 0.0002.
+    /// The final rounds stop once half the camera centres moved less than
+    /// this in a round, metres. Default 0.0002. (The median, not the
+    /// largest move: a slide of the whole model moves every camera alike,
+    /// but in a large model a few cameras always move a little as points
+    /// change planes. On a 200-image corridor the largest move stayed at
+    /// 0.2-0.45 mm from the third round to the seventh while the cost
+    /// changed by 0.1 %; the 24-image scenes stop within a round of where
+    /// they stopped on the largest move, with the same errors to 0.2 mm.)
     pub final_stop_change_m: f64,
     /// Weight of a known image position (pose file, database), pixel
     /// equivalents per metre: 100 makes 1 cm count like 1 px. 0 disables.
