@@ -547,10 +547,10 @@ pub fn run_mapper_with_priors(
     // less than `final_stop_change_m` (the map pulls the model along
     // directions it constrains weakly, e.g. along a corridor, a little each
     // round).
+    let all: BTreeSet<ImageId> = state.registration_order.iter().copied().collect();
     for round in 0..options.bundle.final_rounds {
         let before = camera_centres(&state);
         let fixed = fixed_for(&state);
-        let all: BTreeSet<ImageId> = state.registration_order.iter().copied().collect();
         global_ba(
             &mut state,
             SolveKind::Final,
