@@ -336,9 +336,14 @@ struct BuiltProblem {
   std::vector<ResidualRecord> records;  // observations, planes, priors
   std::unique_ptr<ceres::Problem> problem;
   size_t num_families = 0;
-  // Parameter blocks in the problem: points (Schur group 0) and the rest.
+  // Parameter blocks in the problem: points (Schur group 0), poses (group
+  // 1) and intrinsics (group 2). Ceres orders the blocks of one group by
+  // their addresses, and the poses and the intrinsics live in two separate
+  // allocations: in one group, whether a camera came before or after the
+  // poses changed from run to run, and with it the last bits of a solve.
   std::vector<double*> point_blocks;
-  std::vector<double*> camera_and_pose_blocks;
+  std::vector<double*> pose_blocks;
+  std::vector<double*> camera_blocks;
 };
 
 std::unique_ptr<ceres::LossFunction> MakeLoss(int kind, double scale,
@@ -572,8 +577,8 @@ std::unique_ptr<BuiltProblem> BuildProblem(BaProblemFfi& p,
     if (!pose_used[i]) continue;
     double* q = &p.poses[7 * i];
     double* t = &p.poses[7 * i + 4];
-    built->camera_and_pose_blocks.push_back(q);
-    built->camera_and_pose_blocks.push_back(t);
+    built->pose_blocks.push_back(q);
+    built->pose_blocks.push_back(t);
     problem.SetManifold(q, built->quaternion_manifold.get());
     if (p.pose_constant[i] != 0) {
       problem.SetParameterBlockConstant(q);
@@ -589,7 +594,7 @@ std::unique_ptr<BuiltProblem> BuildProblem(BaProblemFfi& p,
       if (p.camera_param_constant[begin + k] != 0) constant.push_back(k);
     }
     double* params = &p.camera_params[begin];
-    built->camera_and_pose_blocks.push_back(params);
+    built->camera_blocks.push_back(params);
     if (static_cast<int>(constant.size()) == size) {
       problem.SetParameterBlockConstant(params);
     } else if (!constant.empty()) {
@@ -716,16 +721,19 @@ ceres::Solver::Options MakeSolverOptions(const BaOptionsFfi& o,
       Fail("unknown linear solver code " + std::to_string(o.linear_solver));
   }
 
-  // Schur elimination: points (group 0) first, then poses and cameras. The
-  // ordering must list every parameter block of the problem, constant ones
-  // included (Ceres drops those itself).
+  // Schur elimination: points (group 0) first, then poses, then cameras
+  // (see BuiltProblem). The ordering must list every parameter block of the
+  // problem, constant ones included (Ceres drops those itself).
   if (schur && !built.point_blocks.empty()) {
     auto ordering = std::make_shared<ceres::ParameterBlockOrdering>();
     for (double* block : built.point_blocks) {
       ordering->AddElementToGroup(block, 0);
     }
-    for (double* block : built.camera_and_pose_blocks) {
+    for (double* block : built.pose_blocks) {
       ordering->AddElementToGroup(block, 1);
+    }
+    for (double* block : built.camera_blocks) {
+      ordering->AddElementToGroup(block, 2);
     }
     options.linear_solver_ordering = ordering;
   }

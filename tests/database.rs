@@ -128,6 +128,11 @@ fn reads_hand_made_database_exactly() {
         (c2.model, c2.params.clone()),
         (CameraModel::Pinhole, vec![700.0, 710.0, 400.5, 299.5])
     );
+    // prior_focal_length: 0 for camera 1 (a guess), 1 for camera 2.
+    assert_eq!(
+        db.cameras_without_focal_prior,
+        std::collections::BTreeSet::from([CameraId(1)])
+    );
 
     assert_eq!(db.images.len(), 3);
     assert_eq!(db.images[&ImageId(2)].name, "sub dir/b.jpg");
@@ -178,6 +183,8 @@ fn reads_hand_made_database_exactly() {
         "config 4 (planar): 1",
         "tracks                           3",
         "sub dir/b.jpg",
+        "-0.050000  (focal length guessed: `map` self-calibrates it)",
+        "cy=299.500000  (focal length given)",
     ] {
         assert!(
             text.contains(expected),

@@ -70,12 +70,17 @@ pub fn summary(db: &DatabaseSnapshot, per_image: bool) -> String {
             .collect();
         let _ = writeln!(
             w,
-            "  camera {:>4}  {:<22} {}x{}  {}",
+            "  camera {:>4}  {:<22} {}x{}  {}  {}",
             cam.id,
             cam.model.name(),
             cam.width,
             cam.height,
-            params.join(" ")
+            params.join(" "),
+            if db.cameras_without_focal_prior.contains(&cam.id) {
+                "(focal length guessed: `map` self-calibrates it)"
+            } else {
+                "(focal length given)"
+            }
         );
     }
     let counts: Vec<usize> = db.images.keys().map(|&id| db.num_keypoints(id)).collect();

@@ -21,7 +21,7 @@ use crate::map::io::read_point_cloud;
 use crate::map::prepare::{estimate_normals, NormalOptions};
 use crate::map::PointCloud;
 use crate::scene::{BodyPose, ImageId, Rigid3};
-use crate::sfm::options::AssociationKind;
+use crate::sfm::options::{AssociationKind, IntrinsicsRefinement};
 use crate::sfm::{run_mapper_with_priors, KnownPose, MapperOptions};
 
 /// Known poses: the database's pose priors, overridden by the pose file.
@@ -119,10 +119,19 @@ pub struct MapArgs {
     /// Plain SfM: no LiDAR point-to-plane terms in BA.
     #[arg(long, visible_alias = "no_lidar_constraints")]
     pub no_lidar_constraints: bool,
-    /// Refine focal length and distortion in the final bundle adjustments
-    /// (the principal point is held, as in COLMAP).
-    #[arg(long, visible_alias = "refine_intrinsics")]
-    pub refine_intrinsics: bool,
+    /// Which bundle adjustments refine focal length and distortion (the
+    /// principal point is held, as in COLMAP): auto (default: every solve
+    /// for cameras the database marks as uncalibrated, prior_focal_length =
+    /// 0, the final rounds for the others), fixed (calibrated cameras), final,
+    /// all (every solve, as COLMAP's mapper; the flag alone means all).
+    #[arg(
+        long,
+        visible_alias = "refine_intrinsics",
+        value_name = "auto|fixed|final|all",
+        num_args = 0..=1,
+        default_missing_value = "all"
+    )]
+    pub refine_intrinsics: Option<IntrinsicsRefinement>,
     /// Ceres threads (default 1: byte-identical output).
     #[arg(long)]
     pub threads: Option<usize>,
@@ -202,8 +211,8 @@ impl MapArgs {
         if self.no_lidar_constraints || file.no_lidar_constraints == Some(true) {
             options.association.kind = AssociationKind::None;
         }
-        if self.refine_intrinsics {
-            options.bundle.refine_intrinsics = true;
+        if let Some(mode) = self.refine_intrinsics {
+            options.bundle.refine_intrinsics = mode;
         }
         if let Some(t) = self.threads {
             options.bundle.num_threads = t;
@@ -386,6 +395,19 @@ pub fn run(args: &MapArgs) -> Result<()> {
         out.report.mean_reprojection_error_px,
         config.output.display()
     );
+    for c in &out.report.intrinsics {
+        if c.refined != "held" {
+            println!(
+                "camera {} ({}): intrinsics refined in {}, focal length {:+.3} %: {} -> {}",
+                c.camera_id,
+                c.model,
+                c.refined,
+                c.focal_change * 100.0,
+                fmt_params(&c.database_params),
+                fmt_params(&c.final_params)
+            );
+        }
+    }
     if let Some(u) = &out.report.pose_uncertainty {
         println!(
             "pose uncertainty (1 sigma, from the final solve's information; report.json per image): \
@@ -397,4 +419,13 @@ pub fn run(args: &MapArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// Camera parameters for a summary line (6 decimals, trailing zeros dropped).
+fn fmt_params(params: &[f64]) -> String {
+    params
+        .iter()
+        .map(|p| format!("{p:.6}").trim_end_matches('0').trim_end_matches('.').to_string())
+        .collect::<Vec<_>>()
+        .join(",")
 }

@@ -11,11 +11,12 @@
 //! * `pair_id = 2147483647 * id1 + id2` with `id1 < id2` (see [`pair_id_to_image_ids`]).
 //! * Newer versions add `pose_priors`, `rigs`, `rig_sensors`, `frames`, `frame_data`.
 //!   The schema is detected from the tables and columns present.
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
 use std::path::{Path, PathBuf};
 
 use nalgebra::Vector2;
+use rusqlite::types::ValueRef;
 use rusqlite::{Connection, OpenFlags};
 
 use crate::scene::correspondence_graph::CorrespondenceGraph;
@@ -124,6 +125,11 @@ pub struct DatabaseSnapshot {
     /// Verified pairs, ordered by pair id.
     pub two_view_geometries: Vec<TwoViewGeometry>,
     pub pose_priors: BTreeMap<ImageId, DbPosePrior>,
+    /// Cameras whose focal length the database marks as a guess
+    /// (`prior_focal_length = 0`: COLMAP's feature extractor found no focal
+    /// length in the EXIF data nor on its command line and used 1.2 times the
+    /// larger image side). The mapper self-calibrates these.
+    pub cameras_without_focal_prior: BTreeSet<CameraId>,
 }
 
 impl DatabaseSnapshot {
@@ -306,16 +312,28 @@ impl Reader<'_> {
         }
     }
 
-    fn cameras(&self) -> Result<BTreeMap<CameraId, Camera>, DatabaseError> {
+    /// The cameras, and those whose focal length is a guess (a database
+    /// without the `prior_focal_length` column has none: its intrinsics are
+    /// taken as given).
+    #[allow(clippy::type_complexity)]
+    fn cameras(
+        &self,
+    ) -> Result<(BTreeMap<CameraId, Camera>, BTreeSet<CameraId>), DatabaseError> {
         const T: &str = "cameras";
+        let prior_column = if self.columns(T)?.iter().any(|c| c == "prior_focal_length") {
+            "prior_focal_length"
+        } else {
+            "1"
+        };
         let mut stmt = self
             .conn
-            .prepare(
-                "SELECT camera_id, model, width, height, params FROM cameras ORDER BY camera_id",
-            )
+            .prepare(&format!(
+                "SELECT camera_id, model, width, height, params, {prior_column} FROM cameras ORDER BY camera_id"
+            ))
             .map_err(self.sql(T))?;
         let mut rows = stmt.query([]).map_err(self.sql(T))?;
         let mut cameras = BTreeMap::new();
+        let mut without_prior = BTreeSet::new();
         while let Some(row) = rows.next().map_err(self.sql(T))? {
             let id: i64 = row.get(0).map_err(self.sql(T))?;
             let at = || format!("camera_id {id}");
@@ -323,6 +341,8 @@ impl Reader<'_> {
             let width: i64 = row.get(2).map_err(self.sql(T))?;
             let height: i64 = row.get(3).map_err(self.sql(T))?;
             let blob: Option<Vec<u8>> = row.get(4).map_err(self.sql(T))?;
+            // COLMAP writes 0 or 1; anything but 0 counts as a prior.
+            let has_prior = !matches!(row.get_ref(5).map_err(self.sql(T))?, ValueRef::Integer(0));
             let camera_id =
                 u32::try_from(id).map_err(|_| self.bad_row(T, at(), "camera id out of range"))?;
             let model = CameraModel::from_id(model_id).ok_or_else(|| {
@@ -363,8 +383,11 @@ impl Reader<'_> {
                     params,
                 },
             );
+            if !has_prior {
+                without_prior.insert(CameraId(camera_id));
+            }
         }
-        Ok(cameras)
+        Ok((cameras, without_prior))
     }
 
     fn images(
@@ -687,7 +710,7 @@ pub fn read_database(path: &Path) -> Result<DatabaseSnapshot, DatabaseError> {
             .notes
             .push(format!("table `{t}` is not understood and was not read"));
     }
-    let cameras = reader.cameras()?;
+    let (cameras, cameras_without_focal_prior) = reader.cameras()?;
     let mut pose_priors = BTreeMap::new();
     let images = reader.images(&cameras, &mut pose_priors)?;
     let keypoints = reader.keypoints(&images)?;
@@ -708,6 +731,7 @@ pub fn read_database(path: &Path) -> Result<DatabaseSnapshot, DatabaseError> {
         keypoints,
         two_view_geometries,
         pose_priors,
+        cameras_without_focal_prior,
     })
 }
 

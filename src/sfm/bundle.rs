@@ -10,7 +10,7 @@ use serde::Serialize;
 use super::associate::{AssociationQuery, PlaneAssociator, SolveKind};
 use super::options::BundleOptions;
 use super::state::{MapState, PointPlane};
-use crate::scene::{CameraId, ImageId, Point3DId, Rigid3};
+use crate::scene::{Camera, CameraId, ImageId, Point3DId, Rigid3};
 use crate::solver::{
     pose_covariances, sigma_of_variance, solve, BaCamera, BaObservation, BaPoint, BaPose,
     BundleAdjustmentProblem, ConstantParams, CovarianceError, LossFunction, PlaneFamily, PosePrior,
@@ -24,10 +24,45 @@ pub struct BundleConfig {
     pub variable_images: BTreeSet<ImageId>,
     /// Images held fixed even if listed as variable (the gauge).
     pub fixed_images: BTreeSet<ImageId>,
-    /// Refine the intrinsics of the cameras of the variable images.
-    pub refine_intrinsics: bool,
+    /// Cameras whose focal length and distortion vary (the principal point
+    /// is held); the others are constant.
+    pub refine_cameras: BTreeSet<CameraId>,
     /// Soft priors on poses (applied when the image's pose varies).
     pub pose_priors: Vec<SoftPosePrior>,
+}
+
+/// Why refined intrinsics cannot be right, if they cannot (COLMAP's bounds
+/// on a camera after bundle adjustment): a focal length outside 0.1 to 10
+/// times the larger image side, a distortion coefficient above 1 in size,
+/// or a value that is not finite.
+pub fn implausible_intrinsics(camera: &Camera) -> Option<String> {
+    if camera.params.iter().any(|p| !p.is_finite()) {
+        return Some("a parameter is not finite".into());
+    }
+    let side = f64::from(camera.width.max(camera.height));
+    for &k in camera.model.focal_idxs() {
+        let ratio = camera.params[k] / side;
+        if !(0.1..=10.0).contains(&ratio) {
+            return Some(format!(
+                "focal length {:.1} px is {ratio:.3} times the larger image side",
+                camera.params[k]
+            ));
+        }
+    }
+    let pp = camera.model.principal_point_idxs();
+    let fixed: Vec<usize> = camera
+        .model
+        .focal_idxs()
+        .iter()
+        .chain(pp.iter())
+        .copied()
+        .collect();
+    for (k, &p) in camera.params.iter().enumerate() {
+        if !fixed.contains(&k) && p.abs() > 1.0 {
+            return Some(format!("distortion parameter {k} is {p:.3}"));
+        }
+    }
+    None
 }
 
 /// A soft prior on one image's pose: residuals `position_weight * (C - C0)`
@@ -200,7 +235,7 @@ fn build_bundle(state: &MapState, config: &BundleConfig) -> BuiltBundle {
             slot.insert(problem.cameras.len() as u32);
             // Refined: focal length and distortion; the principal point stays
             // (COLMAP's default: it is poorly determined by BA).
-            let constant = if config.refine_intrinsics {
+            let constant = if config.refine_cameras.contains(&cam_id) {
                 let camera = &state.cameras[&cam_id];
                 let pp = camera.model.principal_point_idxs();
                 ConstantParams::Mask((0..camera.params.len()).map(|k| pp.contains(&k)).collect())
@@ -393,10 +428,22 @@ pub fn bundle_adjust(
                 }
             }
         }
-        if config.refine_intrinsics {
-            for (cam_id, &ci) in &camera_idx {
-                if let Some(c) = state.cameras.get_mut(cam_id) {
-                    c.params = problem.cameras[ci as usize].params.clone();
+        for (cam_id, &ci) in &camera_idx {
+            if !config.refine_cameras.contains(cam_id) {
+                continue;
+            }
+            if let Some(c) = state.cameras.get_mut(cam_id) {
+                let refined = Camera {
+                    params: problem.cameras[ci as usize].params.clone(),
+                    ..c.clone()
+                };
+                match implausible_intrinsics(&refined) {
+                    None => *c = refined,
+                    Some(why) => log::warn!(
+                        "{kind:?} bundle adjustment: camera {} kept its intrinsics, the refined ones are implausible ({why}): {:?}",
+                        cam_id.0,
+                        refined.params
+                    ),
                 }
             }
         }
@@ -493,4 +540,40 @@ pub fn pose_uncertainty(
         );
     }
     Ok((out, cov.residual_variance.sqrt(), cov.num_degenerate_points))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::CameraModel;
+
+    #[test]
+    fn implausible_intrinsics_uses_colmaps_bounds() {
+        let camera = |model: CameraModel, params: Vec<f64>| Camera {
+            id: CameraId(1),
+            model,
+            width: 640,
+            height: 480,
+            params,
+        };
+        let radial = |f: f64, k: f64| camera(CameraModel::SimpleRadial, vec![f, 320.0, 240.0, k]);
+        assert_eq!(implausible_intrinsics(&radial(512.0, -0.04)), None);
+        // 0.1 and 10 times the larger side (640 px) are the limits.
+        assert_eq!(implausible_intrinsics(&radial(64.0, 0.0)), None);
+        assert_eq!(implausible_intrinsics(&radial(6400.0, 0.0)), None);
+        let low = implausible_intrinsics(&radial(63.0, 0.0)).unwrap();
+        assert!(low.contains("63.0 px") && low.contains("0.098"), "{low}");
+        assert!(implausible_intrinsics(&radial(6500.0, 0.0)).is_some());
+        let k = implausible_intrinsics(&radial(512.0, -1.5)).unwrap();
+        assert!(k.contains("parameter 3 is -1.500"), "{k}");
+        assert!(implausible_intrinsics(&radial(f64::NAN, 0.0)).is_some());
+        // A principal point far outside 1 is not a distortion parameter; fy counts as a focal.
+        let pinhole = camera(CameraModel::Pinhole, vec![500.0, 20.0, 320.0, 240.0]);
+        assert!(implausible_intrinsics(&pinhole).unwrap().contains("20.0 px"));
+        let opencv = camera(
+            CameraModel::OpenCv,
+            vec![500.0, 500.0, 320.0, 240.0, -0.1, 0.01, 0.0, 0.0],
+        );
+        assert_eq!(implausible_intrinsics(&opencv), None);
+    }
 }

@@ -25,12 +25,15 @@ use super::filter::{
     filter_small_angle_points,
 };
 use super::initialize::{initialize, InitError};
-use super::options::{AssociationKind, BundleOptions, MapperOptions, OptionsError};
+use super::options::{
+    AssociationKind, BundleOptions, IntrinsicsRefinement, MapperOptions, OptionsError,
+};
 use super::register::{
     next_best_images, register_at_known_pose, register_image, PoseOutcome, RegistrationOutcome,
 };
 use super::report::{
-    AlignmentRecord, ImageRecord, MapReport, RoundRecord, StageRecord, UncertaintySummary,
+    AlignmentRecord, ImageRecord, IntrinsicsRecord, MapReport, RoundRecord, StageRecord,
+    UncertaintySummary,
 };
 use super::state::MapState;
 use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulate_image};
@@ -39,7 +42,7 @@ use crate::map::grid::{FrustumGrid, GridError, GridOptions};
 use crate::map::index::{IndexError, MapIndex};
 use crate::map::projection::ProjectionError;
 use crate::map::PointCloud;
-use crate::scene::{ImageId, Point3DId, Reconstruction, Rigid3};
+use crate::scene::{CameraId, ImageId, Point3DId, Reconstruction, Rigid3};
 use crate::solver::SolverError;
 
 /// Why a run failed.
@@ -247,6 +250,7 @@ pub fn run_mapper_with_priors(
         state.graph.pairs().count()
     );
     stages.done("correspondence graph");
+    let refine = RefinedCameras::new(db, options.bundle.refine_intrinsics);
 
     // 2. Map index.
     let index = MapIndex::build(cloud)?;
@@ -281,6 +285,7 @@ pub fn run_mapper_with_priors(
                 ..Default::default()
             })
             .collect(),
+        intrinsics: refine.records(&state),
         ..Default::default()
     };
 
@@ -358,7 +363,7 @@ pub fn run_mapper_with_priors(
     let config = BundleConfig {
         variable_images: BTreeSet::from([init_image, second]),
         fixed_images: fixed_for(&state),
-        refine_intrinsics: false,
+        refine_cameras: refine.every.clone(),
         pose_priors: pose_priors.clone(),
     };
     local_ba(&mut state, &config, associator, options, &mut report)?;
@@ -454,7 +459,7 @@ pub fn run_mapper_with_priors(
         let config = BundleConfig {
             variable_images: variable.clone(),
             fixed_images: fixed_for(&state),
-            refine_intrinsics: false,
+            refine_cameras: refine.every.clone(),
             pose_priors: pose_priors.clone(),
         };
         local_ba(&mut state, &config, associator, options, &mut report)?;
@@ -486,6 +491,7 @@ pub fn run_mapper_with_priors(
             global_ba(
                 &mut state,
                 SolveKind::Global,
+                &refine,
                 &variable,
                 &fixed,
                 &pose_priors,
@@ -554,6 +560,7 @@ pub fn run_mapper_with_priors(
         global_ba(
             &mut state,
             SolveKind::Final,
+            &refine,
             &all,
             &fixed,
             &pose_priors,
@@ -623,6 +630,7 @@ pub fn run_mapper_with_priors(
         let fixed = fixed_for(&state);
         estimate_uncertainty(
             &state,
+            &refine,
             fixed,
             &pose_priors,
             associator,
@@ -725,6 +733,7 @@ const WEAK_POSE_SIGMA_M: f64 = 0.05;
 /// logged, never fatal: the model is complete without it).
 fn estimate_uncertainty(
     state: &MapState,
+    refine: &RefinedCameras,
     fixed_images: BTreeSet<ImageId>,
     priors: &[SoftPosePrior],
     associator: &dyn PlaneAssociator,
@@ -743,7 +752,7 @@ fn estimate_uncertainty(
     let config = BundleConfig {
         variable_images: state.registration_order.iter().copied().collect(),
         fixed_images,
-        refine_intrinsics: options.bundle.refine_intrinsics,
+        refine_cameras: refine.last.clone(),
         pose_priors: priors.to_vec(),
     };
     let (poses, residual_sigma_px, num_degenerate_points) = match pose_uncertainty(
@@ -809,6 +818,58 @@ fn estimate_uncertainty(
     report.pose_uncertainty = Some(summary);
 }
 
+/// The cameras whose focal length and distortion the solves refine.
+#[derive(Clone, Debug, Default, PartialEq)]
+struct RefinedCameras {
+    /// In every solve (initial pair, local, periodic and final).
+    every: BTreeSet<CameraId>,
+    /// In the final rounds (and the final uncertainty): a superset of `every`.
+    last: BTreeSet<CameraId>,
+}
+
+impl RefinedCameras {
+    fn new(db: &DatabaseSnapshot, mode: IntrinsicsRefinement) -> Self {
+        let all: BTreeSet<CameraId> = db.cameras.keys().copied().collect();
+        let (every, last) = match mode {
+            IntrinsicsRefinement::Fixed => (BTreeSet::new(), BTreeSet::new()),
+            IntrinsicsRefinement::Final => (BTreeSet::new(), all),
+            IntrinsicsRefinement::All => (all.clone(), all),
+            IntrinsicsRefinement::Auto => (
+                all.intersection(&db.cameras_without_focal_prior)
+                    .copied()
+                    .collect(),
+                all,
+            ),
+        };
+        Self { every, last }
+    }
+
+    /// One record per camera used by an image of the state: the database's
+    /// intrinsics and where they are refined (the final ones are filled in
+    /// by [`MapReport::finish`]).
+    fn records(&self, state: &MapState) -> Vec<IntrinsicsRecord> {
+        let used: BTreeSet<CameraId> = state.images.values().map(|i| i.camera_id).collect();
+        used.iter()
+            .filter_map(|id| state.cameras.get(id))
+            .map(|c| IntrinsicsRecord {
+                camera_id: c.id.0,
+                model: c.model.name().to_string(),
+                refined: if self.every.contains(&c.id) {
+                    "every solve"
+                } else if self.last.contains(&c.id) {
+                    "final rounds"
+                } else {
+                    "held"
+                }
+                .to_string(),
+                database_params: c.params.clone(),
+                final_params: c.params.clone(),
+                focal_change: 0.0,
+            })
+            .collect()
+    }
+}
+
 /// Centres of the registered images in registration order.
 fn camera_centres(state: &MapState) -> Vec<nalgebra::Vector3<f64>> {
     state
@@ -824,6 +885,7 @@ fn camera_centres(state: &MapState) -> Vec<nalgebra::Vector3<f64>> {
 fn global_ba(
     state: &mut MapState,
     kind: SolveKind,
+    refine: &RefinedCameras,
     variable: &BTreeSet<ImageId>,
     fixed: &BTreeSet<ImageId>,
     priors: &[SoftPosePrior],
@@ -834,7 +896,11 @@ fn global_ba(
     let config = BundleConfig {
         variable_images: variable.clone(),
         fixed_images: fixed.clone(),
-        refine_intrinsics: options.bundle.refine_intrinsics && kind == SolveKind::Final,
+        refine_cameras: if kind == SolveKind::Final {
+            refine.last.clone()
+        } else {
+            refine.every.clone()
+        },
         pose_priors: priors.to_vec(),
     };
     let record = bundle_adjust(state, &config, kind, associator, &options.bundle)?;
@@ -939,5 +1005,35 @@ mod tests {
             no_distance.contains("(any distance, at most 10 deg accepted"),
             "{no_distance}"
         );
+    }
+
+    #[test]
+    fn refined_cameras_follow_the_mode_and_the_databases_focal_priors() {
+        use crate::io::database::DatabaseSnapshot;
+        use crate::scene::Camera;
+        use crate::sfm::associate::tests::test_camera;
+        let mut db = DatabaseSnapshot::default();
+        for id in [1, 2] {
+            let camera = Camera {
+                id: CameraId(id),
+                ..test_camera()
+            };
+            db.cameras.insert(CameraId(id), camera);
+        }
+        // Camera 2's focal length is COLMAP's guess.
+        db.cameras_without_focal_prior.insert(CameraId(2));
+        let set = |ids: &[u32]| ids.iter().map(|&i| CameraId(i)).collect::<BTreeSet<_>>();
+        for (mode, every, last) in [
+            (IntrinsicsRefinement::Auto, set(&[2]), set(&[1, 2])),
+            (IntrinsicsRefinement::Fixed, set(&[]), set(&[])),
+            (IntrinsicsRefinement::Final, set(&[]), set(&[1, 2])),
+            (IntrinsicsRefinement::All, set(&[1, 2]), set(&[1, 2])),
+        ] {
+            assert_eq!(
+                RefinedCameras::new(&db, mode),
+                RefinedCameras { every, last },
+                "{mode:?}"
+            );
+        }
     }
 }

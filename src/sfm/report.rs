@@ -5,7 +5,7 @@ use serde::Serialize;
 use super::bundle::{PoseUncertainty, SolveRecord};
 use super::initialize::InitSummary;
 use super::state::MapState;
-use crate::scene::ImageId;
+use crate::scene::{Camera, CameraId, ImageId};
 use crate::solver::PlaneFamily;
 
 /// One image.
@@ -111,11 +111,27 @@ pub struct MapReport {
     /// Pose uncertainties after the final solve (with LiDAR constraints, up
     /// to `bundle.uncertainty_max_images` images).
     pub pose_uncertainty: Option<UncertaintySummary>,
+    /// Each camera's intrinsics: as the database gave them, where they were
+    /// refined, and as written.
+    pub intrinsics: Vec<IntrinsicsRecord>,
     pub images: Vec<ImageRecord>,
     pub solves: Vec<SolveRecord>,
     /// How far the camera centres moved in each final round, metres.
     pub final_rounds: Vec<RoundRecord>,
     pub stages: Vec<StageRecord>,
+}
+
+/// One camera's intrinsics (COLMAP's parameter order for its model).
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct IntrinsicsRecord {
+    pub camera_id: u32,
+    pub model: String,
+    /// "every solve", "final rounds" or "held".
+    pub refined: String,
+    pub database_params: Vec<f64>,
+    pub final_params: Vec<f64>,
+    /// Final mean focal length over the database's, minus 1.
+    pub focal_change: f64,
 }
 
 /// One final round: how far its solve moved the camera centres, metres.
@@ -190,5 +206,15 @@ impl MapReport {
         } else {
             0.0
         };
+        for rec in &mut self.intrinsics {
+            if let Some(c) = state.cameras.get(&CameraId(rec.camera_id)) {
+                let before = Camera {
+                    params: rec.database_params.clone(),
+                    ..c.clone()
+                };
+                rec.final_params = c.params.clone();
+                rec.focal_change = c.mean_focal_length() / before.mean_focal_length() - 1.0;
+            }
+        }
     }
 }

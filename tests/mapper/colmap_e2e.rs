@@ -231,6 +231,58 @@ fn yard_with_sequential_matches() {
     check_run(&run);
 }
 
+/// A database made without the camera: COLMAP's extractor finds no focal
+/// length in the images and guesses one (1.2 x the larger side, SIMPLE_RADIAL
+/// with no distortion, `prior_focal_length = 0`). The default refinement
+/// self-calibrates such a camera in every solve and must meet the same bar,
+/// with the focal length and distortion found.
+#[test]
+fn yard_self_calibrates_colmaps_guessed_camera() {
+    let Some(shared) = crate::common::yard_db() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("guessed_camera.db");
+    make_database(
+        &shared.scene,
+        &HarnessOptions {
+            use_true_camera: false,
+            database: Some(db.clone()),
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let truth = read_model(&shared.scene.join("gt")).unwrap().cameras[&colmap_lidar::scene::CameraId(1)]
+        .clone();
+    let snapshot = read_database(&db).unwrap();
+    assert_eq!(snapshot.cameras.len(), 1);
+    let (id, guess) = snapshot.cameras.iter().next().unwrap();
+    assert_eq!(guess.model.name(), "SIMPLE_RADIAL");
+    assert_eq!(guess.params, [768.0, 320.0, 240.0, 0.0], "COLMAP's guess");
+    assert!(snapshot.cameras_without_focal_prior.contains(id));
+    let run = map_scene(&shared.scene, &dir.path().join("out"), |args| {
+        args.database = Some(db.clone());
+    });
+    print_run("yard, COLMAP's guessed camera", &run);
+    let rec = &run.report["intrinsics"][0];
+    let refined: Vec<f64> = rec["final_params"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    eprintln!("refined camera {refined:?}, truth {:?}", truth.params);
+    assert_eq!(rec["refined"], "every solve");
+    assert!(
+        (refined[0] / truth.params[0] - 1.0).abs() < 0.003,
+        "focal {} (truth {})",
+        refined[0],
+        truth.params[0]
+    );
+    assert!((refined[3] - truth.params[3]).abs() < 0.005, "k {}", refined[3]);
+    check_run(&run);
+}
+
 #[test]
 fn yard_with_colmap_database() {
     // The shared yard and its real COLMAP database (made once per run).

@@ -10,7 +10,7 @@ use colmap_lidar::io::database::{DatabaseSnapshot, DbImage, TwoViewGeometry};
 use colmap_lidar::map::PointCloud;
 use colmap_lidar::scene::BodyPose;
 use colmap_lidar::scene::{Camera, CameraId, CameraModel, ImageId, Rigid3};
-use colmap_lidar::sfm::options::AssociationKind;
+use colmap_lidar::sfm::options::{AssociationKind, IntrinsicsRefinement};
 use colmap_lidar::sfm::{run_mapper, run_mapper_with_priors, KnownPose, MapperOptions};
 use nalgebra::{Vector2, Vector3};
 use rand::{Rng, SeedableRng};
@@ -823,11 +823,24 @@ fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
     let mut scene = toy(14, 0.3, 0.0, 3);
     let camera = scene.db.cameras.get_mut(&CameraId(1)).expect("camera 1");
     camera.params[0] = 454.5;
-    let fixed = MapperOptions::default();
+    let mut fixed = MapperOptions::default();
+    fixed.bundle.refine_intrinsics = IntrinsicsRefinement::Fixed;
     let (out_fixed, err_fixed) = map_toy(&scene, &fixed);
     let mut refine = MapperOptions::default();
-    refine.bundle.refine_intrinsics = true;
+    refine.bundle.refine_intrinsics = IntrinsicsRefinement::Final;
     let (out, err) = map_toy(&scene, &refine);
+    // The default refines a camera with a focal prior in the final rounds.
+    let (out_auto, _) = map_toy(&scene, &MapperOptions::default());
+    assert_eq!(
+        out_auto.reconstruction.cameras[&CameraId(1)].params,
+        out.reconstruction.cameras[&CameraId(1)].params
+    );
+    let rec = &out_auto.report.intrinsics[0];
+    assert_eq!(
+        (rec.camera_id, rec.refined.as_str(), rec.database_params[0]),
+        (1, "final rounds", 454.5)
+    );
+    assert!((rec.focal_change - (rec.final_params[0] / 454.5 - 1.0)).abs() < 1e-15);
     let refined = &out.reconstruction.cameras[&CameraId(1)];
     eprintln!(
         "toy room, focal 1 % off: refined f = {:.2} px (true 450), max centre error {err:.4} m \
@@ -850,4 +863,37 @@ fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
         "principal point moved"
     );
     assert!(err < err_fixed, "{err} vs {err_fixed}");
+}
+
+#[test]
+fn toy_room_self_calibrates_a_camera_the_database_marks_as_uncalibrated() {
+    // Keypoints made with f = 450 px, k = 0.01; the database holds a guess
+    // (f 20 % off, no distortion) and says so (prior_focal_length = 0), as
+    // COLMAP does when it finds no focal length.
+    let mut scene = toy(14, 0.3, 0.0, 3);
+    let camera = scene.db.cameras.get_mut(&CameraId(1)).expect("camera 1");
+    camera.params[0] = 540.0;
+    camera.params[3] = 0.0;
+    scene.db.cameras_without_focal_prior.insert(CameraId(1));
+    let (out, err) = map_toy(&scene, &MapperOptions::default());
+    let refined = &out.reconstruction.cameras[&CameraId(1)];
+    eprintln!(
+        "toy room, uncalibrated (f 540, k 0): refined f = {:.3} px, k = {:.4} (true 450, 0.01), \
+         max centre error {err:.4} m",
+        refined.params[0], refined.params[3]
+    );
+    assert_eq!(out.report.num_registered, 14);
+    assert!((refined.params[0] - 450.0).abs() < 0.9, "{refined:?}");
+    assert!((refined.params[3] - 0.01).abs() < 0.003, "{refined:?}");
+    assert_eq!(refined.params[1..3], [320.0, 240.0], "principal point moved");
+    assert!(err < 0.01, "max centre error {err} m");
+    assert_eq!(out.report.intrinsics[0].refined, "every solve");
+    // Held at the guess, the same run cannot place the images.
+    let mut fixed = MapperOptions::default();
+    fixed.bundle.refine_intrinsics = IntrinsicsRefinement::Fixed;
+    let init = scene.init_pose.to_cam_from_world();
+    if let Ok(out) = run_mapper(&scene.db, &scene.cloud, ImageId(1), &init, &fixed, &mut |_, _| {}) {
+        let err_fixed = max_centre_error(&out.reconstruction, &scene.gt);
+        assert!(err_fixed > 5.0 * err, "held: {err_fixed} m, refined: {err} m");
+    }
 }
