@@ -230,7 +230,8 @@ fn build_bundle(state: &MapState, config: &BundleConfig) -> BuiltBundle {
         let pose = state.pose(image).expect("registered, checked above");
         pose_idx.insert(image, problem.poses.len() as u32);
         problem.poses.push(BaPose::new(&to_local(&pose), !variable));
-        let cam_id = state.images[&image].camera_id;
+        // Cameras with the same intrinsics in the database share one block.
+        let cam_id = state.intrinsics_of(state.images[&image].camera_id);
         if let std::collections::btree_map::Entry::Vacant(slot) = camera_idx.entry(cam_id) {
             slot.insert(problem.cameras.len() as u32);
             // Refined: focal length and distortion; the principal point stays
@@ -259,7 +260,7 @@ fn build_bundle(state: &MapState, config: &BundleConfig) -> BuiltBundle {
             let xy = state.keypoint(*e);
             problem.observations.push(BaObservation::new(
                 pi,
-                camera_idx[&state.images[&e.image_id].camera_id],
+                camera_idx[&state.intrinsics_of(state.images[&e.image_id].camera_id)],
                 idx,
                 [xy.x, xy.y],
             ));
@@ -432,18 +433,31 @@ pub fn bundle_adjust(
             if !config.refine_cameras.contains(cam_id) {
                 continue;
             }
-            if let Some(c) = state.cameras.get_mut(cam_id) {
-                let refined = Camera {
-                    params: problem.cameras[ci as usize].params.clone(),
-                    ..c.clone()
-                };
-                match implausible_intrinsics(&refined) {
-                    None => *c = refined,
-                    Some(why) => log::warn!(
-                        "{kind:?} bundle adjustment: camera {} kept its intrinsics, the refined ones are implausible ({why}): {:?}",
-                        cam_id.0,
-                        refined.params
-                    ),
+            let Some(c) = state.cameras.get(cam_id) else {
+                continue;
+            };
+            let refined = Camera {
+                params: problem.cameras[ci as usize].params.clone(),
+                ..c.clone()
+            };
+            if let Some(why) = implausible_intrinsics(&refined) {
+                log::warn!(
+                    "{kind:?} bundle adjustment: camera {} kept its intrinsics, the refined ones are implausible ({why}): {:?}",
+                    cam_id.0,
+                    refined.params
+                );
+                continue;
+            }
+            // Every camera sharing this one's intrinsics takes them.
+            let members: Vec<CameraId> = state
+                .cameras
+                .keys()
+                .copied()
+                .filter(|&id| state.intrinsics_of(id) == *cam_id)
+                .collect();
+            for id in members {
+                if let Some(member) = state.cameras.get_mut(&id) {
+                    member.params.clone_from(&refined.params);
                 }
             }
         }

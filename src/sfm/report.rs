@@ -128,6 +128,10 @@ pub struct IntrinsicsRecord {
     pub model: String,
     /// "every solve", "final rounds" or "held".
     pub refined: String,
+    /// A given focal length (`auto`): its relative change in one solve with
+    /// the intrinsics free after the final rounds; above
+    /// `bundle.refine_intrinsics_min_change` it is refined, else held.
+    pub probe_focal_change: Option<f64>,
     pub database_params: Vec<f64>,
     pub final_params: Vec<f64>,
     /// Final mean focal length over the database's, minus 1.

@@ -152,6 +152,10 @@ pub struct MapState {
     pub graph: CorrespondenceGraph,
     /// Images in the order they were registered.
     pub registration_order: Vec<ImageId>,
+    /// Cameras whose intrinsics are another's (see
+    /// [`MapState::share_identical_intrinsics`]); a camera not in here has
+    /// its own.
+    shared_intrinsics: BTreeMap<CameraId, CameraId>,
     next_point_id: u64,
 }
 
@@ -187,8 +191,39 @@ impl MapState {
             points: BTreeMap::new(),
             graph,
             registration_order: Vec::new(),
+            shared_intrinsics: BTreeMap::new(),
             next_point_id: 1,
         }
+    }
+
+    /// The camera whose intrinsics `camera` uses in bundle adjustment (itself
+    /// unless shared).
+    pub fn intrinsics_of(&self, camera: CameraId) -> CameraId {
+        self.shared_intrinsics.get(&camera).copied().unwrap_or(camera)
+    }
+
+    /// Cameras of the same model, size and parameters share one set of
+    /// intrinsics (the one with the smallest id) in every later solve:
+    /// COLMAP's extractor gives every image its own camera unless told
+    /// otherwise, all with the same guessed or EXIF focal length, and one
+    /// image's focal length cannot be refined from its own few hundred
+    /// points. Returns the number of cameras that now share another's.
+    pub fn share_identical_intrinsics(&mut self) -> usize {
+        let mut first: BTreeMap<(&str, u32, u32, Vec<u64>), CameraId> = BTreeMap::new();
+        self.shared_intrinsics.clear();
+        for (id, c) in &self.cameras {
+            let key = (
+                c.model.name(),
+                c.width,
+                c.height,
+                c.params.iter().map(|p| p.to_bits()).collect(),
+            );
+            let owner = *first.entry(key).or_insert(*id);
+            if owner != *id {
+                self.shared_intrinsics.insert(*id, owner);
+            }
+        }
+        self.shared_intrinsics.len()
     }
 
     pub fn camera_of(&self, image: ImageId) -> &Camera {
@@ -439,6 +474,7 @@ impl MapState {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene::CameraModel;
 
     #[test]
     fn pyramid_prefers_spread() {
@@ -459,5 +495,37 @@ mod tests {
             spread.remove(&Vector2::new(x, y));
         }
         assert_eq!(spread.score(), 0);
+    }
+
+    #[test]
+    fn identical_cameras_share_the_smallest_ids_intrinsics() {
+        let radial = |id: u32, f: f64, w: u32| Camera {
+            id: CameraId(id),
+            model: CameraModel::SimpleRadial,
+            width: w,
+            height: 480,
+            params: vec![f, 320.0, 240.0, 0.0],
+        };
+        let mut db = DatabaseSnapshot::default();
+        for c in [
+            radial(1, 768.0, 640),
+            radial(2, 768.0, 640),
+            radial(3, 700.0, 640),
+            radial(4, 768.0, 640),
+            radial(5, 768.0, 641),
+            radial(6, 700.0, 640),
+        ] {
+            db.cameras.insert(c.id, c);
+        }
+        let mut pinhole = radial(7, 768.0, 640);
+        pinhole.model = CameraModel::Pinhole;
+        pinhole.params = vec![768.0, 768.0, 320.0, 240.0];
+        db.cameras.insert(CameraId(7), pinhole);
+        let mut state = MapState::new(&db, 1);
+        assert_eq!(state.intrinsics_of(CameraId(2)), CameraId(2));
+        assert_eq!(state.share_identical_intrinsics(), 3);
+        let of: Vec<u32> = (1..=7).map(|i| state.intrinsics_of(CameraId(i)).0).collect();
+        // 2 and 4 are 1's twins, 6 is 3's; 5 (another width) and 7 (another model) are their own.
+        assert_eq!(of, [1, 1, 3, 1, 5, 3, 7]);
     }
 }

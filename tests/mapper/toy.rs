@@ -829,18 +829,29 @@ fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
     let mut refine = MapperOptions::default();
     refine.bundle.refine_intrinsics = IntrinsicsRefinement::Final;
     let (out, err) = map_toy(&scene, &refine);
-    // The default refines a camera with a focal prior in the final rounds.
-    let (out_auto, _) = map_toy(&scene, &MapperOptions::default());
-    assert_eq!(
-        out_auto.reconstruction.cameras[&CameraId(1)].params,
-        out.reconstruction.cameras[&CameraId(1)].params
-    );
+    // The default finds the given focal length 1 % off (one solve with it
+    // free after the final rounds) and refines it.
+    let (out_auto, err_auto) = map_toy(&scene, &MapperOptions::default());
     let rec = &out_auto.report.intrinsics[0];
+    let probe = rec.probe_focal_change.expect("a given focal length is probed");
+    assert!((-0.0105..-0.0085).contains(&probe), "{rec:?}");
     assert_eq!(
         (rec.camera_id, rec.refined.as_str(), rec.database_params[0]),
         (1, "final rounds", 454.5)
     );
+    assert!((rec.final_params[0] - 450.0).abs() < 0.9, "{rec:?}");
     assert!((rec.focal_change - (rec.final_params[0] / 454.5 - 1.0)).abs() < 1e-15);
+    assert!(err_auto < err_fixed, "{err_auto} vs {err_fixed}");
+    // Given right, it is held: the probe moves it less than 0.1 % and the
+    // model is the one of the rounds with it held.
+    let right = toy(14, 0.3, 0.0, 3);
+    let (held, _) = map_toy(&right, &MapperOptions::default());
+    let rec = &held.report.intrinsics[0];
+    assert!(rec.probe_focal_change.unwrap().abs() < 0.001, "{rec:?}");
+    assert_eq!(rec.refined, "held");
+    assert_eq!(held.reconstruction.cameras[&CameraId(1)].params[0], 450.0);
+    let (fixed_right, _) = map_toy(&right, &fixed);
+    assert_eq!(held.reconstruction, fixed_right.reconstruction);
     let refined = &out.reconstruction.cameras[&CameraId(1)];
     eprintln!(
         "toy room, focal 1 % off: refined f = {:.2} px (true 450), max centre error {err:.4} m \
@@ -863,6 +874,48 @@ fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
         "principal point moved"
     );
     assert!(err < err_fixed, "{err} vs {err_fixed}");
+}
+
+/// One camera per image, all at the same guess (COLMAP's extractor without
+/// `single_camera`): by default they share one set of intrinsics, refined
+/// from every image's points; each refined alone is not (or worse).
+#[test]
+fn toy_room_shares_identical_cameras() {
+    let mut scene = toy(14, 0.3, 0.0, 3);
+    let mut camera = scene.db.cameras[&CameraId(1)].clone();
+    camera.params[0] = 500.0;
+    camera.params[3] = 0.0;
+    scene.db.cameras.clear();
+    for (id, image) in scene.db.images.iter_mut() {
+        let cam = CameraId(id.0);
+        image.camera_id = cam;
+        scene.db.cameras.insert(cam, Camera { id: cam, ..camera.clone() });
+        scene.db.cameras_without_focal_prior.insert(cam);
+    }
+    let (shared, err_shared) = map_toy(&scene, &MapperOptions::default());
+    let focals: Vec<f64> = shared.reconstruction.cameras.values().map(|c| c.params[0]).collect();
+    assert_eq!(focals.len(), 14);
+    assert!(focals.iter().all(|&f| f == focals[0]), "{focals:?}");
+    assert!((focals[0] - 450.0).abs() < 0.9, "{focals:?}");
+    assert!(err_shared < 0.01, "max centre error {err_shared} m");
+    let mut alone = MapperOptions::default();
+    alone.bundle.share_identical_intrinsics = false;
+    let init = scene.init_pose.to_cam_from_world();
+    if let Ok(out) = run_mapper(&scene.db, &scene.cloud, ImageId(1), &init, &alone, &mut |_, _| {}) {
+        let err_alone = max_centre_error(&out.reconstruction, &scene.gt);
+        let spread = out
+            .reconstruction
+            .cameras
+            .values()
+            .map(|c| (c.params[0] - 450.0).abs())
+            .fold(0.0, f64::max);
+        eprintln!(
+            "toy room, 14 cameras at 500 px: shared f {:.3}, error {err_shared:.4} m; \
+             alone: largest focal error {spread:.2} px, error {err_alone:.4} m",
+            focals[0]
+        );
+        assert!(spread > 1.0 || err_alone > err_shared, "{spread} {err_alone}");
+    }
 }
 
 #[test]
