@@ -612,7 +612,7 @@ pub fn run_mapper_with_priors(
     // with it free. Otherwise it was right to that precision, and the model
     // goes back to the rounds' result with it held (refining the true
     // camera anyway moved it by up to 0.058 % on the 24-image scenes and
-    // made 6 of 9 up to 1.4 mm worse).
+    // made 5 of 9 worse, by up to 1.9 mm).
     if !refine.probe.is_empty() {
         let before = state.clone();
         let probed: BTreeSet<CameraId> = refine.last.union(&refine.probe).copied().collect();
