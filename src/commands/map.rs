@@ -425,7 +425,12 @@ pub fn run(args: &MapArgs) -> Result<()> {
 fn fmt_params(params: &[f64]) -> String {
     params
         .iter()
-        .map(|p| format!("{p:.6}").trim_end_matches('0').trim_end_matches('.').to_string())
+        .map(|p| {
+            format!("{p:.6}")
+                .trim_end_matches('0')
+                .trim_end_matches('.')
+                .to_string()
+        })
         .collect::<Vec<_>>()
         .join(",")
 }

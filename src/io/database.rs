@@ -99,6 +99,10 @@ pub struct TwoViewGeometry {
     pub config: i64,
     /// Inlier matches: keypoint index in image 1, keypoint index in image 2.
     pub inlier_matches: Vec<[u32; 2]>,
+    /// The fundamental matrix COLMAP estimated, row-major, in pixels
+    /// (`x2^T F x1 = 0`), when the row has one (column `F`, 9 doubles, not
+    /// all zero).
+    pub fundamental: Option<[f64; 9]>,
 }
 
 /// What was found in the schema.
@@ -316,9 +320,7 @@ impl Reader<'_> {
     /// without the `prior_focal_length` column has none: its intrinsics are
     /// taken as given).
     #[allow(clippy::type_complexity)]
-    fn cameras(
-        &self,
-    ) -> Result<(BTreeMap<CameraId, Camera>, BTreeSet<CameraId>), DatabaseError> {
+    fn cameras(&self) -> Result<(BTreeMap<CameraId, Camera>, BTreeSet<CameraId>), DatabaseError> {
         const T: &str = "cameras";
         let prior_column = if self.columns(T)?.iter().any(|c| c == "prior_focal_length") {
             "prior_focal_length"
@@ -533,9 +535,16 @@ impl Reader<'_> {
         keypoints: &BTreeMap<ImageId, Vec<Vector2<f64>>>,
     ) -> Result<Vec<TwoViewGeometry>, DatabaseError> {
         const T: &str = "two_view_geometries";
+        let f_column = if self.columns(T)?.iter().any(|c| c == "F") {
+            "F"
+        } else {
+            "NULL"
+        };
         let mut stmt = self
             .conn
-            .prepare("SELECT pair_id, rows, cols, data, config FROM two_view_geometries ORDER BY pair_id")
+            .prepare(&format!(
+                "SELECT pair_id, rows, cols, data, config, {f_column} FROM two_view_geometries ORDER BY pair_id"
+            ))
             .map_err(self.sql(T))?;
         let mut rows = stmt.query([]).map_err(self.sql(T))?;
         let mut out = Vec::new();
@@ -549,6 +558,16 @@ impl Reader<'_> {
                 .map_err(self.sql(T))?
                 .unwrap_or(0);
             let blob = blob.unwrap_or_default();
+            // A matrix blob of another size or with non-finite values is not
+            // used (it is only a hint for self-calibration).
+            let f_blob: Option<Vec<u8>> = row.get(5).unwrap_or(None);
+            let fundamental = f_blob.filter(|b| b.len() == 72).and_then(|b| {
+                let mut f = [0.0; 9];
+                for (v, c) in f.iter_mut().zip(b.chunks_exact(8)) {
+                    *v = f64::from_le_bytes(c.try_into().expect("chunks of 8"));
+                }
+                (f.iter().all(|v| v.is_finite()) && f.iter().any(|v| *v != 0.0)).then_some(f)
+            });
             if pair_id < 0 {
                 return Err(self.bad_row(T, format!("pair_id {pair_id}"), "negative pair id"));
             }
@@ -606,6 +625,7 @@ impl Reader<'_> {
                 image_id2: id2,
                 config,
                 inlier_matches: matches,
+                fundamental,
             });
         }
         Ok(out)

@@ -583,7 +583,9 @@ mod tests {
         assert!(implausible_intrinsics(&radial(f64::NAN, 0.0)).is_some());
         // A principal point far outside 1 is not a distortion parameter; fy counts as a focal.
         let pinhole = camera(CameraModel::Pinhole, vec![500.0, 20.0, 320.0, 240.0]);
-        assert!(implausible_intrinsics(&pinhole).unwrap().contains("20.0 px"));
+        assert!(implausible_intrinsics(&pinhole)
+            .unwrap()
+            .contains("20.0 px"));
         let opencv = camera(
             CameraModel::OpenCv,
             vec![500.0, 500.0, 320.0, 240.0, -0.1, 0.01, 0.0, 0.0],

@@ -24,6 +24,7 @@ use super::filter::{
     count_points_on_seen_surface, filter_observations, filter_points_behind_map,
     filter_small_angle_points,
 };
+use super::focal::{self, focal_from_fundamentals, FocalEstimate};
 use super::initialize::{initialize, InitError};
 use super::options::{
     AssociationKind, BundleOptions, IntrinsicsRefinement, MapperOptions, OptionsError,
@@ -260,6 +261,7 @@ pub fn run_mapper_with_priors(
             );
         }
     }
+    let focal_estimates = start_guessed_focal_lengths(&mut state, db, &refine.every);
 
     // 2. Map index.
     let index = MapIndex::build(cloud)?;
@@ -294,7 +296,7 @@ pub fn run_mapper_with_priors(
                 ..Default::default()
             })
             .collect(),
-        intrinsics: refine.records(&state),
+        intrinsics: refine.records(db, &focal_estimates),
         ..Default::default()
     };
 
@@ -884,6 +886,79 @@ fn estimate_uncertainty(
     report.pose_uncertainty = Some(summary);
 }
 
+/// Cameras in `refine` (self-calibrated) start from the focal length their
+/// pairs' fundamental matrices give (see [`focal_from_fundamentals`]), when
+/// at least 8 uncalibrated pairs give one: from COLMAP's guess (1.5 times
+/// the true value on the 640 x 480 scenes) the solves alone did not always
+/// reach it. Returns the estimate of every camera that took one (all the
+/// cameras sharing the intrinsics).
+fn start_guessed_focal_lengths(
+    state: &mut MapState,
+    db: &DatabaseSnapshot,
+    refine: &BTreeSet<CameraId>,
+) -> BTreeMap<CameraId, FocalEstimate> {
+    const UNCALIBRATED: i64 = 3;
+    let mut out = BTreeMap::new();
+    let owners: BTreeSet<CameraId> = refine
+        .iter()
+        .map(|&id| state.intrinsics_of(id))
+        .filter(|id| db.cameras_without_focal_prior.contains(id))
+        .collect();
+    for owner in owners {
+        let camera_of = |image: &ImageId| db.images.get(image).map(|i| i.camera_id);
+        let mut pairs: Vec<(usize, [f64; 9])> = db
+            .two_view_geometries
+            .iter()
+            .filter(|g| g.config == UNCALIBRATED)
+            .filter(|g| {
+                [&g.image_id1, &g.image_id2]
+                    .iter()
+                    .all(|i| camera_of(i).is_some_and(|c| state.intrinsics_of(c) == owner))
+            })
+            .filter_map(|g| g.fundamental.map(|f| (g.inlier_matches.len(), f)))
+            .collect();
+        // The pairs with most inliers (stable: ties in pair order).
+        pairs.sort_by(|a, b| b.0.cmp(&a.0));
+        pairs.truncate(focal::MAX_PAIRS);
+        let fundamentals: Vec<[f64; 9]> = pairs.iter().map(|p| p.1).collect();
+        let camera = &state.cameras[&owner];
+        let guess = camera.mean_focal_length();
+        let Some(estimate) =
+            focal_from_fundamentals(&fundamentals, &camera.principal_point(), guess, 8)
+        else {
+            log::info!(
+                "camera {}: its {} uncalibrated pairs give no focal length; self-calibration starts from {guess:.1} px",
+                owner.0,
+                fundamentals.len()
+            );
+            continue;
+        };
+        log::info!(
+            "camera {}: {} uncalibrated pairs give a focal length of {:.1} px (the database's guess: {guess:.1} px; how far from essential: {:.4} there, {:.4} at the guess)",
+            owner.0,
+            estimate.num_pairs,
+            estimate.focal_px,
+            estimate.cost,
+            estimate.cost_at_guess
+        );
+        let members: Vec<CameraId> = state
+            .cameras
+            .keys()
+            .copied()
+            .filter(|&id| state.intrinsics_of(id) == owner)
+            .collect();
+        for id in members {
+            if let Some(c) = state.cameras.get_mut(&id) {
+                for &k in c.model.focal_idxs() {
+                    c.params[k] = estimate.focal_px;
+                }
+                out.insert(id, estimate);
+            }
+        }
+    }
+    out
+}
+
 /// The cameras whose focal length and distortion the solves refine.
 #[derive(Clone, Debug, Default, PartialEq)]
 struct RefinedCameras {
@@ -930,13 +1005,17 @@ impl RefinedCameras {
         }
     }
 
-    /// One record per camera used by an image of the state: the database's
-    /// intrinsics and where they are refined (the final ones are filled in
-    /// by [`MapReport::finish`]).
-    fn records(&self, state: &MapState) -> Vec<IntrinsicsRecord> {
-        let used: BTreeSet<CameraId> = state.images.values().map(|i| i.camera_id).collect();
+    /// One record per camera used by an image: the database's intrinsics,
+    /// the focal length the pairs gave, and where they are refined (the
+    /// final ones are filled in by [`MapReport::finish`]).
+    fn records(
+        &self,
+        db: &DatabaseSnapshot,
+        estimates: &BTreeMap<CameraId, FocalEstimate>,
+    ) -> Vec<IntrinsicsRecord> {
+        let used: BTreeSet<CameraId> = db.images.values().map(|i| i.camera_id).collect();
         used.iter()
-            .filter_map(|id| state.cameras.get(id))
+            .filter_map(|id| db.cameras.get(id))
             .map(|c| IntrinsicsRecord {
                 camera_id: c.id.0,
                 model: c.model.name().to_string(),
@@ -951,6 +1030,7 @@ impl RefinedCameras {
                 }
                 .to_string(),
                 probe_focal_change: None,
+                focal_from_pairs_px: estimates.get(&c.id).map(|e| e.focal_px),
                 database_params: c.params.clone(),
                 final_params: c.params.clone(),
                 focal_change: 0.0,
@@ -1111,8 +1191,18 @@ mod tests {
         for (mode, every, last, probe) in [
             (IntrinsicsRefinement::Auto, set(&[2]), set(&[2]), set(&[1])),
             (IntrinsicsRefinement::Fixed, set(&[]), set(&[]), set(&[])),
-            (IntrinsicsRefinement::Final, set(&[]), set(&[1, 2]), set(&[])),
-            (IntrinsicsRefinement::All, set(&[1, 2]), set(&[1, 2]), set(&[])),
+            (
+                IntrinsicsRefinement::Final,
+                set(&[]),
+                set(&[1, 2]),
+                set(&[]),
+            ),
+            (
+                IntrinsicsRefinement::All,
+                set(&[1, 2]),
+                set(&[1, 2]),
+                set(&[]),
+            ),
         ] {
             assert_eq!(
                 RefinedCameras::new(&db, mode),

@@ -17,6 +17,7 @@ pub mod align;
 pub mod associate;
 pub mod bundle;
 pub mod filter;
+pub mod focal;
 pub mod geometry;
 pub mod initialize;
 pub mod mapper;

@@ -835,7 +835,10 @@ mod tests {
         assert_eq!(read("true"), Ok(IntrinsicsRefinement::Final));
         assert_eq!(read("false"), Ok(IntrinsicsRefinement::Fixed));
         let err = read("\"always\"").unwrap_err();
-        assert!(err.contains("'always'") && err.contains("auto, fixed, final, all"), "{err}");
+        assert!(
+            err.contains("'always'") && err.contains("auto, fixed, final, all"),
+            "{err}"
+        );
         assert!(read("3").is_err());
     }
 }

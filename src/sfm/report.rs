@@ -132,6 +132,9 @@ pub struct IntrinsicsRecord {
     /// the intrinsics free after the final rounds; above
     /// `bundle.refine_intrinsics_min_change` it is refined, else held.
     pub probe_focal_change: Option<f64>,
+    /// A guessed focal length: the value the pairs' fundamental matrices
+    /// gave, where self-calibration started (pixels).
+    pub focal_from_pairs_px: Option<f64>,
     pub database_params: Vec<f64>,
     pub final_params: Vec<f64>,
     /// Final mean focal length over the database's, minus 1.

@@ -199,7 +199,10 @@ impl MapState {
     /// The camera whose intrinsics `camera` uses in bundle adjustment (itself
     /// unless shared).
     pub fn intrinsics_of(&self, camera: CameraId) -> CameraId {
-        self.shared_intrinsics.get(&camera).copied().unwrap_or(camera)
+        self.shared_intrinsics
+            .get(&camera)
+            .copied()
+            .unwrap_or(camera)
     }
 
     /// Cameras of the same model, size and parameters share one set of
@@ -524,7 +527,9 @@ mod tests {
         let mut state = MapState::new(&db, 1);
         assert_eq!(state.intrinsics_of(CameraId(2)), CameraId(2));
         assert_eq!(state.share_identical_intrinsics(), 3);
-        let of: Vec<u32> = (1..=7).map(|i| state.intrinsics_of(CameraId(i)).0).collect();
+        let of: Vec<u32> = (1..=7)
+            .map(|i| state.intrinsics_of(CameraId(i)).0)
+            .collect();
         // 2 and 4 are 1's twins, 6 is 3's; 5 (another width) and 7 (another model) are their own.
         assert_eq!(of, [1, 1, 3, 1, 5, 3, 7]);
     }

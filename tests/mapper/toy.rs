@@ -186,6 +186,7 @@ pub fn toy(num_images: usize, noise_px: f64, wrong: f64, seed: u64) -> Toy {
                 image_id2: ids[b],
                 config: 2,
                 inlier_matches: matches,
+                fundamental: None,
             });
         }
     }
@@ -833,7 +834,9 @@ fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
     // free after the final rounds) and refines it.
     let (out_auto, err_auto) = map_toy(&scene, &MapperOptions::default());
     let rec = &out_auto.report.intrinsics[0];
-    let probe = rec.probe_focal_change.expect("a given focal length is probed");
+    let probe = rec
+        .probe_focal_change
+        .expect("a given focal length is probed");
     assert!((-0.0105..-0.0085).contains(&probe), "{rec:?}");
     assert_eq!(
         (rec.camera_id, rec.refined.as_str(), rec.database_params[0]),
@@ -889,11 +892,22 @@ fn toy_room_shares_identical_cameras() {
     for (id, image) in scene.db.images.iter_mut() {
         let cam = CameraId(id.0);
         image.camera_id = cam;
-        scene.db.cameras.insert(cam, Camera { id: cam, ..camera.clone() });
+        scene.db.cameras.insert(
+            cam,
+            Camera {
+                id: cam,
+                ..camera.clone()
+            },
+        );
         scene.db.cameras_without_focal_prior.insert(cam);
     }
     let (shared, err_shared) = map_toy(&scene, &MapperOptions::default());
-    let focals: Vec<f64> = shared.reconstruction.cameras.values().map(|c| c.params[0]).collect();
+    let focals: Vec<f64> = shared
+        .reconstruction
+        .cameras
+        .values()
+        .map(|c| c.params[0])
+        .collect();
     assert_eq!(focals.len(), 14);
     assert!(focals.iter().all(|&f| f == focals[0]), "{focals:?}");
     assert!((focals[0] - 450.0).abs() < 0.9, "{focals:?}");
@@ -901,7 +915,14 @@ fn toy_room_shares_identical_cameras() {
     let mut alone = MapperOptions::default();
     alone.bundle.share_identical_intrinsics = false;
     let init = scene.init_pose.to_cam_from_world();
-    if let Ok(out) = run_mapper(&scene.db, &scene.cloud, ImageId(1), &init, &alone, &mut |_, _| {}) {
+    if let Ok(out) = run_mapper(
+        &scene.db,
+        &scene.cloud,
+        ImageId(1),
+        &init,
+        &alone,
+        &mut |_, _| {},
+    ) {
         let err_alone = max_centre_error(&out.reconstruction, &scene.gt);
         let spread = out
             .reconstruction
@@ -914,7 +935,10 @@ fn toy_room_shares_identical_cameras() {
              alone: largest focal error {spread:.2} px, error {err_alone:.4} m",
             focals[0]
         );
-        assert!(spread > 1.0 || err_alone > err_shared, "{spread} {err_alone}");
+        assert!(
+            spread > 1.0 || err_alone > err_shared,
+            "{spread} {err_alone}"
+        );
     }
 }
 
@@ -938,15 +962,29 @@ fn toy_room_self_calibrates_a_camera_the_database_marks_as_uncalibrated() {
     assert_eq!(out.report.num_registered, 14);
     assert!((refined.params[0] - 450.0).abs() < 0.9, "{refined:?}");
     assert!((refined.params[3] - 0.01).abs() < 0.003, "{refined:?}");
-    assert_eq!(refined.params[1..3], [320.0, 240.0], "principal point moved");
+    assert_eq!(
+        refined.params[1..3],
+        [320.0, 240.0],
+        "principal point moved"
+    );
     assert!(err < 0.01, "max centre error {err} m");
     assert_eq!(out.report.intrinsics[0].refined, "every solve");
     // Held at the guess, the same run cannot place the images.
     let mut fixed = MapperOptions::default();
     fixed.bundle.refine_intrinsics = IntrinsicsRefinement::Fixed;
     let init = scene.init_pose.to_cam_from_world();
-    if let Ok(out) = run_mapper(&scene.db, &scene.cloud, ImageId(1), &init, &fixed, &mut |_, _| {}) {
+    if let Ok(out) = run_mapper(
+        &scene.db,
+        &scene.cloud,
+        ImageId(1),
+        &init,
+        &fixed,
+        &mut |_, _| {},
+    ) {
         let err_fixed = max_centre_error(&out.reconstruction, &scene.gt);
-        assert!(err_fixed > 5.0 * err, "held: {err_fixed} m, refined: {err} m");
+        assert!(
+            err_fixed > 5.0 * err,
+            "held: {err_fixed} m, refined: {err} m"
+        );
     }
 }
