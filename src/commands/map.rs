@@ -122,8 +122,9 @@ pub struct MapArgs {
     /// Which bundle adjustments refine focal length and distortion (the
     /// principal point is held, as in COLMAP): auto (default: every solve
     /// for cameras the database marks as uncalibrated, prior_focal_length =
-    /// 0, the final rounds for the others), fixed (calibrated cameras), final,
-    /// all (every solve, as COLMAP's mapper; the flag alone means all).
+    /// 0; the others are held unless one solve after the final rounds moves
+    /// their focal length by more than 0.1 %), fixed (calibrated cameras),
+    /// final, all (every solve, as COLMAP's mapper; the flag alone means all).
     #[arg(
         long,
         visible_alias = "refine_intrinsics",
