@@ -65,6 +65,16 @@ pub fn implausible_intrinsics(camera: &Camera) -> Option<String> {
     None
 }
 
+/// The intrinsics blocks a solve of `config` refines: those of the cameras
+/// in `config.refine_cameras` and of the cameras they share intrinsics with.
+fn refined_intrinsics(state: &MapState, config: &BundleConfig) -> BTreeSet<CameraId> {
+    config
+        .refine_cameras
+        .iter()
+        .map(|&id| state.intrinsics_of(id))
+        .collect()
+}
+
 /// A soft prior on one image's pose: residuals `position_weight * (C - C0)`
 /// (metres) and `rotation_weight * angle(R R0^T)` (radians), in pixel
 /// equivalents.
@@ -101,6 +111,10 @@ pub struct SolveRecord {
     pub final_cost: f64,
     pub iterations: usize,
     pub usable: bool,
+    /// The mapper went back to the state before this solve (the probe of
+    /// given focal lengths that kept them held): its result is not in the
+    /// model.
+    pub discarded: bool,
     /// Ceres time, seconds.
     pub time_s: f64,
     /// Time of the association (projection and nearest-neighbour search), seconds.
@@ -224,6 +238,7 @@ fn build_bundle(state: &MapState, config: &BundleConfig) -> BuiltBundle {
     };
     let to_local =
         |pose: &Rigid3| Rigid3::new(pose.rotation, pose.translation + pose.rotation * origin);
+    let refined = refined_intrinsics(state, config);
     for &image in &images_needed {
         let variable =
             config.variable_images.contains(&image) && !config.fixed_images.contains(&image);
@@ -236,7 +251,7 @@ fn build_bundle(state: &MapState, config: &BundleConfig) -> BuiltBundle {
             slot.insert(problem.cameras.len() as u32);
             // Refined: focal length and distortion; the principal point stays
             // (COLMAP's default: it is poorly determined by BA).
-            let constant = if config.refine_cameras.contains(&cam_id) {
+            let constant = if refined.contains(&cam_id) {
                 let camera = &state.cameras[&cam_id];
                 let pp = camera.model.principal_point_idxs();
                 ConstantParams::Mask((0..camera.params.len()).map(|k| pp.contains(&k)).collect())
@@ -386,6 +401,7 @@ pub fn bundle_adjust(
             final_cost: 0.0,
             iterations: 0,
             usable: true,
+            discarded: false,
             time_s: 0.0,
             association_time_s: 0.0,
         });
@@ -411,6 +427,41 @@ pub fn bundle_adjust(
     let reprojection_before_px = ErrorStats::of(&reprojection_errors(state, &point_list));
     let solver_options = solver_options(kind, associator, options);
     let summary = solve(&mut problem, &solver_options)?;
+    // Refined intrinsics outside COLMAP's bounds make the whole solve
+    // suspect (its poses and points went with them): it is run again with
+    // those cameras held.
+    if summary.usable {
+        let refined = refined_intrinsics(state, config);
+        let implausible: BTreeSet<CameraId> = camera_idx
+            .iter()
+            .filter(|(id, _)| refined.contains(id))
+            .filter_map(|(&id, &ci)| {
+                let camera = Camera {
+                    params: problem.cameras[ci as usize].params.clone(),
+                    ..state.cameras[&id].clone()
+                };
+                let why = implausible_intrinsics(&camera)?;
+                log::warn!(
+                    "{kind:?} bundle adjustment: the refined intrinsics of camera {} are implausible ({why}): {:?}; solving again with them held",
+                    id.0,
+                    camera.params
+                );
+                Some(id)
+            })
+            .collect();
+        if !implausible.is_empty() {
+            let held = BundleConfig {
+                refine_cameras: config
+                    .refine_cameras
+                    .iter()
+                    .copied()
+                    .filter(|&id| !implausible.contains(&state.intrinsics_of(id)))
+                    .collect(),
+                ..config.clone()
+            };
+            return bundle_adjust(state, &held, kind, associator, options);
+        }
+    }
     if summary.usable {
         for (&image, &pi) in &pose_idx {
             if !problem.poses[pi as usize].constant {
@@ -429,26 +480,13 @@ pub fn bundle_adjust(
                 }
             }
         }
+        let refined = refined_intrinsics(state, config);
         for (cam_id, &ci) in &camera_idx {
-            if !config.refine_cameras.contains(cam_id) {
-                continue;
-            }
-            let Some(c) = state.cameras.get(cam_id) else {
-                continue;
-            };
-            let refined = Camera {
-                params: problem.cameras[ci as usize].params.clone(),
-                ..c.clone()
-            };
-            if let Some(why) = implausible_intrinsics(&refined) {
-                log::warn!(
-                    "{kind:?} bundle adjustment: camera {} kept its intrinsics, the refined ones are implausible ({why}): {:?}",
-                    cam_id.0,
-                    refined.params
-                );
+            if !refined.contains(cam_id) {
                 continue;
             }
             // Every camera sharing this one's intrinsics takes them.
+            let params = &problem.cameras[ci as usize].params;
             let members: Vec<CameraId> = state
                 .cameras
                 .keys()
@@ -457,7 +495,7 @@ pub fn bundle_adjust(
                 .collect();
             for id in members {
                 if let Some(member) = state.cameras.get_mut(&id) {
-                    member.params.clone_from(&refined.params);
+                    member.params.clone_from(params);
                 }
             }
         }
@@ -484,6 +522,7 @@ pub fn bundle_adjust(
         final_cost: summary.final_cost,
         iterations: summary.num_iterations,
         usable: summary.usable,
+        discarded: false,
         time_s: summary.time_s,
         association_time_s,
     })

@@ -253,7 +253,7 @@ pub fn run_mapper_with_priors(
     stages.done("correspondence graph");
     let mut refine = RefinedCameras::new(db, options.bundle.refine_intrinsics);
     if options.bundle.share_identical_intrinsics {
-        let shared = state.share_identical_intrinsics();
+        let shared = state.share_identical_intrinsics(&db.cameras_without_focal_prior);
         if shared > 0 {
             log::info!(
                 "{shared} of {} cameras share the intrinsics of another with the same model, size and parameters",
@@ -567,7 +567,8 @@ pub fn run_mapper_with_priors(
     let all: BTreeSet<ImageId> = state.registration_order.iter().copied().collect();
     let final_rounds = |state: &mut MapState,
                         report: &mut MapReport,
-                        refine_cameras: &BTreeSet<CameraId>|
+                        refine_cameras: &BTreeSet<CameraId>,
+                        pass: u32|
      -> Result<(), MapperError> {
         for round in 0..options.bundle.final_rounds {
             let before = camera_centres(state);
@@ -590,6 +591,7 @@ pub fn run_mapper_with_priors(
                 .collect();
             moves.sort_by(f64::total_cmp);
             let record = RoundRecord {
+                pass,
                 median_move_m: moves.get(moves.len() / 2).copied().unwrap_or(0.0),
                 max_move_m: moves.last().copied().unwrap_or(0.0),
             };
@@ -606,7 +608,7 @@ pub fn run_mapper_with_priors(
         }
         Ok(())
     };
-    final_rounds(&mut state, &mut report, &refine.last)?;
+    final_rounds(&mut state, &mut report, &refine.last, 1)?;
     // Cameras with a given focal length (`auto`): one more solve with their
     // intrinsics free tells whether the data disagree with them. A focal
     // length that moves more than `refine_intrinsics_min_change` was not
@@ -652,9 +654,20 @@ pub fn run_mapper_with_priors(
         }
         if adopted.is_empty() {
             state = before;
+            if let Some(solve) = report.solves.last_mut() {
+                solve.discarded = true;
+            }
         } else {
+            // The held cameras go back to their given intrinsics; the rounds
+            // start from the probe's poses and points.
+            for id in refine.probe.difference(&adopted) {
+                let params = before.cameras[id].params.clone();
+                if let Some(c) = state.cameras.get_mut(id) {
+                    c.params = params;
+                }
+            }
             refine.last.extend(adopted);
-            final_rounds(&mut state, &mut report, &refine.last)?;
+            final_rounds(&mut state, &mut report, &refine.last, 2)?;
         }
     }
     stages.done("final bundle adjustment");

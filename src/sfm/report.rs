@@ -116,7 +116,9 @@ pub struct MapReport {
     pub intrinsics: Vec<IntrinsicsRecord>,
     pub images: Vec<ImageRecord>,
     pub solves: Vec<SolveRecord>,
-    /// How far the camera centres moved in each final round, metres.
+    /// How far the camera centres moved in each final round, metres (the
+    /// rounds run again, `pass` 2, when the probe of a given focal length
+    /// found it off).
     pub final_rounds: Vec<RoundRecord>,
     pub stages: Vec<StageRecord>,
 }
@@ -126,7 +128,9 @@ pub struct MapReport {
 pub struct IntrinsicsRecord {
     pub camera_id: u32,
     pub model: String,
-    /// "every solve", "final rounds" or "held".
+    /// "every solve", "final rounds" or "held" (a given focal length that
+    /// the probe found right, or with `fixed`); "probed" only before the
+    /// probe ran.
     pub refined: String,
     /// A given focal length (`auto`): its relative change in one solve with
     /// the intrinsics free after the final rounds; above
@@ -144,6 +148,8 @@ pub struct IntrinsicsRecord {
 /// One final round: how far its solve moved the camera centres, metres.
 #[derive(Clone, Copy, Debug, Default, Serialize)]
 pub struct RoundRecord {
+    /// 1, or 2 for the rounds after the probe of given focal lengths.
+    pub pass: u32,
     pub median_move_m: f64,
     pub max_move_m: f64,
 }

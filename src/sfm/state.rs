@@ -6,7 +6,7 @@
 //!
 //! Every map is ordered and ids are handed out in sequence, so the same
 //! sequence of calls gives the same state.
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use nalgebra::{Vector2, Vector3};
 
@@ -210,9 +210,12 @@ impl MapState {
     /// COLMAP's extractor gives every image its own camera unless told
     /// otherwise, all with the same guessed or EXIF focal length, and one
     /// image's focal length cannot be refined from its own few hundred
-    /// points. Returns the number of cameras that now share another's.
-    pub fn share_identical_intrinsics(&mut self) -> usize {
-        let mut first: BTreeMap<(&str, u32, u32, Vec<u64>), CameraId> = BTreeMap::new();
+    /// points. A camera in `guessed` (no focal length prior) never shares
+    /// with one outside it: the two are refined differently. Returns the
+    /// number of cameras that now share another's.
+    pub fn share_identical_intrinsics(&mut self, guessed: &BTreeSet<CameraId>) -> usize {
+        type Key<'a> = (&'a str, u32, u32, Vec<u64>, bool);
+        let mut first: BTreeMap<Key, CameraId> = BTreeMap::new();
         self.shared_intrinsics.clear();
         for (id, c) in &self.cameras {
             let key = (
@@ -220,6 +223,7 @@ impl MapState {
                 c.width,
                 c.height,
                 c.params.iter().map(|p| p.to_bits()).collect(),
+                guessed.contains(id),
             );
             let owner = *first.entry(key).or_insert(*id);
             if owner != *id {
@@ -524,13 +528,17 @@ mod tests {
         pinhole.model = CameraModel::Pinhole;
         pinhole.params = vec![768.0, 768.0, 320.0, 240.0];
         db.cameras.insert(CameraId(7), pinhole);
+        db.cameras.insert(CameraId(8), radial(8, 768.0, 640));
         let mut state = MapState::new(&db, 1);
         assert_eq!(state.intrinsics_of(CameraId(2)), CameraId(2));
-        assert_eq!(state.share_identical_intrinsics(), 3);
-        let of: Vec<u32> = (1..=7)
+        // 8 has 1's parameters but no focal length prior (1 has one).
+        let guessed = BTreeSet::from([CameraId(8)]);
+        assert_eq!(state.share_identical_intrinsics(&guessed), 3);
+        let of: Vec<u32> = (1..=8)
             .map(|i| state.intrinsics_of(CameraId(i)).0)
             .collect();
-        // 2 and 4 are 1's twins, 6 is 3's; 5 (another width) and 7 (another model) are their own.
-        assert_eq!(of, [1, 1, 3, 1, 5, 3, 7]);
+        // 2 and 4 are 1's twins, 6 is 3's; 5 (another width), 7 (another
+        // model) and 8 (guessed) are their own.
+        assert_eq!(of, [1, 1, 3, 1, 5, 3, 7, 8]);
     }
 }
