@@ -7,17 +7,17 @@
 //! PnP inliers become the first 3D points.
 use std::collections::BTreeMap;
 
-use nalgebra::Vector3;
+use nalgebra::{Vector2, Vector3};
 use rand_chacha::ChaCha8Rng;
 
 use super::associate::NearestNeighbourAssociator;
-use super::geometry::intersect_ray_plane;
+use super::geometry::{intersect_ray_plane, reprojection_error_sq};
 use super::options::{InitOptions, RegisterOptions};
 use super::register::{estimate_pose, PoseOutcome};
 use super::state::MapState;
 use crate::map::grid::FrustumGrid;
 use crate::map::projection::{project_map_at_pixels, ProjectionError};
-use crate::scene::{ImageId, Rigid3, TrackElement};
+use crate::scene::{Camera, ImageId, Rigid3, TrackElement};
 
 /// One second-image candidate that was tried.
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
@@ -100,8 +100,27 @@ pub fn lidar_points_of_image(
     grid: &FrustumGrid,
     options: &InitOptions,
 ) -> Result<(BTreeMap<u32, Vector3<f64>>, usize), ProjectionError> {
-    let camera = state.camera_of(image);
-    let keypoints = &state.images[&image].keypoints;
+    lidar_points_with_camera(
+        state.camera_of(image),
+        &state.images[&image].keypoints,
+        cam_from_world,
+        map,
+        grid,
+        options,
+    )
+}
+
+/// [`lidar_points_of_image`] for the keypoints of an image seen through
+/// `camera` (which need not be the image's own: the focal-length sweep tries
+/// several).
+fn lidar_points_with_camera(
+    camera: &Camera,
+    keypoints: &[Vector2<f64>],
+    cam_from_world: &Rigid3,
+    map: &NearestNeighbourAssociator,
+    grid: &FrustumGrid,
+    options: &InitOptions,
+) -> Result<(BTreeMap<u32, Vector3<f64>>, usize), ProjectionError> {
     let projection = options.projection();
     let hits = project_map_at_pixels(
         map.cloud,
@@ -154,6 +173,183 @@ pub fn lidar_points_of_image(
         out.insert(k as u32, x);
     }
     Ok((out, num_hits))
+}
+
+/// What the map says about the focal length of the initial image's camera.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct MapFocalEstimate {
+    pub focal_px: f64,
+    /// Second images scored.
+    pub num_images: usize,
+    /// Mean truncated squared reprojection error (0: every correspondence
+    /// exact, 1: none within the truncation) at the estimate and at the
+    /// camera's own focal length.
+    pub score: f64,
+    pub score_at_guess: f64,
+}
+
+/// Truncation of the sweep's score, pixels.
+const SWEEP_TRUNCATION_PX: f64 = 2.0;
+
+/// How well the map explains the initial pair at focal length `f` (shared by
+/// the initial image and every candidate of the same intrinsics): the
+/// initial image's features are cut with the map's planes at the given pose
+/// seen through `f`, each candidate is registered against those points by
+/// PnP with `f`, and the score is the mean over candidates of the mean
+/// truncated squared reprojection error `min(e^2, t^2) / t^2` over all its
+/// LiDAR matches (1 for a candidate PnP does not place). At a wrong `f` the
+/// points land in the wrong places on the map and no pose of the candidate
+/// reprojects them onto its features.
+#[allow(clippy::too_many_arguments)]
+fn focal_score(
+    state: &MapState,
+    image: ImageId,
+    candidates: &[ImageId],
+    f: f64,
+    cam_from_world: &Rigid3,
+    map: &NearestNeighbourAssociator,
+    grid: &FrustumGrid,
+    options: &InitOptions,
+    register: &RegisterOptions,
+    seed: u64,
+) -> f64 {
+    let owner = state.intrinsics_of(state.images[&image].camera_id);
+    let with_f = |c: &Camera| -> Camera {
+        let mut c = c.clone();
+        if state.intrinsics_of(c.id) == owner {
+            for &k in c.model.focal_idxs() {
+                c.params[k] = f;
+            }
+        }
+        c
+    };
+    let camera = with_f(state.camera_of(image));
+    let Ok((lidar, _)) = lidar_points_with_camera(
+        &camera,
+        &state.images[&image].keypoints,
+        cam_from_world,
+        map,
+        grid,
+        options,
+    ) else {
+        return 1.0;
+    };
+    let t_sq = SWEEP_TRUNCATION_PX * SWEEP_TRUNCATION_PX;
+    let mut total = 0.0;
+    for &other in candidates {
+        let mut pixels = Vec::new();
+        let mut points = Vec::new();
+        for (&k, x) in &lidar {
+            for c in state.graph.correspondences(image, k) {
+                if c.image_id == other {
+                    pixels.push(state.images[&other].keypoints[c.point2d_idx as usize]);
+                    points.push(*x);
+                }
+            }
+        }
+        let camera_other = with_f(state.camera_of(other));
+        let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(seed);
+        total += match estimate_pose(&camera_other, &pixels, &points, None, register, &mut rng) {
+            PoseOutcome::Found { cam_from_world, .. } => {
+                pixels
+                    .iter()
+                    .zip(&points)
+                    .map(|(px, x)| {
+                        reprojection_error_sq(&camera_other, &cam_from_world, x, px)
+                            .map_or(1.0, |e| e.min(t_sq) / t_sq)
+                    })
+                    .sum::<f64>()
+                    / pixels.len().max(1) as f64
+            }
+            _ => 1.0,
+        };
+    }
+    total / candidates.len().max(1) as f64
+}
+
+/// The focal length of the initial image's camera that makes the map and
+/// the initial pair agree best (see [`focal_score`]): a log grid over a
+/// third to three times the camera's value in 8 % steps, then 1 % steps
+/// around the best, over the `num_candidates` images with most verified
+/// matches with the initial image. `None` when no candidate could be placed
+/// at any focal length or the best lies on the edge of the grid.
+#[allow(clippy::too_many_arguments)]
+pub fn focal_from_map(
+    state: &MapState,
+    image: ImageId,
+    cam_from_world: &Rigid3,
+    map: &NearestNeighbourAssociator,
+    grid: &FrustumGrid,
+    options: &InitOptions,
+    register: &RegisterOptions,
+    num_candidates: usize,
+    seed: u64,
+) -> Option<MapFocalEstimate> {
+    let guess = state.camera_of(image).mean_focal_length();
+    if !(guess.is_finite() && guess > 0.0) {
+        return None;
+    }
+    let mut counts: BTreeMap<ImageId, usize> = BTreeMap::new();
+    for k in 0..state.images[&image].keypoints.len() as u32 {
+        for c in state.graph.correspondences(image, k) {
+            if c.image_id != image {
+                *counts.entry(c.image_id).or_default() += 1;
+            }
+        }
+    }
+    let mut by_count: Vec<(ImageId, usize)> = counts.into_iter().collect();
+    by_count.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+    let candidates: Vec<ImageId> = by_count
+        .into_iter()
+        .take(num_candidates)
+        .map(|(id, _)| id)
+        .collect();
+    if candidates.is_empty() {
+        return None;
+    }
+    let score = |f: f64| {
+        focal_score(
+            state,
+            image,
+            &candidates,
+            f,
+            cam_from_world,
+            map,
+            grid,
+            options,
+            register,
+            seed,
+        )
+    };
+    // Coarse: 1/3 .. 3 times the guess in 8 % steps.
+    let coarse_steps = (9f64.ln() / 1.08f64.ln()).ceil() as i32;
+    let coarse: Vec<(f64, f64)> = (0..=coarse_steps)
+        .map(|i| {
+            let f = guess / 3.0 * 1.08f64.powi(i);
+            (f, score(f))
+        })
+        .collect();
+    for (f, s) in &coarse {
+        log::debug!("focal sweep: {f:.1} px -> {s:.4}");
+    }
+    let best = (0..coarse.len()).min_by(|&a, &b| coarse[a].1.total_cmp(&coarse[b].1))?;
+    if best == 0 || best == coarse.len() - 1 || coarse[best].1 >= 1.0 {
+        return None;
+    }
+    // Fine: 1 % steps within one coarse step of the best.
+    let centre = coarse[best].0;
+    let fine = (-8..=8)
+        .map(|i| {
+            let f = centre * 1.01f64.powi(i);
+            (f, if i == 0 { coarse[best].1 } else { score(f) })
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+    Some(MapFocalEstimate {
+        focal_px: fine.0,
+        num_images: candidates.len(),
+        score: fine.1,
+        score_at_guess: score(guess),
+    })
 }
 
 /// Registers the initial image at `cam_from_world` and a second image by PnP

@@ -139,6 +139,10 @@ pub struct IntrinsicsRecord {
     /// A guessed focal length: the value the pairs' fundamental matrices
     /// gave, where self-calibration started (pixels).
     pub focal_from_pairs_px: Option<f64>,
+    /// A guessed focal length of the initial image's camera: the value that
+    /// makes the map and the initial pair agree best, where
+    /// self-calibration started (pixels; it replaces the pairs' value).
+    pub focal_from_map_px: Option<f64>,
     pub database_params: Vec<f64>,
     pub final_params: Vec<f64>,
     /// Final mean focal length over the database's, minus 1.

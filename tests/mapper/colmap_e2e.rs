@@ -273,17 +273,21 @@ fn yard_self_calibrates_colmaps_guessed_camera() {
         .map(|v| v.as_f64().unwrap())
         .collect();
     let from_pairs = rec["focal_from_pairs_px"].as_f64();
+    let from_map = rec["focal_from_map_px"].as_f64();
     eprintln!(
-        "refined camera {refined:?}, truth {:?}, focal length from the pairs {from_pairs:?}",
+        "refined camera {refined:?}, truth {:?}, focal length from the pairs {from_pairs:?}, from the map {from_map:?}",
         truth.params
     );
     assert_eq!(rec["refined"], "every solve");
-    // Self-calibration started from the pairs' fundamental matrices, nearer
-    // the truth than COLMAP's guess.
-    let from_pairs = from_pairs.expect("the uncalibrated pairs give a focal length");
+    // Self-calibration started from the focal length the map and the
+    // initial pair agree on (measured 531-564 px for 512 on three databases;
+    // the pairs' fundamental matrices, most of them of nearly planar views,
+    // gave 295-320 px on the same databases and are not used).
+    let from_map = from_map.expect("the map gives a focal length");
     assert!(
-        (from_pairs - truth.params[0]).abs() < 0.5 * (768.0 - truth.params[0]).abs(),
-        "{from_pairs}"
+        (from_map / truth.params[0] - 1.0).abs() < 0.15,
+        "focal length from the map {from_map} (truth {})",
+        truth.params[0]
     );
     assert!(
         (refined[0] / truth.params[0] - 1.0).abs() < 0.003,

@@ -969,6 +969,13 @@ fn toy_room_self_calibrates_a_camera_the_database_marks_as_uncalibrated() {
     );
     assert!(err < 0.01, "max centre error {err} m");
     assert_eq!(out.report.intrinsics[0].refined, "every solve");
+    // Self-calibration started from the focal length the map and the
+    // initial pair agree on, much nearer the truth than the guess.
+    let from_map = out.report.intrinsics[0]
+        .focal_from_map_px
+        .expect("the map gives a focal length");
+    eprintln!("focal length from the map: {from_map:.1} px");
+    assert!((from_map - 450.0).abs() < 0.25 * 90.0, "{from_map}");
     // Held at the guess, the same run cannot place the images.
     let mut fixed = MapperOptions::default();
     fixed.bundle.refine_intrinsics = IntrinsicsRefinement::Fixed;
