@@ -115,6 +115,10 @@ pub struct SolveRecord {
     /// given focal lengths that kept them held): its result is not in the
     /// model.
     pub discarded: bool,
+    /// Cameras (intrinsics owners) this solve held because refining them
+    /// left them implausible in a first solve, which was thrown away; its
+    /// time is included.
+    pub intrinsics_held: Vec<u32>,
     /// Ceres time, seconds.
     pub time_s: f64,
     /// Time of the association (projection and nearest-neighbour search), seconds.
@@ -402,6 +406,7 @@ pub fn bundle_adjust(
             iterations: 0,
             usable: true,
             discarded: false,
+            intrinsics_held: Vec::new(),
             time_s: 0.0,
             association_time_s: 0.0,
         });
@@ -459,7 +464,14 @@ pub fn bundle_adjust(
                     .collect(),
                 ..config.clone()
             };
-            return bundle_adjust(state, &held, kind, associator, options);
+            let mut record = bundle_adjust(state, &held, kind, associator, options)?;
+            record.time_s += summary.time_s;
+            record.association_time_s += association_time_s;
+            record
+                .intrinsics_held
+                .extend(implausible.iter().map(|id| id.0));
+            record.intrinsics_held.sort_unstable();
+            return Ok(record);
         }
     }
     if summary.usable {
@@ -523,6 +535,7 @@ pub fn bundle_adjust(
         iterations: summary.num_iterations,
         usable: summary.usable,
         discarded: false,
+        intrinsics_held: Vec::new(),
         time_s: summary.time_s,
         association_time_s,
     })

@@ -17,7 +17,7 @@ use super::register::{estimate_pose, PoseOutcome};
 use super::state::MapState;
 use crate::map::grid::FrustumGrid;
 use crate::map::projection::{project_map_at_pixels, ProjectionError};
-use crate::scene::{Camera, ImageId, Rigid3, TrackElement};
+use crate::scene::{Camera, CameraId, ImageId, Rigid3, TrackElement};
 
 /// One second-image candidate that was tried.
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
@@ -179,7 +179,8 @@ fn lidar_points_with_camera(
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct MapFocalEstimate {
     pub focal_px: f64,
-    /// Second images scored.
+    /// Second images scored (placed by PnP at some focal lengths, maybe not
+    /// at all).
     pub num_images: usize,
     /// Mean truncated squared reprojection error (0: every correspondence
     /// exact, 1: none within the truncation) at the estimate and at the
@@ -267,12 +268,27 @@ fn focal_score(
     total / candidates.len().max(1) as f64
 }
 
+/// How [`focal_from_map`] searches.
+#[derive(Clone, Copy, Debug)]
+pub struct InitialPairFocalSweep<'a> {
+    /// The grid spans a third to three times this focal length, pixels.
+    pub centre_px: f64,
+    /// Second images scored: those with most verified matches with the
+    /// initial image.
+    pub num_candidates: usize,
+    /// Cameras whose focal length is a guess: an image of such a camera
+    /// whose intrinsics are not the initial image's is no candidate (its own
+    /// focal length is as unknown).
+    pub guessed: &'a std::collections::BTreeSet<CameraId>,
+    /// Seed of every PnP's RANSAC.
+    pub seed: u64,
+}
+
 /// The focal length of the initial image's camera that makes the map and
 /// the initial pair agree best (see [`focal_score`]): a log grid over a
-/// third to three times the camera's value in 8 % steps, then 1 % steps
-/// around the best, over the `num_candidates` images with most verified
-/// matches with the initial image. `None` when no candidate could be placed
-/// at any focal length or the best lies on the edge of the grid.
+/// third to three times `sweep.centre_px` in 8 % steps, then 1 % steps
+/// around the best. `None` when there is no candidate, no candidate could be
+/// placed at any focal length, or the best lies on the edge of the grid.
 #[allow(clippy::too_many_arguments)]
 pub fn focal_from_map(
     state: &MapState,
@@ -282,17 +298,21 @@ pub fn focal_from_map(
     grid: &FrustumGrid,
     options: &InitOptions,
     register: &RegisterOptions,
-    num_candidates: usize,
-    seed: u64,
+    sweep: &InitialPairFocalSweep,
 ) -> Option<MapFocalEstimate> {
-    let guess = state.camera_of(image).mean_focal_length();
+    let guess = sweep.centre_px;
     if !(guess.is_finite() && guess > 0.0) {
         return None;
     }
+    let owner = state.intrinsics_of(state.images.get(&image)?.camera_id);
+    let usable = |other: ImageId| {
+        let of = state.intrinsics_of(state.images[&other].camera_id);
+        of == owner || !sweep.guessed.contains(&of)
+    };
     let mut counts: BTreeMap<ImageId, usize> = BTreeMap::new();
     for k in 0..state.images[&image].keypoints.len() as u32 {
         for c in state.graph.correspondences(image, k) {
-            if c.image_id != image {
+            if c.image_id != image && usable(c.image_id) {
                 *counts.entry(c.image_id).or_default() += 1;
             }
         }
@@ -301,7 +321,7 @@ pub fn focal_from_map(
     by_count.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
     let candidates: Vec<ImageId> = by_count
         .into_iter()
-        .take(num_candidates)
+        .take(sweep.num_candidates)
         .map(|(id, _)| id)
         .collect();
     if candidates.is_empty() {
@@ -318,7 +338,7 @@ pub fn focal_from_map(
             grid,
             options,
             register,
-            seed,
+            sweep.seed,
         )
     };
     // Coarse: 1/3 .. 3 times the guess in 8 % steps.

@@ -25,7 +25,9 @@ use super::filter::{
     filter_small_angle_points,
 };
 use super::focal::{self, focal_from_fundamentals, FocalEstimate};
-use super::initialize::{focal_from_map, initialize, InitError, MapFocalEstimate};
+use super::initialize::{
+    focal_from_map, initialize, InitError, InitialPairFocalSweep, MapFocalEstimate,
+};
 use super::options::{
     AssociationKind, BundleOptions, IntrinsicsRefinement, MapperOptions, OptionsError,
 };
@@ -253,7 +255,14 @@ pub fn run_mapper_with_priors(
     stages.done("correspondence graph");
     let mut refine = RefinedCameras::new(db, options.bundle.refine_intrinsics);
     if options.bundle.share_identical_intrinsics {
-        let shared = state.share_identical_intrinsics(&db.cameras_without_focal_prior);
+        // Guessed and given focal lengths are refined differently only with
+        // `auto`; otherwise identical cameras share whatever the database says.
+        let guessed = if options.bundle.refine_intrinsics == IntrinsicsRefinement::Auto {
+            db.cameras_without_focal_prior.clone()
+        } else {
+            BTreeSet::new()
+        };
+        let shared = state.share_identical_intrinsics(&guessed);
         if shared > 0 {
             log::info!(
                 "{shared} of {} cameras share the intrinsics of another with the same model, size and parameters",
@@ -307,7 +316,7 @@ pub fn run_mapper_with_priors(
                 ..Default::default()
             })
             .collect(),
-        intrinsics: refine.records(db, &focal_estimates, map_focal.as_ref()),
+        intrinsics: refine.records(db, &focal_estimates, &map_focal),
         ..Default::default()
     };
 
@@ -942,7 +951,7 @@ fn start_guessed_focal_lengths(
             .filter_map(|g| g.fundamental.map(|f| (g.inlier_matches.len(), f)))
             .collect();
         // The pairs with most inliers (stable: ties in pair order).
-        pairs.sort_by(|a, b| b.0.cmp(&a.0));
+        pairs.sort_by_key(|p| std::cmp::Reverse(p.0));
         pairs.truncate(focal::MAX_PAIRS);
         let fundamentals: Vec<[f64; 9]> = pairs.iter().map(|p| p.1).collect();
         let camera = &state.cameras[&owner];
@@ -998,31 +1007,20 @@ fn start_focal_from_map(
     nearest: &NearestNeighbourAssociator,
     grid: &FrustumGrid,
     options: &MapperOptions,
-) -> Option<(CameraId, MapFocalEstimate)> {
-    let owner = state.intrinsics_of(state.images.get(&init_image)?.camera_id);
+) -> BTreeMap<CameraId, MapFocalEstimate> {
+    let mut out = BTreeMap::new();
+    let Some(image) = state.images.get(&init_image) else {
+        return out;
+    };
+    let owner = state.intrinsics_of(image.camera_id);
     if !refine.contains(&owner) || !db.cameras_without_focal_prior.contains(&owner) {
-        return None;
+        return out;
     }
     // The sweep is centred on the database's guess, not on the pairs' value.
-    let guess = db.cameras.get(&owner)?.mean_focal_length();
-    let members: Vec<CameraId> = state
-        .cameras
-        .keys()
-        .copied()
-        .filter(|&id| state.intrinsics_of(id) == owner)
-        .collect();
-    let set_focal = |state: &mut MapState, f: f64| {
-        for id in &members {
-            if let Some(c) = state.cameras.get_mut(id) {
-                for &k in c.model.focal_idxs() {
-                    c.params[k] = f;
-                }
-            }
-        }
+    let Some(guess) = db.cameras.get(&owner).map(|c| c.mean_focal_length()) else {
+        return out;
     };
-    let before = state.cameras[&owner].mean_focal_length();
-    set_focal(state, guess);
-    let estimate = focal_from_map(
+    let Some(estimate) = focal_from_map(
         state,
         init_image,
         init_cam_from_world,
@@ -1030,16 +1028,19 @@ fn start_focal_from_map(
         grid,
         &options.init,
         &options.register,
-        FOCAL_SWEEP_IMAGES,
-        options.seed,
-    );
-    let Some(estimate) = estimate else {
+        &InitialPairFocalSweep {
+            centre_px: guess,
+            num_candidates: FOCAL_SWEEP_IMAGES,
+            guessed: &db.cameras_without_focal_prior,
+            seed: options.seed,
+        },
+    ) else {
         log::info!(
-            "camera {}: the map gives no focal length at the initial pair; self-calibration starts from {before:.1} px",
-            owner.0
+            "camera {}: the map gives no focal length at the initial pair; self-calibration starts from {:.1} px",
+            owner.0,
+            state.cameras[&owner].mean_focal_length()
         );
-        set_focal(state, before);
-        return None;
+        return out;
     };
     log::info!(
         "camera {}: the map and the initial pair give a focal length of {:.1} px (the database's guess: {guess:.1} px; score {:.4} there, {:.4} at the guess)",
@@ -1048,8 +1049,21 @@ fn start_focal_from_map(
         estimate.score,
         estimate.score_at_guess
     );
-    set_focal(state, estimate.focal_px);
-    Some((owner, estimate))
+    let members: Vec<CameraId> = state
+        .cameras
+        .keys()
+        .copied()
+        .filter(|&id| state.intrinsics_of(id) == owner)
+        .collect();
+    for id in members {
+        if let Some(c) = state.cameras.get_mut(&id) {
+            for &k in c.model.focal_idxs() {
+                c.params[k] = estimate.focal_px;
+            }
+            out.insert(id, estimate);
+        }
+    }
+    out
 }
 
 /// Second images scored by the focal-length sweep at the initial image.
@@ -1108,7 +1122,7 @@ impl RefinedCameras {
         &self,
         db: &DatabaseSnapshot,
         estimates: &BTreeMap<CameraId, FocalEstimate>,
-        map_focal: Option<&(CameraId, MapFocalEstimate)>,
+        map_focal: &BTreeMap<CameraId, MapFocalEstimate>,
     ) -> Vec<IntrinsicsRecord> {
         let used: BTreeSet<CameraId> = db.images.values().map(|i| i.camera_id).collect();
         used.iter()
@@ -1128,9 +1142,7 @@ impl RefinedCameras {
                 .to_string(),
                 probe_focal_change: None,
                 focal_from_pairs_px: estimates.get(&c.id).map(|e| e.focal_px),
-                focal_from_map_px: map_focal
-                    .filter(|(owner, _)| *owner == c.id)
-                    .map(|(_, e)| e.focal_px),
+                focal_from_map_px: map_focal.get(&c.id).map(|e| e.focal_px),
                 database_params: c.params.clone(),
                 final_params: c.params.clone(),
                 focal_change: 0.0,

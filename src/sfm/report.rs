@@ -137,7 +137,8 @@ pub struct IntrinsicsRecord {
     /// `bundle.refine_intrinsics_min_change` it is refined, else held.
     pub probe_focal_change: Option<f64>,
     /// A guessed focal length: the value the pairs' fundamental matrices
-    /// gave, where self-calibration started (pixels).
+    /// gave (pixels), where self-calibration started unless the map gave
+    /// one (`focal_from_map_px`).
     pub focal_from_pairs_px: Option<f64>,
     /// A guessed focal length of the initial image's camera: the value that
     /// makes the map and the initial pair agree best, where

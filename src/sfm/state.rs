@@ -211,7 +211,7 @@ impl MapState {
     /// otherwise, all with the same guessed or EXIF focal length, and one
     /// image's focal length cannot be refined from its own few hundred
     /// points. A camera in `guessed` (no focal length prior) never shares
-    /// with one outside it: the two are refined differently. Returns the
+    /// with one outside it (with `auto` the two are refined differently). Returns the
     /// number of cameras that now share another's.
     pub fn share_identical_intrinsics(&mut self, guessed: &BTreeSet<CameraId>) -> usize {
         type Key<'a> = (&'a str, u32, u32, Vec<u64>, bool);
