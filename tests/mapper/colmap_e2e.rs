@@ -280,14 +280,16 @@ fn yard_self_calibrates_colmaps_guessed_camera() {
     );
     assert_eq!(rec["refined"], "every solve");
     // Self-calibration started from the focal length the map and the
-    // initial pair agree on (measured 531-564 px for 512 on three databases;
-    // the pairs' fundamental matrices, most of them of nearly planar views,
-    // gave 295-320 px on the same databases and are not used).
+    // initial pair agree on, at most half as far from the truth as COLMAP's
+    // guess (measured 531-564 px for 512 on four databases; the pairs'
+    // fundamental matrices, most of them of nearly planar views, gave
+    // 295-403 px on the same databases and are not used).
     let from_map = from_map.expect("the map gives a focal length");
     assert!(
-        (from_map / truth.params[0] - 1.0).abs() < 0.15,
-        "focal length from the map {from_map} (truth {})",
-        truth.params[0]
+        (from_map - truth.params[0]).abs() < 0.5 * (guess.params[0] - truth.params[0]).abs(),
+        "focal length from the map {from_map} (truth {}, guess {})",
+        truth.params[0],
+        guess.params[0]
     );
     assert!(
         (refined[0] / truth.params[0] - 1.0).abs() < 0.003,
