@@ -499,13 +499,7 @@ pub fn bundle_adjust(
             }
             // Every camera sharing this one's intrinsics takes them.
             let params = &problem.cameras[ci as usize].params;
-            let members: Vec<CameraId> = state
-                .cameras
-                .keys()
-                .copied()
-                .filter(|&id| state.intrinsics_of(id) == *cam_id)
-                .collect();
-            for id in members {
+            for id in state.cameras_sharing(*cam_id) {
                 if let Some(member) = state.cameras.get_mut(&id) {
                     member.params.clone_from(params);
                 }

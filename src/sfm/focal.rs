@@ -10,7 +10,10 @@
 //! neighbours) that makes the pairs' matrices most nearly essential: the sum
 //! over pairs of `(s1 - s2) / (s1 + s2)`. A pair seen in pure forward motion
 //! holds no information on `f` (its cost is flat) and does not move the sum.
-use nalgebra::{Matrix3, Vector2};
+use nalgebra::{Matrix3, Vector2, Vector3};
+
+use super::geometry::reprojection_error_sq;
+use crate::scene::{Camera, Rigid3};
 
 /// The grid spans `guess / GRID_SPAN .. guess * GRID_SPAN`.
 const GRID_SPAN: f64 = 4.0;
@@ -91,10 +94,77 @@ pub fn focal_from_fundamentals(
     })
 }
 
+/// Truncation of the focal-length sweeps' score, pixels.
+pub const SWEEP_TRUNCATION_PX: f64 = 2.0;
+
+/// `camera` with every focal length parameter set to `f`.
+pub fn with_focal(camera: &Camera, f: f64) -> Camera {
+    let mut c = camera.clone();
+    for &k in c.model.focal_idxs() {
+        c.params[k] = f;
+    }
+    c
+}
+
+/// Mean over the correspondences of `min(e^2, t^2) / t^2`, `e` the
+/// reprojection error at `cam_from_world` and `t` [`SWEEP_TRUNCATION_PX`]
+/// (a point behind the camera counts 1): 0 when every correspondence is
+/// exact, 1 when none is within `t`, and 1 for no correspondences.
+pub fn truncated_reprojection_score(
+    camera: &Camera,
+    cam_from_world: &Rigid3,
+    pixels: &[Vector2<f64>],
+    points_in_world: &[Vector3<f64>],
+) -> f64 {
+    if pixels.is_empty() {
+        return 1.0;
+    }
+    let t_sq = SWEEP_TRUNCATION_PX * SWEEP_TRUNCATION_PX;
+    pixels
+        .iter()
+        .zip(points_in_world)
+        .map(|(px, x)| {
+            reprojection_error_sq(camera, cam_from_world, x, px).map_or(1.0, |e| e.min(t_sq) / t_sq)
+        })
+        .sum::<f64>()
+        / pixels.len() as f64
+}
+
+/// A focal length (pixels) minimising `score` (0 best, 1 worst): a log grid
+/// from a third to three times `centre` in 8 % steps, then 1 % steps within
+/// one coarse step of the best. Returns (focal length, its score), `None`
+/// when the best coarse value lies on the edge of the grid or scores 1.
+pub fn sweep_focal(centre: f64, mut score: impl FnMut(f64) -> f64) -> Option<(f64, f64)> {
+    if !(centre.is_finite() && centre > 0.0) {
+        return None;
+    }
+    let coarse_steps = (9f64.ln() / 1.08f64.ln()).ceil() as i32;
+    let coarse: Vec<(f64, f64)> = (0..=coarse_steps)
+        .map(|i| {
+            let f = centre / 3.0 * 1.08f64.powi(i);
+            let s = score(f);
+            log::debug!("focal sweep: {f:.1} px -> {s:.4}");
+            (f, s)
+        })
+        .collect();
+    let best = (0..coarse.len()).min_by(|&a, &b| coarse[a].1.total_cmp(&coarse[b].1))?;
+    if best == 0 || best == coarse.len() - 1 || coarse[best].1 >= 1.0 {
+        return None;
+    }
+    let (f_best, s_best) = coarse[best];
+    (-8..=8)
+        .map(|i| {
+            let f = f_best * 1.01f64.powi(i);
+            (f, if i == 0 { s_best } else { score(f) })
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{Rotation3, Vector3};
+    use crate::scene::{CameraId, CameraModel};
+    use nalgebra::Rotation3;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
@@ -218,5 +288,59 @@ mod tests {
         assert_eq!(focal_from_fundamentals(&pairs[..5], &c, 768.0, 8), None);
         let far: Vec<[f64; 9]> = pairs.iter().take(10).copied().collect();
         assert_eq!(focal_from_fundamentals(&far, &c, 5000.0, 8), None);
+    }
+
+    #[test]
+    fn truncated_score_by_hand() {
+        let camera = Camera {
+            id: CameraId(1),
+            model: CameraModel::from_name("SIMPLE_PINHOLE").unwrap(),
+            width: 100,
+            height: 100,
+            params: vec![100.0, 50.0, 50.0],
+        };
+        let pose = Rigid3::identity();
+        // (0.1, 0, 1) projects to (60, 50); errors 0, 1 and 3 px (2 px
+        // truncation: 0, 1/4 and 1); a point behind the camera counts 1.
+        let points = [
+            Vector3::new(0.1, 0.0, 1.0),
+            Vector3::new(0.1, 0.0, 1.0),
+            Vector3::new(0.1, 0.0, 1.0),
+            Vector3::new(0.1, 0.0, -1.0),
+        ];
+        let pixels = [
+            Vector2::new(60.0, 50.0),
+            Vector2::new(60.0, 51.0),
+            Vector2::new(57.0, 50.0),
+            Vector2::new(60.0, 50.0),
+        ];
+        let score = truncated_reprojection_score(&camera, &pose, &pixels, &points);
+        assert!(
+            (score - (0.0 + 0.25 + 1.0 + 1.0) / 4.0).abs() < 1e-12,
+            "{score}"
+        );
+        assert_eq!(truncated_reprojection_score(&camera, &pose, &[], &[]), 1.0);
+        assert_eq!(with_focal(&camera, 80.0).params, [80.0, 50.0, 50.0]);
+    }
+
+    #[test]
+    fn sweep_finds_the_minimum_and_refuses_the_edge() {
+        // A V-shaped score with its minimum at 500 px, searched around 768.
+        let v = |best: f64| move |f: f64| ((f / best).ln().abs() * 3.0).min(1.0);
+        let mut calls = 0;
+        let (f, score) = sweep_focal(768.0, |f| {
+            calls += 1;
+            v(500.0)(f)
+        })
+        .unwrap();
+        assert!((f / 500.0 - 1.0).abs() < 0.005, "{f}");
+        assert!(score < 0.015, "{score}");
+        assert_eq!(calls, 30 + 16, "coarse grid and fine steps");
+        // Minima outside a third to three times the centre: no estimate.
+        assert_eq!(sweep_focal(768.0, v(200.0)), None);
+        assert_eq!(sweep_focal(768.0, v(2500.0)), None);
+        // Nothing placed anywhere: no estimate.
+        assert_eq!(sweep_focal(768.0, |_| 1.0), None);
+        assert_eq!(sweep_focal(f64::NAN, v(500.0)), None);
     }
 }

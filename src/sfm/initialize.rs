@@ -5,13 +5,14 @@
 //! registered by PnP against those points, trying candidates in order of how
 //! many of its verified matches with the initial image have such a point. The
 //! PnP inliers become the first 3D points.
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use nalgebra::{Vector2, Vector3};
 use rand_chacha::ChaCha8Rng;
 
 use super::associate::NearestNeighbourAssociator;
-use super::geometry::{intersect_ray_plane, reprojection_error_sq};
+use super::focal::{sweep_focal, truncated_reprojection_score, with_focal};
+use super::geometry::intersect_ray_plane;
 use super::options::{InitOptions, RegisterOptions};
 use super::register::{estimate_pose, PoseOutcome};
 use super::state::MapState;
@@ -189,9 +190,6 @@ pub struct MapFocalEstimate {
     pub score_at_guess: f64,
 }
 
-/// Truncation of the sweep's score, pixels.
-const SWEEP_TRUNCATION_PX: f64 = 2.0;
-
 /// How well the map explains the initial pair at focal length `f` (shared by
 /// the initial image and every candidate of the same intrinsics): the
 /// initial image's features are cut with the map's planes at the given pose
@@ -213,16 +211,14 @@ fn focal_score(
     options: &InitOptions,
     register: &RegisterOptions,
     seed: u64,
+    swept: &BTreeSet<CameraId>,
 ) -> f64 {
-    let owner = state.intrinsics_of(state.images[&image].camera_id);
     let with_f = |c: &Camera| -> Camera {
-        let mut c = c.clone();
-        if state.intrinsics_of(c.id) == owner {
-            for &k in c.model.focal_idxs() {
-                c.params[k] = f;
-            }
+        if swept.contains(&state.intrinsics_of(c.id)) {
+            with_focal(c, f)
+        } else {
+            c.clone()
         }
-        c
     };
     let camera = with_f(state.camera_of(image));
     let Ok((lidar, _)) = lidar_points_with_camera(
@@ -235,7 +231,6 @@ fn focal_score(
     ) else {
         return 1.0;
     };
-    let t_sq = SWEEP_TRUNCATION_PX * SWEEP_TRUNCATION_PX;
     let mut total = 0.0;
     for &other in candidates {
         let mut pixels = Vec::new();
@@ -252,20 +247,38 @@ fn focal_score(
         let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(seed);
         total += match estimate_pose(&camera_other, &pixels, &points, None, register, &mut rng) {
             PoseOutcome::Found { cam_from_world, .. } => {
-                pixels
-                    .iter()
-                    .zip(&points)
-                    .map(|(px, x)| {
-                        reprojection_error_sq(&camera_other, &cam_from_world, x, px)
-                            .map_or(1.0, |e| e.min(t_sq) / t_sq)
-                    })
-                    .sum::<f64>()
-                    / pixels.len().max(1) as f64
+                truncated_reprojection_score(&camera_other, &cam_from_world, &pixels, &points)
             }
             _ => 1.0,
         };
     }
     total / candidates.len().max(1) as f64
+}
+
+/// The intrinsics (owners) whose focal length the sweep at `image` sets:
+/// the image's own, and every guessed one (in `guessed`) of the same model
+/// and image size, which is taken to be the same kind of camera with the
+/// same unknown focal length (COLMAP guesses 1.2 x the larger side for all
+/// of them; with `share_identical_intrinsics` off each image has its own).
+pub fn swept_cameras(
+    state: &MapState,
+    image: ImageId,
+    guessed: &BTreeSet<CameraId>,
+) -> BTreeSet<CameraId> {
+    let owner = state.intrinsics_of(state.images[&image].camera_id);
+    let first = &state.cameras[&owner];
+    state
+        .cameras
+        .values()
+        .map(|c| state.intrinsics_of(c.id))
+        .filter(|&id| {
+            let c = &state.cameras[&id];
+            id == owner
+                || (guessed.contains(&id)
+                    && c.model == first.model
+                    && (c.width, c.height) == (first.width, first.height))
+        })
+        .collect()
 }
 
 /// How [`focal_from_map`] searches.
@@ -276,9 +289,10 @@ pub struct InitialPairFocalSweep<'a> {
     /// Second images scored: those with most verified matches with the
     /// initial image.
     pub num_candidates: usize,
-    /// Cameras whose focal length is a guess: an image of such a camera
-    /// whose intrinsics are not the initial image's is no candidate (its own
-    /// focal length is as unknown).
+    /// Cameras whose focal length is a guess: one of another model or image
+    /// size than the initial image's is no candidate (its own focal length
+    /// is as unknown); the others take the swept focal length too
+    /// ([`swept_cameras`]).
     pub guessed: &'a std::collections::BTreeSet<CameraId>,
     /// Seed of every PnP's RANSAC.
     pub seed: u64,
@@ -304,10 +318,11 @@ pub fn focal_from_map(
     if !(guess.is_finite() && guess > 0.0) {
         return None;
     }
-    let owner = state.intrinsics_of(state.images.get(&image)?.camera_id);
+    state.images.get(&image)?;
+    let swept = swept_cameras(state, image, sweep.guessed);
     let usable = |other: ImageId| {
         let of = state.intrinsics_of(state.images[&other].camera_id);
-        of == owner || !sweep.guessed.contains(&of)
+        swept.contains(&of) || !sweep.guessed.contains(&of)
     };
     let mut counts: BTreeMap<ImageId, usize> = BTreeMap::new();
     for k in 0..state.images[&image].keypoints.len() as u32 {
@@ -339,35 +354,14 @@ pub fn focal_from_map(
             options,
             register,
             sweep.seed,
+            &swept,
         )
     };
-    // Coarse: 1/3 .. 3 times the guess in 8 % steps.
-    let coarse_steps = (9f64.ln() / 1.08f64.ln()).ceil() as i32;
-    let coarse: Vec<(f64, f64)> = (0..=coarse_steps)
-        .map(|i| {
-            let f = guess / 3.0 * 1.08f64.powi(i);
-            (f, score(f))
-        })
-        .collect();
-    for (f, s) in &coarse {
-        log::debug!("focal sweep: {f:.1} px -> {s:.4}");
-    }
-    let best = (0..coarse.len()).min_by(|&a, &b| coarse[a].1.total_cmp(&coarse[b].1))?;
-    if best == 0 || best == coarse.len() - 1 || coarse[best].1 >= 1.0 {
-        return None;
-    }
-    // Fine: 1 % steps within one coarse step of the best.
-    let centre = coarse[best].0;
-    let fine = (-8..=8)
-        .map(|i| {
-            let f = centre * 1.01f64.powi(i);
-            (f, if i == 0 { coarse[best].1 } else { score(f) })
-        })
-        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+    let (focal_px, best) = sweep_focal(guess, &score)?;
     Some(MapFocalEstimate {
-        focal_px: fine.0,
+        focal_px,
         num_images: candidates.len(),
-        score: fine.1,
+        score: best,
         score_at_guess: score(guess),
     })
 }

@@ -24,15 +24,16 @@ use super::filter::{
     count_points_on_seen_surface, filter_observations, filter_points_behind_map,
     filter_small_angle_points,
 };
-use super::focal::{self, focal_from_fundamentals, FocalEstimate};
+use super::focal::{self, focal_from_fundamentals, with_focal, FocalEstimate};
 use super::initialize::{
-    focal_from_map, initialize, InitError, InitialPairFocalSweep, MapFocalEstimate,
+    focal_from_map, initialize, swept_cameras, InitError, InitialPairFocalSweep, MapFocalEstimate,
 };
 use super::options::{
     AssociationKind, BundleOptions, IntrinsicsRefinement, MapperOptions, OptionsError,
 };
 use super::register::{
-    next_best_images, register_at_known_pose, register_image, PoseOutcome, RegistrationOutcome,
+    focal_from_points, next_best_images, register_at_known_pose, register_image, PoseOutcome,
+    RegistrationOutcome,
 };
 use super::report::{
     AlignmentRecord, ImageRecord, IntrinsicsRecord, MapReport, RoundRecord, StageRecord,
@@ -409,6 +410,21 @@ pub fn run_mapper_with_priors(
     stages.done("initialisation");
 
     // 4. Incremental registration.
+    // Guessed cameras none of whose images is registered yet: their first
+    // image's focal length is found by a sweep of PnP (the initial image's
+    // camera has the map's).
+    let mut uncalibrated: BTreeSet<CameraId> = refine
+        .every
+        .iter()
+        .map(|&id| state.intrinsics_of(id))
+        .filter(|id| db.cameras_without_focal_prior.contains(id))
+        .filter(|&id| {
+            !state
+                .registration_order
+                .iter()
+                .any(|&i| state.intrinsics_of(state.images[&i].camera_id) == id)
+        })
+        .collect();
     let mut failed: BTreeMap<ImageId, usize> = BTreeMap::new();
     let mut last_global_size = state.num_registered();
     let mut since_global = 0usize;
@@ -421,7 +437,14 @@ pub fn run_mapper_with_priors(
                 .get(&image)
                 .filter(|k| k.has_rotation)
                 .map(|k| &k.cam_from_world);
+            let owner = state.intrinsics_of(state.images[&image].camera_id);
+            if uncalibrated.contains(&owner) {
+                start_focal_from_points(&mut state, &mut report, image, owner, options);
+            }
             let outcome = register_image(&mut state, image, known, &options.register, &mut rng);
+            if matches!(outcome, RegistrationOutcome::Registered { .. }) {
+                uncalibrated.remove(&owner);
+            }
             let rec = report.record_mut(image).expect("every image has a record");
             rec.attempts += 1;
             match outcome {
@@ -974,17 +997,9 @@ fn start_guessed_focal_lengths(
             estimate.cost,
             estimate.cost_at_guess
         );
-        let members: Vec<CameraId> = state
-            .cameras
-            .keys()
-            .copied()
-            .filter(|&id| state.intrinsics_of(id) == owner)
-            .collect();
-        for id in members {
+        for id in state.cameras_sharing(owner) {
             if let Some(c) = state.cameras.get_mut(&id) {
-                for &k in c.model.focal_idxs() {
-                    c.params[k] = estimate.focal_px;
-                }
+                *c = with_focal(c, estimate.focal_px);
                 out.insert(id, estimate);
             }
         }
@@ -1049,21 +1064,58 @@ fn start_focal_from_map(
         estimate.score,
         estimate.score_at_guess
     );
+    let swept = swept_cameras(state, init_image, &db.cameras_without_focal_prior);
     let members: Vec<CameraId> = state
         .cameras
         .keys()
         .copied()
-        .filter(|&id| state.intrinsics_of(id) == owner)
+        .filter(|&id| swept.contains(&state.intrinsics_of(id)))
         .collect();
     for id in members {
         if let Some(c) = state.cameras.get_mut(&id) {
-            for &k in c.model.focal_idxs() {
-                c.params[k] = estimate.focal_px;
-            }
+            *c = with_focal(c, estimate.focal_px);
             out.insert(id, estimate);
         }
     }
     out
+}
+
+/// The first image of a guessed camera other than the initial image's: its
+/// focal length (and that of every camera sharing its intrinsics) is set to
+/// the value at which PnP places the image best ([`focal_from_points`]),
+/// recorded in `report.json` as `focal_from_points_px`.
+fn start_focal_from_points(
+    state: &mut MapState,
+    report: &mut MapReport,
+    image: ImageId,
+    owner: CameraId,
+    options: &MapperOptions,
+) {
+    let Some((f, score, at_current)) =
+        focal_from_points(state, image, &options.register, options.seed)
+    else {
+        log::info!(
+            "camera {}: its first image `{}` gives no focal length by PnP; it stays at {:.1} px",
+            owner.0,
+            state.images[&image].name,
+            state.cameras[&owner].mean_focal_length()
+        );
+        return;
+    };
+    log::info!(
+        "camera {}: its first image `{}` is placed best at a focal length of {f:.1} px (was {:.1} px; score {score:.4} there, {at_current:.4} before)",
+        owner.0,
+        state.images[&image].name,
+        state.cameras[&owner].mean_focal_length()
+    );
+    for id in state.cameras_sharing(owner) {
+        if let Some(c) = state.cameras.get_mut(&id) {
+            *c = with_focal(c, f);
+        }
+        if let Some(rec) = report.intrinsics.iter_mut().find(|r| r.camera_id == id.0) {
+            rec.focal_from_points_px = Some(f);
+        }
+    }
 }
 
 /// Second images scored by the focal-length sweep at the initial image.
@@ -1143,6 +1195,7 @@ impl RefinedCameras {
                 probe_focal_change: None,
                 focal_from_pairs_px: estimates.get(&c.id).map(|e| e.focal_px),
                 focal_from_map_px: map_focal.get(&c.id).map(|e| e.focal_px),
+                focal_from_points_px: None,
                 database_params: c.params.clone(),
                 final_params: c.params.clone(),
                 focal_change: 0.0,

@@ -6,6 +6,7 @@ use nalgebra::{Vector2, Vector3};
 use rand::seq::index::sample;
 use rand_chacha::ChaCha8Rng;
 
+use super::focal::{sweep_focal, truncated_reprojection_score, with_focal};
 use super::geometry::{refine_pose, reprojection_error_sq};
 use super::options::RegisterOptions;
 use super::state::MapState;
@@ -208,6 +209,41 @@ pub fn register_image(
         }
         other => RegistrationOutcome::Failed(other),
     }
+}
+
+/// The focal length at which PnP places `image` best against the model's 3D
+/// points, for the first image of a camera whose focal length is a guess (as
+/// COLMAP's registration samples focal lengths for such a camera): the pose
+/// found by [`estimate_pose`] at each focal length of [`sweep_focal`]'s grid
+/// around the camera's value, scored by
+/// [`truncated_reprojection_score`] over all of the image's 2D-3D
+/// correspondences (1 where PnP finds no pose). Returns (focal length, its
+/// score, the score at the camera's value); `None` with too few
+/// correspondences or no clear best. Every PnP's RANSAC is seeded with `seed`.
+pub fn focal_from_points(
+    state: &MapState,
+    image: ImageId,
+    options: &RegisterOptions,
+    seed: u64,
+) -> Option<(f64, f64, f64)> {
+    let (corrs, pixels, points) = correspondence_arrays(state, image);
+    if corrs.len() < options.min_num_inliers.max(4) {
+        return None;
+    }
+    let camera = state.camera_of(image);
+    let score = |f: f64| {
+        let camera = with_focal(camera, f);
+        let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(seed);
+        match estimate_pose(&camera, &pixels, &points, None, options, &mut rng) {
+            PoseOutcome::Found { cam_from_world, .. } => {
+                truncated_reprojection_score(&camera, &cam_from_world, &pixels, &points)
+            }
+            _ => 1.0,
+        }
+    };
+    let current = camera.mean_focal_length();
+    let (f, best) = sweep_focal(current, score)?;
+    Some((f, best, score(current)))
 }
 
 /// Places `image` at a known pose that PnP could not find: the pose is

@@ -140,10 +140,15 @@ pub struct IntrinsicsRecord {
     /// gave (pixels), where self-calibration started unless the map gave
     /// one (`focal_from_map_px`).
     pub focal_from_pairs_px: Option<f64>,
-    /// A guessed focal length of the initial image's camera: the value that
+    /// A guessed focal length of the initial image's camera (and of the
+    /// guessed cameras of the same model and image size): the value that
     /// makes the map and the initial pair agree best, where
     /// self-calibration started (pixels; it replaces the pairs' value).
     pub focal_from_map_px: Option<f64>,
+    /// A guessed focal length of another camera: the value at which PnP
+    /// placed its first image best against the model's points, where its
+    /// self-calibration started (pixels).
+    pub focal_from_points_px: Option<f64>,
     pub database_params: Vec<f64>,
     pub final_params: Vec<f64>,
     /// Final mean focal length over the database's, minus 1.

@@ -233,6 +233,15 @@ impl MapState {
         self.shared_intrinsics.len()
     }
 
+    /// The cameras whose intrinsics are those of `owner` (itself included).
+    pub fn cameras_sharing(&self, owner: CameraId) -> Vec<CameraId> {
+        self.cameras
+            .keys()
+            .copied()
+            .filter(|&id| self.intrinsics_of(id) == owner)
+            .collect()
+    }
+
     pub fn camera_of(&self, image: ImageId) -> &Camera {
         // Every image's camera exists: the database reader checks the foreign key.
         &self.cameras[&self.images[&image].camera_id]

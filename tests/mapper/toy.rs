@@ -882,6 +882,53 @@ fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
 /// One camera per image, all at the same guess (COLMAP's extractor without
 /// `single_camera`): by default they share one set of intrinsics, refined
 /// from every image's points; each refined alone is not (or worse).
+/// Two cameras: the initial pair's is given (the true one), the odd images
+/// after the first are taken with a second camera whose focal length is
+/// COLMAP's guess (768 px for 450). Its first image's PnP sweeps focal
+/// lengths and self-calibration starts there. (The toy converges from the
+/// guess too: this checks the sweep's value and where it is used.)
+#[test]
+fn toy_room_second_guessed_camera_starts_from_the_pnp_sweep() {
+    let mut scene = toy(14, 0.3, 0.0, 3);
+    let mut guessed = scene.db.cameras[&CameraId(1)].clone();
+    guessed.id = CameraId(2);
+    guessed.params[0] = 768.0;
+    guessed.params[3] = 0.0;
+    scene.db.cameras.insert(CameraId(2), guessed);
+    scene.db.cameras_without_focal_prior.insert(CameraId(2));
+    // Odd images after the first: the initial pair (1 and its neighbour 2)
+    // is of the given camera.
+    for (id, image) in scene.db.images.iter_mut() {
+        if id.0 % 2 == 1 && id.0 > 1 {
+            image.camera_id = CameraId(2);
+        }
+    }
+    let (out, err) = map_toy(&scene, &MapperOptions::default());
+    assert_eq!(out.report.init.as_ref().map(|i| i.second_image), Some(2));
+    let rec = out
+        .report
+        .intrinsics
+        .iter()
+        .find(|r| r.camera_id == 2)
+        .expect("camera 2 has a record");
+    let refined = &out.reconstruction.cameras[&CameraId(2)];
+    eprintln!(
+        "toy room, second camera guessed at 768 px: PnP sweep {:?} px, refined f = {:.3} px, k = {:.4} (true 450, 0.01), max centre error {err:.4} m",
+        rec.focal_from_points_px, refined.params[0], refined.params[3]
+    );
+    assert_eq!(out.report.num_registered, 14);
+    assert_eq!(rec.refined, "every solve");
+    let from_points = rec.focal_from_points_px.expect("the PnP sweep ran");
+    assert!((from_points - 450.0).abs() < 0.1 * 450.0, "{from_points}");
+    assert!(rec.focal_from_map_px.is_none());
+    assert!((refined.params[0] - 450.0).abs() < 0.9, "{refined:?}");
+    assert!(err < 0.01, "max centre error {err} m");
+    // The given camera keeps the map's sweep out of it.
+    let first = &out.report.intrinsics[0];
+    assert_eq!(first.camera_id, 1);
+    assert!(first.focal_from_map_px.is_none() && first.focal_from_points_px.is_none());
+}
+
 #[test]
 fn toy_room_shares_identical_cameras() {
     let mut scene = toy(14, 0.3, 0.0, 3);
