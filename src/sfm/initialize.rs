@@ -185,13 +185,13 @@ pub struct MapFocalEstimate {
     pub num_images: usize,
     /// Mean truncated squared reprojection error (0: every correspondence
     /// exact, 1: none within the truncation) at the estimate and at the
-    /// camera's own focal length.
+    /// sweep's centre (the database's guess).
     pub score: f64,
     pub score_at_guess: f64,
 }
 
-/// How well the map explains the initial pair at focal length `f` (shared by
-/// the initial image and every candidate of the same intrinsics): the
+/// How well the map explains the initial pair at focal length `f` (given to
+/// every camera whose intrinsics are in `swept`): the
 /// initial image's features are cut with the map's planes at the given pose
 /// seen through `f`, each candidate is registered against those points by
 /// PnP with `f`, and the score is the mean over candidates of the mean
@@ -293,15 +293,17 @@ pub struct InitialPairFocalSweep<'a> {
     /// size than the initial image's is no candidate (its own focal length
     /// is as unknown); the others take the swept focal length too
     /// ([`swept_cameras`]).
-    pub guessed: &'a std::collections::BTreeSet<CameraId>,
+    pub guessed: &'a BTreeSet<CameraId>,
     /// Seed of every PnP's RANSAC.
     pub seed: u64,
 }
 
 /// The focal length of the initial image's camera that makes the map and
-/// the initial pair agree best (see [`focal_score`]): a log grid over a
-/// third to three times `sweep.centre_px` in 8 % steps, then 1 % steps
-/// around the best. `None` when there is no candidate, no candidate could be
+/// the initial pair agree best: the initial image's features cut with the
+/// map's planes through each focal length, the candidates placed by PnP
+/// against them, scored by their truncated reprojection error; searched by
+/// [`sweep_focal`] (a log grid over a third to three times
+/// `sweep.centre_px` in 8 % steps, then 1 % steps around the best). `None` when there is no candidate, no candidate could be
 /// placed at any focal length, or the best lies on the edge of the grid.
 #[allow(clippy::too_many_arguments)]
 pub fn focal_from_map(
