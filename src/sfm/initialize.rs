@@ -11,10 +11,10 @@ use nalgebra::{Vector2, Vector3};
 use rand_chacha::ChaCha8Rng;
 
 use super::associate::NearestNeighbourAssociator;
-use super::focal::{sweep_focal, truncated_reprojection_score, with_focal};
+use super::focal::{sweep_focal, with_focal};
 use super::geometry::intersect_ray_plane;
 use super::options::{InitOptions, RegisterOptions};
-use super::register::{estimate_pose, PoseOutcome};
+use super::register::{estimate_pose, pnp_score, PoseOutcome};
 use super::state::MapState;
 use crate::map::grid::FrustumGrid;
 use crate::map::projection::{project_map_at_pixels, ProjectionError};
@@ -176,6 +176,31 @@ fn lidar_points_with_camera(
     Ok((out, num_hits))
 }
 
+/// The verified matches `(keypoint of image, keypoint of other)` of
+/// `image`'s keypoints `keys` with each other image that `keep` accepts,
+/// most matches first (ties by id).
+fn matches_per_image(
+    state: &MapState,
+    image: ImageId,
+    keys: impl Iterator<Item = u32>,
+    keep: impl Fn(ImageId) -> bool,
+) -> Vec<(ImageId, Vec<(u32, u32)>)> {
+    let mut per_image: BTreeMap<ImageId, Vec<(u32, u32)>> = BTreeMap::new();
+    for k in keys {
+        for c in state.graph.correspondences(image, k) {
+            if c.image_id != image && keep(c.image_id) {
+                per_image
+                    .entry(c.image_id)
+                    .or_default()
+                    .push((k, c.point2d_idx));
+            }
+        }
+    }
+    let mut out: Vec<(ImageId, Vec<(u32, u32)>)> = per_image.into_iter().collect();
+    out.sort_by(|a, b| b.1.len().cmp(&a.1.len()).then(a.0.cmp(&b.0)));
+    out
+}
+
 /// What the map says about the focal length of the initial image's camera.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct MapFocalEstimate {
@@ -203,7 +228,7 @@ pub struct MapFocalEstimate {
 fn focal_score(
     state: &MapState,
     image: ImageId,
-    candidates: &[ImageId],
+    candidates: &[(ImageId, Vec<(u32, u32)>)],
     f: f64,
     cam_from_world: &Rigid3,
     map: &NearestNeighbourAssociator,
@@ -232,25 +257,19 @@ fn focal_score(
         return 1.0;
     };
     let mut total = 0.0;
-    for &other in candidates {
-        let mut pixels = Vec::new();
-        let mut points = Vec::new();
-        for (&k, x) in &lidar {
-            for c in state.graph.correspondences(image, k) {
-                if c.image_id == other {
-                    pixels.push(state.images[&other].keypoints[c.point2d_idx as usize]);
-                    points.push(*x);
-                }
-            }
-        }
-        let camera_other = with_f(state.camera_of(other));
-        let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(seed);
-        total += match estimate_pose(&camera_other, &pixels, &points, None, register, &mut rng) {
-            PoseOutcome::Found { cam_from_world, .. } => {
-                truncated_reprojection_score(&camera_other, &cam_from_world, &pixels, &points)
-            }
-            _ => 1.0,
-        };
+    for (other, matches) in candidates {
+        let keypoints = &state.images[other].keypoints;
+        let (pixels, points): (Vec<Vector2<f64>>, Vec<Vector3<f64>>) = matches
+            .iter()
+            .filter_map(|(k1, k2)| Some((keypoints[*k2 as usize], *lidar.get(k1)?)))
+            .unzip();
+        total += pnp_score(
+            &with_f(state.camera_of(*other)),
+            &pixels,
+            &points,
+            register,
+            seed,
+        );
     }
     total / candidates.len().max(1) as f64
 }
@@ -303,8 +322,9 @@ pub struct InitialPairFocalSweep<'a> {
 /// map's planes through each focal length, the candidates placed by PnP
 /// against them, scored by their truncated reprojection error; searched by
 /// [`sweep_focal`] (a log grid over a third to three times
-/// `sweep.centre_px` in 8 % steps, then 1 % steps around the best). `None` when there is no candidate, no candidate could be
-/// placed at any focal length, or the best lies on the edge of the grid.
+/// `sweep.centre_px` in 8 % steps, then 1 % steps around the best). `None`
+/// when there is no candidate, no candidate could be placed at any focal
+/// length, or the best lies on the edge of the grid.
 #[allow(clippy::too_many_arguments)]
 pub fn focal_from_map(
     state: &MapState,
@@ -316,31 +336,21 @@ pub fn focal_from_map(
     register: &RegisterOptions,
     sweep: &InitialPairFocalSweep,
 ) -> Option<MapFocalEstimate> {
-    let guess = sweep.centre_px;
-    if !(guess.is_finite() && guess > 0.0) {
-        return None;
-    }
     state.images.get(&image)?;
     let swept = swept_cameras(state, image, sweep.guessed);
     let usable = |other: ImageId| {
         let of = state.intrinsics_of(state.images[&other].camera_id);
         swept.contains(&of) || !sweep.guessed.contains(&of)
     };
-    let mut counts: BTreeMap<ImageId, usize> = BTreeMap::new();
-    for k in 0..state.images[&image].keypoints.len() as u32 {
-        for c in state.graph.correspondences(image, k) {
-            if c.image_id != image && usable(c.image_id) {
-                *counts.entry(c.image_id).or_default() += 1;
-            }
-        }
-    }
-    let mut by_count: Vec<(ImageId, usize)> = counts.into_iter().collect();
-    by_count.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
-    let candidates: Vec<ImageId> = by_count
-        .into_iter()
-        .take(sweep.num_candidates)
-        .map(|(id, _)| id)
-        .collect();
+    // The candidates' matches with every feature of the initial image; which
+    // of them have a map point depends on the focal length.
+    let mut candidates = matches_per_image(
+        state,
+        image,
+        0..state.images[&image].keypoints.len() as u32,
+        usable,
+    );
+    candidates.truncate(sweep.num_candidates);
     if candidates.is_empty() {
         return None;
     }
@@ -359,12 +369,12 @@ pub fn focal_from_map(
             &swept,
         )
     };
-    let (focal_px, best) = sweep_focal(guess, &score)?;
+    let (focal_px, best) = sweep_focal(sweep.centre_px, &score)?;
     Some(MapFocalEstimate {
         focal_px,
         num_images: candidates.len(),
         score: best,
-        score_at_guess: score(guess),
+        score_at_guess: score(sweep.centre_px),
     })
 }
 
@@ -396,19 +406,7 @@ pub fn initialize(
         });
     }
     // Candidates: matches of LiDAR-supported features per other image.
-    let mut per_image: BTreeMap<ImageId, Vec<(u32, u32)>> = BTreeMap::new();
-    for &k in lidar.keys() {
-        for c in state.graph.correspondences(image, k) {
-            if c.image_id != image {
-                per_image
-                    .entry(c.image_id)
-                    .or_default()
-                    .push((k, c.point2d_idx));
-            }
-        }
-    }
-    let mut candidates: Vec<(ImageId, Vec<(u32, u32)>)> = per_image.into_iter().collect();
-    candidates.sort_by(|a, b| b.1.len().cmp(&a.1.len()).then(a.0.cmp(&b.0)));
+    let candidates = matches_per_image(state, image, lidar.keys().copied(), |_| true);
     let mut attempts = Vec::new();
     for (other, pairs) in candidates.into_iter().take(options.max_candidates) {
         let img = &state.images[&other];

@@ -211,6 +211,26 @@ pub fn register_image(
     }
 }
 
+/// How well PnP places an image seen through `camera` against the
+/// correspondences: [`truncated_reprojection_score`] at the pose
+/// [`estimate_pose`] finds (its RANSAC seeded with `seed`), 1 when it finds
+/// none. The score of both focal-length sweeps.
+pub fn pnp_score(
+    camera: &Camera,
+    pixels: &[Vector2<f64>],
+    points_in_world: &[Vector3<f64>],
+    options: &RegisterOptions,
+    seed: u64,
+) -> f64 {
+    let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(seed);
+    match estimate_pose(camera, pixels, points_in_world, None, options, &mut rng) {
+        PoseOutcome::Found { cam_from_world, .. } => {
+            truncated_reprojection_score(camera, &cam_from_world, pixels, points_in_world)
+        }
+        _ => 1.0,
+    }
+}
+
 /// The focal length at which PnP places `image` best against the model's 3D
 /// points, for the first image of a camera whose focal length is a guess (as
 /// COLMAP's registration samples focal lengths for such a camera): the pose
@@ -231,16 +251,7 @@ pub fn focal_from_points(
         return None;
     }
     let camera = state.camera_of(image);
-    let score = |f: f64| {
-        let camera = with_focal(camera, f);
-        let mut rng = <ChaCha8Rng as rand::SeedableRng>::seed_from_u64(seed);
-        match estimate_pose(&camera, &pixels, &points, None, options, &mut rng) {
-            PoseOutcome::Found { cam_from_world, .. } => {
-                truncated_reprojection_score(&camera, &cam_from_world, &pixels, &points)
-            }
-            _ => 1.0,
-        }
-    };
+    let score = |f: f64| pnp_score(&with_focal(camera, f), &pixels, &points, options, seed);
     let current = camera.mean_focal_length();
     let (f, best) = sweep_focal(current, score)?;
     Some((f, best, score(current)))
