@@ -9,7 +9,7 @@ use serde::Serialize;
 
 use super::associate::{AssociationQuery, PlaneAssociator, SolveKind};
 use super::options::BundleOptions;
-use super::state::{MapState, PointPlane};
+use super::state::{MapState, PointPlane, MAX_IMPLAUSIBLE_REFINEMENTS};
 use crate::scene::{Camera, CameraId, ImageId, Point3DId, Rigid3};
 use crate::solver::{
     pose_covariances, sigma_of_variance, solve, BaCamera, BaObservation, BaPoint, BaPose,
@@ -66,12 +66,15 @@ pub fn implausible_intrinsics(camera: &Camera) -> Option<String> {
 }
 
 /// The intrinsics blocks a solve of `config` refines: those of the cameras
-/// in `config.refine_cameras` and of the cameras they share intrinsics with.
+/// in `config.refine_cameras` and of the cameras they share intrinsics with,
+/// unless refinement took them out of bounds too often
+/// ([`MapState::intrinsics_refinable`]).
 fn refined_intrinsics(state: &MapState, config: &BundleConfig) -> BTreeSet<CameraId> {
     config
         .refine_cameras
         .iter()
         .map(|&id| state.intrinsics_of(id))
+        .filter(|&owner| state.intrinsics_refinable(owner))
         .collect()
 }
 
@@ -455,6 +458,17 @@ pub fn bundle_adjust(
             })
             .collect();
         if !implausible.is_empty() {
+            for &id in &implausible {
+                let count = state.implausible_refinements.entry(id).or_default();
+                *count += 1;
+                if *count == MAX_IMPLAUSIBLE_REFINEMENTS {
+                    log::warn!(
+                        "camera {}: refined out of bounds in {count} solves; its intrinsics are held at {:?} for the rest of the run",
+                        id.0,
+                        state.cameras[&id].params
+                    );
+                }
+            }
             let held = BundleConfig {
                 refine_cameras: config
                     .refine_cameras
@@ -637,5 +651,93 @@ mod tests {
             vec![500.0, 500.0, 320.0, 240.0, -0.1, 0.01, 0.0, 0.0],
         );
         assert_eq!(implausible_intrinsics(&opencv), None);
+    }
+
+    /// Keypoints of a 40 px focal length (below COLMAP's bound of 64 px for a
+    /// 640 px wide image), a camera that says 45: every solve that refines it
+    /// ends out of bounds and is solved again with it held; after the second
+    /// such solve it is no longer refined at all.
+    #[test]
+    fn intrinsics_refined_out_of_bounds_twice_are_held_for_the_rest_of_the_run() {
+        use crate::io::database::DatabaseSnapshot;
+        use crate::scene::TrackElement;
+        use crate::sfm::associate::tests::{add_test_image, test_camera};
+        use crate::sfm::associate::NoAssociation;
+        let truth = Camera {
+            params: vec![40.0, 320.0, 240.0],
+            ..test_camera()
+        };
+        let mut db = DatabaseSnapshot::default();
+        db.cameras.insert(
+            CameraId(1),
+            Camera {
+                params: vec![45.0, 320.0, 240.0],
+                ..truth.clone()
+            },
+        );
+        // A 5 x 5 grid at three depths, seen by three cameras 0.5 m apart.
+        let points: Vec<Vector3<f64>> = (0..25)
+            .map(|k| {
+                let (i, j) = ((k % 5) as f64, (k / 5) as f64);
+                Vector3::new(i - 2.0, j - 2.0, 3.0 + 0.5 * ((k % 3) as f64))
+            })
+            .collect();
+        let poses: Vec<(ImageId, Rigid3)> = (0..3)
+            .map(|i| {
+                let centre = Vector3::new(0.5 * (i as f64 - 1.0), 0.1 * i as f64, 0.0);
+                (
+                    ImageId(i + 1),
+                    Rigid3::new(nalgebra::UnitQuaternion::identity(), -centre),
+                )
+            })
+            .collect();
+        for (id, pose) in &poses {
+            let keypoints = points
+                .iter()
+                .map(|x| truth.project(&pose.transform_point(x)).expect("in front"))
+                .collect();
+            add_test_image(&mut db, *id, keypoints);
+        }
+        let mut state = MapState::new(&db, 1);
+        for (id, pose) in &poses {
+            state.register(*id, *pose);
+        }
+        for (k, x) in points.iter().enumerate() {
+            let track = poses
+                .iter()
+                .map(|(id, _)| TrackElement {
+                    image_id: *id,
+                    point2d_idx: k as u32,
+                })
+                .collect();
+            state.add_point(x + Vector3::new(0.01, -0.01, 0.02), track);
+        }
+        let images: BTreeSet<ImageId> = poses.iter().map(|(id, _)| *id).collect();
+        let config = BundleConfig {
+            variable_images: images.clone(),
+            fixed_images: images,
+            refine_cameras: BTreeSet::from([CameraId(1)]),
+            pose_priors: Vec::new(),
+        };
+        let options = BundleOptions::default();
+        let solve = |state: &mut MapState| {
+            bundle_adjust(state, &config, SolveKind::Global, &NoAssociation, &options)
+                .expect("solves")
+        };
+        for n in 1..=MAX_IMPLAUSIBLE_REFINEMENTS {
+            let record = solve(&mut state);
+            assert_eq!(record.intrinsics_held, vec![1], "solve {n}");
+            assert_eq!(state.implausible_refinements[&CameraId(1)], n);
+            assert_eq!(state.cameras[&CameraId(1)].params[0], 45.0);
+        }
+        assert!(!state.intrinsics_refinable(CameraId(1)));
+        // Held from now on: one solve, nothing thrown away, the count stays.
+        let record = solve(&mut state);
+        assert!(record.intrinsics_held.is_empty(), "{record:?}");
+        assert_eq!(
+            state.implausible_refinements[&CameraId(1)],
+            MAX_IMPLAUSIBLE_REFINEMENTS
+        );
+        assert_eq!(state.cameras[&CameraId(1)].params[0], 45.0);
     }
 }

@@ -1196,6 +1196,7 @@ impl RefinedCameras {
                 focal_from_pairs_px: estimates.get(&c.id).map(|e| e.focal_px),
                 focal_from_map_px: map_focal.get(&c.id).map(|e| e.focal_px),
                 focal_from_points_px: None,
+                implausible_refinements: 0,
                 database_params: c.params.clone(),
                 final_params: c.params.clone(),
                 focal_change: 0.0,

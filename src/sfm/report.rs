@@ -149,6 +149,10 @@ pub struct IntrinsicsRecord {
     /// placed its first image best against the model's points, where its
     /// self-calibration started (pixels).
     pub focal_from_points_px: Option<f64>,
+    /// Solves whose refinement took these intrinsics out of COLMAP's bounds
+    /// (each solved again with them held); from 2 on they were held for the
+    /// rest of the run.
+    pub implausible_refinements: u32,
     pub database_params: Vec<f64>,
     pub final_params: Vec<f64>,
     /// Final mean focal length over the database's, minus 1.
@@ -236,6 +240,11 @@ impl MapReport {
                     ..c.clone()
                 };
                 rec.final_params = c.params.clone();
+                rec.implausible_refinements = state
+                    .implausible_refinements
+                    .get(&state.intrinsics_of(c.id))
+                    .copied()
+                    .unwrap_or(0);
                 rec.focal_change = c.mean_focal_length() / before.mean_focal_length() - 1.0;
             }
         }

@@ -156,8 +156,18 @@ pub struct MapState {
     /// [`MapState::share_identical_intrinsics`]); a camera not in here has
     /// its own.
     shared_intrinsics: BTreeMap<CameraId, CameraId>,
+    /// Per intrinsics owner, the solves whose refinement took its intrinsics
+    /// out of COLMAP's bounds (each then solved again with them held); at
+    /// [`MAX_IMPLAUSIBLE_REFINEMENTS`] they are held for the rest of the run.
+    pub implausible_refinements: BTreeMap<CameraId, u32>,
     next_point_id: u64,
 }
+
+/// Solves with implausible refined intrinsics after which a camera's
+/// intrinsics are no longer refined: each such solve runs twice, and a
+/// camera whose points keep pulling it out of bounds would double the cost
+/// of every later solve.
+pub const MAX_IMPLAUSIBLE_REFINEMENTS: u32 = 2;
 
 impl MapState {
     /// The empty state of a database: no image registered, no point.
@@ -192,8 +202,17 @@ impl MapState {
             graph,
             registration_order: Vec::new(),
             shared_intrinsics: BTreeMap::new(),
+            implausible_refinements: BTreeMap::new(),
             next_point_id: 1,
         }
+    }
+
+    /// Whether `owner`'s intrinsics are still refined when a solve asks for
+    /// it (see [`MAX_IMPLAUSIBLE_REFINEMENTS`]).
+    pub fn intrinsics_refinable(&self, owner: CameraId) -> bool {
+        self.implausible_refinements
+            .get(&owner)
+            .is_none_or(|&n| n < MAX_IMPLAUSIBLE_REFINEMENTS)
     }
 
     /// The camera whose intrinsics `camera` uses in bundle adjustment (itself
