@@ -14,7 +14,7 @@ use super::associate::NearestNeighbourAssociator;
 use super::focal::{sweep_focal, with_focal};
 use super::geometry::intersect_ray_plane;
 use super::options::{InitOptions, RegisterOptions};
-use super::register::{estimate_pose, pnp_score, PoseOutcome};
+use super::register::{estimate_pose, focal_from_correspondences, pnp_score, PoseOutcome};
 use super::state::MapState;
 use crate::map::grid::FrustumGrid;
 use crate::map::projection::{project_map_at_pixels, ProjectionError};
@@ -89,6 +89,11 @@ pub struct InitSummary {
     pub num_supported: usize,
     pub num_points: usize,
     pub attempts: Vec<InitAttempt>,
+    /// Guessed cameras of second-image candidates (by the id owning their
+    /// intrinsics): the focal length at which PnP placed the candidate best
+    /// against the initial image's map points, where its self-calibration
+    /// started (pixels; see [`focal_from_correspondences`]).
+    pub focal_from_points_px: BTreeMap<u32, f64>,
 }
 
 /// 3D points of the initial image's features from the map: keypoint index ->
@@ -379,7 +384,10 @@ pub fn focal_from_map(
 }
 
 /// Registers the initial image at `cam_from_world` and a second image by PnP
-/// against its LiDAR-supported features; creates the first 3D points.
+/// against its LiDAR-supported features; creates the first 3D points. A
+/// candidate whose camera's intrinsics are owned by one in `sweep` (a
+/// guessed focal length the map's sweep did not set) gets its focal length
+/// from a sweep of that PnP first (every PnP's RANSAC seeded with `seed`).
 #[allow(clippy::too_many_arguments)]
 pub fn initialize(
     state: &mut MapState,
@@ -389,6 +397,8 @@ pub fn initialize(
     grid: &FrustumGrid,
     options: &InitOptions,
     register: &RegisterOptions,
+    sweep: &BTreeSet<CameraId>,
+    seed: u64,
     rng: &mut ChaCha8Rng,
 ) -> Result<InitSummary, InitError> {
     let (lidar, num_hits) =
@@ -408,6 +418,7 @@ pub fn initialize(
     // Candidates: matches of LiDAR-supported features per other image.
     let candidates = matches_per_image(state, image, lidar.keys().copied(), |_| true);
     let mut attempts = Vec::new();
+    let mut focal_sweeps = BTreeMap::new();
     for (other, pairs) in candidates.into_iter().take(options.max_candidates) {
         let img = &state.images[&other];
         let pixels: Vec<_> = pairs
@@ -415,14 +426,34 @@ pub fn initialize(
             .map(|(_, k2)| img.keypoints[*k2 as usize])
             .collect();
         let points: Vec<_> = pairs.iter().map(|(k1, _)| lidar[k1]).collect();
-        let camera = state.camera_of(other).clone();
-        let outcome = estimate_pose(&camera, &pixels, &points, None, register, rng);
         let mut attempt = InitAttempt {
             image_id: other.0,
             image_name: img.name.clone(),
             num_lidar_matches: pairs.len(),
             num_inliers: 0,
         };
+        let owner = state.intrinsics_of(img.camera_id);
+        if sweep.contains(&owner) && !focal_sweeps.contains_key(&owner.0) {
+            let camera = state.camera_of(other);
+            let guess = camera.mean_focal_length();
+            if let Some((f, score, at_guess)) =
+                focal_from_correspondences(camera, &pixels, &points, register, seed)
+            {
+                log::info!(
+                    "camera {}: `{}` is placed best on the initial image's map points at a focal length of {f:.1} px (was {guess:.1} px; score {score:.4} there, {at_guess:.4} before)",
+                    owner.0,
+                    attempt.image_name
+                );
+                for id in state.cameras_sharing(owner) {
+                    if let Some(c) = state.cameras.get_mut(&id) {
+                        *c = with_focal(c, f);
+                    }
+                }
+                focal_sweeps.insert(owner.0, f);
+            }
+        }
+        let camera = state.camera_of(other).clone();
+        let outcome = estimate_pose(&camera, &pixels, &points, None, register, rng);
         match outcome {
             PoseOutcome::Found {
                 cam_from_world: pose2,
@@ -459,6 +490,7 @@ pub fn initialize(
                     num_supported: lidar.len(),
                     num_points: state.points.len(),
                     attempts,
+                    focal_from_points_px: focal_sweeps,
                 });
             }
             PoseOutcome::TooFewInliers { inliers, .. } => {

@@ -322,6 +322,22 @@ pub fn run_mapper_with_priors(
     };
 
     // 3. Initialisation.
+    // Guessed cameras none of whose images is registered yet: their first
+    // image's focal length is found by a sweep of PnP (the initial image's
+    // camera has the map's), the second image's against the initial image's
+    // map points unless the map's sweep set it.
+    let init_owner = state.intrinsics_of(state.images[&init_image].camera_id);
+    let mut uncalibrated: BTreeSet<CameraId> = refine
+        .every
+        .iter()
+        .map(|&id| state.intrinsics_of(id))
+        .filter(|&id| db.cameras_without_focal_prior.contains(&id) && id != init_owner)
+        .collect();
+    let from_map: BTreeSet<CameraId> = map_focal
+        .keys()
+        .map(|&id| state.intrinsics_of(id))
+        .collect();
+    let init_sweep: BTreeSet<CameraId> = uncalibrated.difference(&from_map).copied().collect();
     let init = initialize(
         &mut state,
         init_image,
@@ -330,8 +346,17 @@ pub fn run_mapper_with_priors(
         &grid,
         &options.init,
         &options.register,
+        &init_sweep,
+        options.seed,
         &mut rng,
     )?;
+    for (&owner, &f) in &init.focal_from_points_px {
+        for id in state.cameras_sharing(CameraId(owner)) {
+            if let Some(rec) = report.intrinsics.iter_mut().find(|r| r.camera_id == id.0) {
+                rec.focal_from_points_px = Some(f);
+            }
+        }
+    }
     log::info!(
         "initialised: image {} at the given pose ({} of {} features on the map), image {} by PnP, {} points",
         init.initial_image,
@@ -410,21 +435,12 @@ pub fn run_mapper_with_priors(
     stages.done("initialisation");
 
     // 4. Incremental registration.
-    // Guessed cameras none of whose images is registered yet: their first
-    // image's focal length is found by a sweep of PnP (the initial image's
-    // camera has the map's).
-    let mut uncalibrated: BTreeSet<CameraId> = refine
-        .every
-        .iter()
-        .map(|&id| state.intrinsics_of(id))
-        .filter(|id| db.cameras_without_focal_prior.contains(id))
-        .filter(|&id| {
-            !state
-                .registration_order
-                .iter()
-                .any(|&i| state.intrinsics_of(state.images[&i].camera_id) == id)
-        })
-        .collect();
+    uncalibrated.retain(|&id| {
+        !state
+            .registration_order
+            .iter()
+            .any(|&i| state.intrinsics_of(state.images[&i].camera_id) == id)
+    });
     let mut failed: BTreeMap<ImageId, usize> = BTreeMap::new();
     let mut last_global_size = state.num_registered();
     let mut since_global = 0usize;

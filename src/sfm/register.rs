@@ -238,7 +238,8 @@ pub fn pnp_score(
 /// around the camera's value, scored by
 /// [`truncated_reprojection_score`] over all of the image's 2D-3D
 /// correspondences (1 where PnP finds no pose). Returns (focal length, its
-/// score, the score at the camera's value); `None` with too few
+/// score, the score at the camera's value; the camera's value when no grid
+/// point scores better); `None` with too few
 /// correspondences or no clear best. Every PnP's RANSAC is seeded with `seed`.
 pub fn focal_from_points(
     state: &MapState,
@@ -246,15 +247,32 @@ pub fn focal_from_points(
     options: &RegisterOptions,
     seed: u64,
 ) -> Option<(f64, f64, f64)> {
-    let (corrs, pixels, points) = correspondence_arrays(state, image);
-    if corrs.len() < options.min_num_inliers.max(4) {
+    let (_, pixels, points) = correspondence_arrays(state, image);
+    focal_from_correspondences(state.camera_of(image), &pixels, &points, options, seed)
+}
+
+/// [`focal_from_points`] for given 2D-3D correspondences (`pixels[i]` sees
+/// `points[i]`) of an image taken with `camera`.
+pub fn focal_from_correspondences(
+    camera: &Camera,
+    pixels: &[Vector2<f64>],
+    points: &[Vector3<f64>],
+    options: &RegisterOptions,
+    seed: u64,
+) -> Option<(f64, f64, f64)> {
+    if pixels.len() < options.min_num_inliers.max(4) {
         return None;
     }
-    let camera = state.camera_of(image);
-    let score = |f: f64| pnp_score(&with_focal(camera, f), &pixels, &points, options, seed);
+    let score = |f: f64| pnp_score(&with_focal(camera, f), pixels, points, options, seed);
     let current = camera.mean_focal_length();
     let (f, best) = sweep_focal(current, score)?;
-    Some((f, best, score(current)))
+    let at_current = score(current);
+    // The grid need not hold the camera's own value.
+    Some(if at_current <= best {
+        (current, at_current, at_current)
+    } else {
+        (f, best, at_current)
+    })
 }
 
 /// Places `image` at a known pose that PnP could not find: the pose is

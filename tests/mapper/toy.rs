@@ -879,16 +879,10 @@ fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
     assert!(err < err_fixed, "{err} vs {err_fixed}");
 }
 
-/// One camera per image, all at the same guess (COLMAP's extractor without
-/// `single_camera`): by default they share one set of intrinsics, refined
-/// from every image's points; each refined alone is not (or worse).
-/// Two cameras: the initial pair's is given (the true one), the odd images
-/// after the first are taken with a second camera whose focal length is
-/// COLMAP's guess (768 px for 450). Its first image's PnP sweeps focal
-/// lengths and self-calibration starts there. (The toy converges from the
-/// guess too: this checks the sweep's value and where it is used.)
-#[test]
-fn toy_room_second_guessed_camera_starts_from_the_pnp_sweep() {
+/// The toy room (14 images) with a second camera, whose focal length is
+/// COLMAP's guess (768 px for 450) and that has no distortion, for the images
+/// whose id `uses_it` picks; camera 1 (the true one) is given.
+fn toy_with_guessed_camera(uses_it: impl Fn(u32) -> bool) -> Toy {
     let mut scene = toy(14, 0.3, 0.0, 3);
     let mut guessed = scene.db.cameras[&CameraId(1)].clone();
     guessed.id = CameraId(2);
@@ -896,22 +890,40 @@ fn toy_room_second_guessed_camera_starts_from_the_pnp_sweep() {
     guessed.params[3] = 0.0;
     scene.db.cameras.insert(CameraId(2), guessed);
     scene.db.cameras_without_focal_prior.insert(CameraId(2));
-    // Odd images after the first: the initial pair (1 and its neighbour 2)
-    // is of the given camera.
     for (id, image) in scene.db.images.iter_mut() {
-        if id.0 % 2 == 1 && id.0 > 1 {
+        if uses_it(id.0) {
             image.camera_id = CameraId(2);
         }
     }
-    let (out, err) = map_toy(&scene, &MapperOptions::default());
-    assert_eq!(out.report.init.as_ref().map(|i| i.second_image), Some(2));
+    scene
+}
+
+/// Camera 2's report record and final intrinsics.
+fn camera_two(
+    out: &colmap_lidar::sfm::MapperOutput,
+) -> (&colmap_lidar::sfm::report::IntrinsicsRecord, &Camera) {
     let rec = out
         .report
         .intrinsics
         .iter()
         .find(|r| r.camera_id == 2)
         .expect("camera 2 has a record");
-    let refined = &out.reconstruction.cameras[&CameraId(2)];
+    (rec, &out.reconstruction.cameras[&CameraId(2)])
+}
+
+/// Two cameras: the initial pair's is given (the true one), the odd images
+/// after the first are taken with a second camera whose focal length is
+/// COLMAP's guess (768 px for 450). Its first image's PnP sweeps focal
+/// lengths and self-calibration starts there. (The toy converges from the
+/// guess too: this checks the sweep's value and where it is used.)
+#[test]
+fn toy_room_second_guessed_camera_starts_from_the_pnp_sweep() {
+    // Odd images after the first: the initial pair (1 and its neighbour 2)
+    // is of the given camera.
+    let scene = toy_with_guessed_camera(|id| id % 2 == 1 && id > 1);
+    let (out, err) = map_toy(&scene, &MapperOptions::default());
+    assert_eq!(out.report.init.as_ref().map(|i| i.second_image), Some(2));
+    let (rec, refined) = camera_two(&out);
     eprintln!(
         "toy room, second camera guessed at 768 px: PnP sweep {:?} px, refined f = {:.3} px, k = {:.4} (true 450, 0.01), max centre error {err:.4} m",
         rec.focal_from_points_px, refined.params[0], refined.params[3]
@@ -929,6 +941,34 @@ fn toy_room_second_guessed_camera_starts_from_the_pnp_sweep() {
     assert!(first.focal_from_map_px.is_none() && first.focal_from_points_px.is_none());
 }
 
+/// The initial pair's second image is of a guessed camera (768 px for 450)
+/// other than the initial image's (given): its focal length is swept by PnP
+/// against the initial image's map points before it is placed.
+#[test]
+fn toy_room_initial_pairs_guessed_camera_starts_from_the_pnp_sweep() {
+    let scene = toy_with_guessed_camera(|id| id % 2 == 0);
+    let (out, err) = map_toy(&scene, &MapperOptions::default());
+    let init = out.report.init.as_ref().expect("initialised");
+    assert_eq!(init.second_image, 2);
+    let swept = init.focal_from_points_px.get(&2).copied();
+    let (rec, refined) = camera_two(&out);
+    eprintln!(
+        "toy room, initial pair's second camera guessed at 768 px: PnP sweep {swept:?} px, refined f = {:.3} px (true 450), max centre error {err:.4} m",
+        refined.params[0]
+    );
+    let swept = swept.expect("the initial pair's PnP sweep ran");
+    assert!((swept - 450.0).abs() < 0.1 * 450.0, "{swept}");
+    assert_eq!(rec.focal_from_points_px, Some(swept));
+    assert_eq!(out.report.num_registered, 14);
+    assert!((refined.params[0] - 450.0).abs() < 0.9, "{refined:?}");
+    assert!(err < 0.01, "max centre error {err} m");
+    // Only the guessed camera is swept.
+    assert_eq!(init.focal_from_points_px.len(), 1);
+}
+
+/// One camera per image, all at the same guess (COLMAP's extractor without
+/// `single_camera`): by default they share one set of intrinsics, refined
+/// from every image's points; each refined alone is not (or worse).
 #[test]
 fn toy_room_shares_identical_cameras() {
     let mut scene = toy(14, 0.3, 0.0, 3);
