@@ -204,6 +204,8 @@ struct BuiltBundle {
     queries: Vec<AssociationQuery>,
     /// The solve's local frame: `X_local = X_world - origin`.
     origin: Vector3<f64>,
+    /// The intrinsics refined ([`refined_intrinsics`]).
+    refined: BTreeSet<CameraId>,
 }
 
 /// The problem of one solve, without planes. The variable points are those
@@ -319,6 +321,7 @@ fn build_bundle(state: &MapState, config: &BundleConfig) -> BuiltBundle {
         point_list,
         queries,
         origin,
+        refined,
     }
 }
 
@@ -423,6 +426,7 @@ pub fn bundle_adjust(
         camera_idx,
         point_list,
         origin,
+        refined,
         ..
     } = built;
     let plane_distances = |state: &MapState| -> Vec<f64> {
@@ -439,7 +443,6 @@ pub fn bundle_adjust(
     // suspect (its poses and points went with them): it is run again with
     // those cameras held.
     if summary.usable {
-        let refined = refined_intrinsics(state, config);
         let implausible: BTreeSet<CameraId> = camera_idx
             .iter()
             .filter(|(id, _)| refined.contains(id))
@@ -506,7 +509,6 @@ pub fn bundle_adjust(
                 }
             }
         }
-        let refined = refined_intrinsics(state, config);
         for (cam_id, &ci) in &camera_idx {
             if !refined.contains(cam_id) {
                 continue;

@@ -444,11 +444,7 @@ pub fn initialize(
                     owner.0,
                     attempt.image_name
                 );
-                for id in state.cameras_sharing(owner) {
-                    if let Some(c) = state.cameras.get_mut(&id) {
-                        *c = with_focal(c, f);
-                    }
-                }
+                state.set_focal_length(owner, f);
                 focal_sweeps.insert(owner.0, f);
             }
         }

@@ -24,7 +24,7 @@ use super::filter::{
     count_points_on_seen_surface, filter_observations, filter_points_behind_map,
     filter_small_angle_points,
 };
-use super::focal::{self, focal_from_fundamentals, with_focal, FocalEstimate};
+use super::focal::{self, focal_from_fundamentals, FocalEstimate};
 use super::initialize::{
     focal_from_map, initialize, swept_cameras, InitError, InitialPairFocalSweep, MapFocalEstimate,
 };
@@ -351,11 +351,7 @@ pub fn run_mapper_with_priors(
         &mut rng,
     )?;
     for (&owner, &f) in &init.focal_from_points_px {
-        for id in state.cameras_sharing(CameraId(owner)) {
-            if let Some(rec) = report.intrinsics.iter_mut().find(|r| r.camera_id == id.0) {
-                rec.focal_from_points_px = Some(f);
-            }
-        }
+        report.record_focal_from_points(&state.cameras_sharing(CameraId(owner)), f);
     }
     log::info!(
         "initialised: image {} at the given pose ({} of {} features on the map), image {} by PnP, {} points",
@@ -1013,11 +1009,8 @@ fn start_guessed_focal_lengths(
             estimate.cost,
             estimate.cost_at_guess
         );
-        for id in state.cameras_sharing(owner) {
-            if let Some(c) = state.cameras.get_mut(&id) {
-                *c = with_focal(c, estimate.focal_px);
-                out.insert(id, estimate);
-            }
+        for id in state.set_focal_length(owner, estimate.focal_px) {
+            out.insert(id, estimate);
         }
     }
     out
@@ -1080,16 +1073,8 @@ fn start_focal_from_map(
         estimate.score,
         estimate.score_at_guess
     );
-    let swept = swept_cameras(state, init_image, &db.cameras_without_focal_prior);
-    let members: Vec<CameraId> = state
-        .cameras
-        .keys()
-        .copied()
-        .filter(|&id| swept.contains(&state.intrinsics_of(id)))
-        .collect();
-    for id in members {
-        if let Some(c) = state.cameras.get_mut(&id) {
-            *c = with_focal(c, estimate.focal_px);
+    for owner in swept_cameras(state, init_image, &db.cameras_without_focal_prior) {
+        for id in state.set_focal_length(owner, estimate.focal_px) {
             out.insert(id, estimate);
         }
     }
@@ -1124,14 +1109,8 @@ fn start_focal_from_points(
         state.images[&image].name,
         state.cameras[&owner].mean_focal_length()
     );
-    for id in state.cameras_sharing(owner) {
-        if let Some(c) = state.cameras.get_mut(&id) {
-            *c = with_focal(c, f);
-        }
-        if let Some(rec) = report.intrinsics.iter_mut().find(|r| r.camera_id == id.0) {
-            rec.focal_from_points_px = Some(f);
-        }
-    }
+    let cameras = state.set_focal_length(owner, f);
+    report.record_focal_from_points(&cameras, f);
 }
 
 /// Second images scored by the focal-length sweep at the initial image.

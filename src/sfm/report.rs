@@ -169,6 +169,15 @@ pub struct RoundRecord {
 }
 
 impl MapReport {
+    /// `focal_px` as the PnP sweep's value (`focal_from_points_px`) of `cameras`.
+    pub fn record_focal_from_points(&mut self, cameras: &[CameraId], focal_px: f64) {
+        for rec in &mut self.intrinsics {
+            if cameras.contains(&CameraId(rec.camera_id)) {
+                rec.focal_from_points_px = Some(focal_px);
+            }
+        }
+    }
+
     pub fn record_mut(&mut self, image: ImageId) -> Option<&mut ImageRecord> {
         self.images.iter_mut().find(|r| r.image_id == image.0)
     }

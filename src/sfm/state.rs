@@ -261,6 +261,18 @@ impl MapState {
             .collect()
     }
 
+    /// Sets the focal length of `owner`'s intrinsics (every focal parameter)
+    /// on every camera sharing them; returns those cameras.
+    pub fn set_focal_length(&mut self, owner: CameraId, focal_px: f64) -> Vec<CameraId> {
+        let members = self.cameras_sharing(owner);
+        for id in &members {
+            if let Some(c) = self.cameras.get_mut(id) {
+                *c = super::focal::with_focal(c, focal_px);
+            }
+        }
+        members
+    }
+
     pub fn camera_of(&self, image: ImageId) -> &Camera {
         // Every image's camera exists: the database reader checks the foreign key.
         &self.cameras[&self.images[&image].camera_id]
