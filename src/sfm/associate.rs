@@ -123,7 +123,8 @@ impl PlaneAssociator for NearestNeighbourAssociator<'_> {
         "nearest"
     }
 
-    /// Huber with the scale `loss_scale_m` (metres) times the family's weight.
+    /// Huber (or the final solves' `final_loss`) with the scale `loss_scale_m`
+    /// (metres) times the family's weight.
     fn losses(&self, kind: SolveKind) -> Vec<(PlaneFamily, LossFunction)> {
         if kind == SolveKind::LocalRefine {
             return vec![
@@ -132,12 +133,9 @@ impl PlaneAssociator for NearestNeighbourAssociator<'_> {
             ];
         }
         let w = self.options.weights(kind);
-        let huber = |weight: f64| LossFunction::Huber {
-            scale: (weight * w.loss_scale_m).max(1e-6),
-        };
         vec![
-            (PlaneFamily::Nearest, huber(w.weight)),
-            (PlaneFamily::Ground, huber(w.ground_weight)),
+            (PlaneFamily::Nearest, w.loss(w.weight)),
+            (PlaneFamily::Ground, w.loss(w.ground_weight)),
         ]
     }
 
@@ -430,9 +428,7 @@ impl PlaneAssociator for ProjectionAssociator<'_> {
         let loss = if kind == SolveKind::LocalRefine {
             LossFunction::Trivial
         } else {
-            LossFunction::Huber {
-                scale: (w.projection_weight * w.loss_scale_m).max(1e-6),
-            }
+            w.loss(w.projection_weight)
         };
         losses.push((PlaneFamily::Projection, loss));
         losses
