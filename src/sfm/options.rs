@@ -594,7 +594,7 @@ pub struct AssociationOptions {
     /// session 14), camera-centre medians: Huber 5 mm summed 32.7 mm (worst
     /// 4.1), Cauchy 10 mm 31.4 mm (worst 4.3): corridor 0 4.0 / 3.8 -> 3.3 /
     /// 3.1 mm, room 0 1.5 / 1.4 -> 1.2 / 1.2, yard 1 1.8 / 1.9 -> 2.2 / 2.2;
-    /// Cauchy 5 mm 33.5 (the yards 0.4-1.2 mm worse), 2 mm worse still.
+    /// Cauchy 5 mm 33.5 (the yards 0.1-1.1 mm worse), 2 mm worse still.
     pub final_loss: PlaneLoss,
     /// In the final bundle adjustments a plane is kept only when the point,
     /// moved to the best place on that plane, still reprojects within this
