@@ -866,14 +866,19 @@ mod tests {
         assert_eq!(fin.loss(fin.weight), LossFunction::Cauchy { scale: 0.3 });
         // Registration: Huber at weight 1000 times 2 cm.
         let local = o.weights(SolveKind::Local);
-        assert_eq!(local.loss(local.weight), LossFunction::Huber { scale: 20.0 });
+        assert_eq!(
+            local.loss(local.weight),
+            LossFunction::Huber { scale: 20.0 }
+        );
         assert_eq!(o.weights(SolveKind::Global).loss, PlaneLoss::Huber);
         let read: MapperOptions =
             toml::from_str("[association]\nfinal_loss = \"huber\"\nfinal_loss_scale_m = 0.005\n")
                 .unwrap();
         let fin = read.association.weights(SolveKind::Final);
         assert_eq!(fin.loss(30.0), LossFunction::Huber { scale: 0.15 });
-        assert!(toml::from_str::<MapperOptions>("[association]\nfinal_loss = \"tukey\"\n").is_err());
+        assert!(
+            toml::from_str::<MapperOptions>("[association]\nfinal_loss = \"tukey\"\n").is_err()
+        );
     }
 
     #[test]
