@@ -31,7 +31,17 @@ pub enum SolveKind {
     /// Local BA, later passes (plain least squares on the planes).
     LocalRefine,
     Global,
+    /// The first round of the final bundle adjustment: the final weights
+    /// with a Huber loss (`final_first_round_huber_m`).
+    FinalFirst,
     Final,
+}
+
+impl SolveKind {
+    /// A round of the final bundle adjustment (the first or a later one).
+    pub fn is_final(self) -> bool {
+        matches!(self, Self::FinalFirst | Self::Final)
+    }
 }
 
 /// A variable 3D point of a solve.
@@ -162,7 +172,7 @@ impl NearestNeighbourAssociator<'_> {
         mut planes: Vec<PlaneConstraint>,
     ) -> Vec<PlaneConstraint> {
         let max_px = self.options.final_max_on_plane_error_px;
-        if kind != SolveKind::Final || max_px <= 0.0 {
+        if !kind.is_final() || max_px <= 0.0 {
             return planes;
         }
         let ids: BTreeMap<u32, Point3DId> =

@@ -504,7 +504,7 @@ pub fn bundle_adjust(
                 p.xyz = problem.points[i].position() + origin;
                 p.plane = plane_of_point.get(&(i as u32)).copied();
                 p.anchored = p.plane.is_some();
-                if matches!(kind, SolveKind::Global | SolveKind::Final) {
+                if kind == SolveKind::Global || kind.is_final() {
                     p.num_global_ba += 1;
                 }
             }

@@ -628,9 +628,17 @@ pub fn run_mapper_with_priors(
         for round in 0..options.bundle.final_rounds {
             let before = camera_centres(state);
             let fixed = fixed_for(state);
+            // The model arrives from registration (or, in the second pass,
+            // from the intrinsics probe, already near the final optimum). A
+            // Huber first round is always followed by a `final_loss` one.
+            let kind = if pass == 1 && round == 0 && options.bundle.final_rounds >= 2 {
+                SolveKind::FinalFirst
+            } else {
+                SolveKind::Final
+            };
             global_ba(
                 state,
-                SolveKind::Final,
+                kind,
                 refine_cameras,
                 &all,
                 &fixed,
@@ -657,7 +665,8 @@ pub fn run_mapper_with_priors(
                 record.max_move_m
             );
             report.final_rounds.push(record);
-            if record.median_move_m < options.bundle.final_stop_change_m {
+            if kind == SolveKind::Final && record.median_move_m < options.bundle.final_stop_change_m
+            {
                 break;
             }
         }
