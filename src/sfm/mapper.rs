@@ -685,6 +685,16 @@ pub fn run_mapper_with_priors(
         let before = state.clone();
         let probed: BTreeSet<CameraId> = refine.last.union(&refine.probe).copied().collect();
         let fixed = fixed_for(&state);
+        // Capped: it only has to show whether the focal length moves (when
+        // it does, the rounds run again); without rounds to follow
+        // (`final_rounds = 0`) its result may be the output, uncapped.
+        let mut probe_options = options.clone();
+        if options.bundle.final_rounds > 0 {
+            probe_options.bundle.global_max_iterations = options
+                .bundle
+                .probe_max_iterations
+                .min(options.bundle.global_max_iterations);
+        }
         global_ba(
             &mut state,
             SolveKind::Final,
@@ -693,7 +703,7 @@ pub fn run_mapper_with_priors(
             &fixed,
             &pose_priors,
             associator,
-            options,
+            &probe_options,
             &mut report,
         )?;
         let mut adopted = BTreeSet::new();

@@ -852,6 +852,14 @@ fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
     let rec = &held.report.intrinsics[0];
     assert!(rec.probe_focal_change.unwrap().abs() < 0.001, "{rec:?}");
     assert_eq!(rec.refined, "held");
+    // The probe (the last solve, discarded) is capped; Ceres counts its
+    // starting point as one successful step.
+    let probe_solve = held.report.solves.last().expect("solves");
+    let cap = MapperOptions::default().bundle.probe_max_iterations;
+    assert!(
+        probe_solve.discarded && probe_solve.iterations <= cap + 1,
+        "{probe_solve:?}"
+    );
     assert_eq!(held.reconstruction.cameras[&CameraId(1)].params[0], 450.0);
     let (fixed_right, _) = map_toy(&right, &fixed);
     assert_eq!(held.reconstruction, fixed_right.reconstruction);
