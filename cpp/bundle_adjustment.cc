@@ -24,6 +24,7 @@
 #include <vector>
 
 #include "camera_models.h"
+#include "reprojection.h"
 #include "colmap-lidar/src/solver/ffi.rs.h"
 
 namespace colmap_lidar {
@@ -104,67 +105,64 @@ struct ReprojectionError {
   double weight;
 };
 
-// The same residual with constant intrinsics held in the functor: the
-// automatic derivatives then carry 10 dual parts instead of 10 + #params.
+// The same residual with constant intrinsics, Jacobians in closed form
+// (cpp/reprojection.h): what most residual blocks of every solve are.
 template <int kNumParams>
-struct ReprojectionErrorConstantCamera {
-  ReprojectionErrorConstantCamera(int model_id, const double* params,
-                                  double x_px, double y_px, double weight)
-      : model_id(model_id), x_px(x_px), y_px(y_px), weight(weight) {
-    for (int k = 0; k < kNumParams; ++k) this->params[k] = params[k];
+class ReprojectionConstantCameraCost
+    : public ceres::SizedCostFunction<2, 4, 3, 3> {
+ public:
+  ReprojectionConstantCameraCost(int model_id, const double* params,
+                                 double x_px, double y_px, double weight)
+      : model_id_(model_id), x_px_(x_px), y_px_(y_px), weight_(weight) {
+    for (int k = 0; k < kNumParams; ++k) params_[k] = params[k];
   }
 
-  template <typename T>
-  bool operator()(const T* cam_from_world_q, const T* cam_from_world_t,
-                  const T* point_in_world, T* residuals) const {
-    T point_in_cam[3];
-    CamFromWorld(cam_from_world_q, cam_from_world_t, point_in_world,
-                 point_in_cam);
-    return Finish(point_in_cam, residuals);
+  bool Evaluate(double const* const* parameters, double* residuals,
+                double** jacobians) const override {
+    return EvaluateReprojection<kNumParams>(
+        model_id_, params_, parameters[0], parameters[1], parameters[2], x_px_,
+        y_px_, weight_, residuals, jacobians ? jacobians[0] : nullptr,
+        jacobians ? jacobians[1] : nullptr, jacobians ? jacobians[2] : nullptr);
   }
 
-  // The residual of a camera-frame point with the constant intrinsics.
-  template <typename T>
-  bool Finish(const T* point_in_cam, T* residuals) const {
-    T params_t[kNumParams];
-    for (int k = 0; k < kNumParams; ++k) params_t[k] = T(params[k]);
-    return PixelResidual(model_id, params_t, point_in_cam, x_px, y_px, weight,
-                         residuals);
-  }
-
-  int model_id;
-  double params[kNumParams];
-  double x_px;
-  double y_px;
-  double weight;
+ private:
+  int model_id_;
+  double params_[kNumParams];
+  double x_px_;
+  double y_px_;
+  double weight_;
 };
 
 // The same residual for a constant pose and constant intrinsics (most
-// observations of a local bundle adjustment): only the point varies, so the
-// derivatives carry 3 dual parts.
+// observations of a local bundle adjustment): only the point varies.
 template <int kNumParams>
-struct ReprojectionErrorConstantPose {
-  ReprojectionErrorConstantPose(int model_id, const double* params,
-                                const double* cam_from_world_q,
-                                const double* cam_from_world_t, double x_px,
-                                double y_px, double weight)
-      : camera(model_id, params, x_px, y_px, weight) {
-    for (int k = 0; k < 4; ++k) q[k] = cam_from_world_q[k];
-    for (int k = 0; k < 3; ++k) t[k] = cam_from_world_t[k];
+class ReprojectionConstantPoseCost : public ceres::SizedCostFunction<2, 3> {
+ public:
+  ReprojectionConstantPoseCost(int model_id, const double* params,
+                               const double* cam_from_world_q,
+                               const double* cam_from_world_t, double x_px,
+                               double y_px, double weight)
+      : model_id_(model_id), x_px_(x_px), y_px_(y_px), weight_(weight) {
+    for (int k = 0; k < kNumParams; ++k) params_[k] = params[k];
+    for (int k = 0; k < 4; ++k) q_[k] = cam_from_world_q[k];
+    for (int k = 0; k < 3; ++k) t_[k] = cam_from_world_t[k];
   }
 
-  template <typename T>
-  bool operator()(const T* point_in_world, T* residuals) const {
-    const T q_t[4] = {T(q[0]), T(q[1]), T(q[2]), T(q[3])};
-    const T t_t[3] = {T(t[0]), T(t[1]), T(t[2])};
-    T point_in_cam[3];
-    CamFromWorld(q_t, t_t, point_in_world, point_in_cam);
-    return camera.Finish(point_in_cam, residuals);
+  bool Evaluate(double const* const* parameters, double* residuals,
+                double** jacobians) const override {
+    return EvaluateReprojection<kNumParams>(
+        model_id_, params_, q_, t_, parameters[0], x_px_, y_px_, weight_,
+        residuals, nullptr, nullptr, jacobians ? jacobians[0] : nullptr);
   }
 
-  ReprojectionErrorConstantCamera<kNumParams> camera;
-  double q[4];
-  double t[3];
+ private:
+  int model_id_;
+  double params_[kNumParams];
+  double q_[4];
+  double t_[3];
+  double x_px_;
+  double y_px_;
+  double weight_;
 };
 
 // A reprojection residual for a pose and a camera, specialised to what is
@@ -178,17 +176,13 @@ ceres::CostFunction* CreateReprojection(int model_id, double* q, double* t,
                                         std::vector<double*>* params) {
   if (camera_constant && pose_constant) {
     *params = {point};
-    return new ceres::AutoDiffCostFunction<
-        ReprojectionErrorConstantPose<kNumParams>, 2, 3>(
-        new ReprojectionErrorConstantPose<kNumParams>(
-            model_id, intrinsics, q, t, x_px, y_px, weight));
+    return new ReprojectionConstantPoseCost<kNumParams>(
+        model_id, intrinsics, q, t, x_px, y_px, weight);
   }
   if (camera_constant) {
     *params = {q, t, point};
-    return new ceres::AutoDiffCostFunction<
-        ReprojectionErrorConstantCamera<kNumParams>, 2, 4, 3, 3>(
-        new ReprojectionErrorConstantCamera<kNumParams>(model_id, intrinsics,
-                                                        x_px, y_px, weight));
+    return new ReprojectionConstantCameraCost<kNumParams>(
+        model_id, intrinsics, x_px, y_px, weight);
   }
   *params = {q, t, point, intrinsics};
   return ReprojectionError<kNumParams>::Create(model_id, x_px, y_px, weight);
@@ -240,33 +234,37 @@ ceres::CostFunction* CreateReprojectionError(
 // corridor 26 % faster). The objective, its gradient and every step are
 // unchanged. Evaluations and Jacobians handed to Rust use kRows = 1.
 template <int kRows>
-struct PointToPlaneError {
-  PointToPlaneError(const double* normal, double offset_m, double weight)
-      : n{normal[0], normal[1], normal[2]}, offset_m(offset_m), weight(weight) {}
+class PointToPlaneCost : public ceres::SizedCostFunction<kRows, 3> {
+ public:
+  PointToPlaneCost(const double* normal, double offset_m, double weight)
+      : n_{normal[0], normal[1], normal[2]}, offset_m_(offset_m), weight_(weight) {}
 
-  template <typename T>
-  bool operator()(const T* point_in_world, T* residual) const {
-    residual[0] = T(weight) * (T(n[0]) * point_in_world[0] +
-                               T(n[1]) * point_in_world[1] +
-                               T(n[2]) * point_in_world[2] - T(offset_m));
-    for (int k = 1; k < kRows; ++k) residual[k] = T(0.0);
+  bool Evaluate(double const* const* parameters, double* residuals,
+                double** jacobians) const override {
+    const double* x = parameters[0];
+    residuals[0] =
+        weight_ * (n_[0] * x[0] + n_[1] * x[1] + n_[2] * x[2] - offset_m_);
+    for (int k = 1; k < kRows; ++k) residuals[k] = 0.0;
+    if (jacobians && jacobians[0]) {
+      for (int c = 0; c < 3; ++c) jacobians[0][c] = weight_ * n_[c];
+      for (int c = 3; c < 3 * kRows; ++c) jacobians[0][c] = 0.0;
+    }
     return true;
   }
 
-  double n[3];
-  double offset_m;
-  double weight;
+ private:
+  double n_[3];
+  double offset_m_;
+  double weight_;
 };
 
 ceres::CostFunction* CreatePointToPlaneError(const double* normal,
                                              double offset_m, double weight,
                                              bool for_solver) {
   if (for_solver) {
-    return new ceres::AutoDiffCostFunction<PointToPlaneError<2>, 2, 3>(
-        new PointToPlaneError<2>(normal, offset_m, weight));
+    return new PointToPlaneCost<2>(normal, offset_m, weight);
   }
-  return new ceres::AutoDiffCostFunction<PointToPlaneError<1>, 1, 3>(
-      new PointToPlaneError<1>(normal, offset_m, weight));
+  return new PointToPlaneCost<1>(normal, offset_m, weight);
 }
 
 // Prior on a pose's camera centre and orientation:
