@@ -52,6 +52,29 @@ const Case kCases[] = {
 // series threshold (r^2 = 1e-4), typical and wide.
 const double kRadii[] = {0.0, 1e-12, 1e-5, 0.01, 0.0101, 0.3, 1.2};
 
+// EvaluateReprojection for the model's parameter count.
+bool EvaluateAnyModel(int num_params, int model_id, const double* params, const double* q,
+                      const double* t, const double* point, double x_px, double y_px,
+                      double weight, double* residuals, double* jq, double* jt, double* jx) {
+  switch (num_params) {
+    case 3:
+      return colmap_lidar::EvaluateReprojection<3>(model_id, params, q, t, point, x_px, y_px,
+                                                   weight, residuals, jq, jt, jx);
+    case 4:
+      return colmap_lidar::EvaluateReprojection<4>(model_id, params, q, t, point, x_px, y_px,
+                                                   weight, residuals, jq, jt, jx);
+    case 5:
+      return colmap_lidar::EvaluateReprojection<5>(model_id, params, q, t, point, x_px, y_px,
+                                                   weight, residuals, jq, jt, jx);
+    case 8:
+      return colmap_lidar::EvaluateReprojection<8>(model_id, params, q, t, point, x_px, y_px,
+                                                   weight, residuals, jq, jt, jx);
+    default:
+      return colmap_lidar::EvaluateReprojection<12>(model_id, params, q, t, point, x_px, y_px,
+                                                    weight, residuals, jq, jt, jx);
+  }
+}
+
 }  // namespace
 
 int main() {
@@ -133,28 +156,8 @@ int main() {
         const double x_px = 612.25, y_px = 401.5, weight = 0.8;
 
         double residuals[2], jq[8], jt[6], jx[6];
-        bool ok = true;
-        switch (num_params) {
-          case 3:
-            ok = colmap_lidar::EvaluateReprojection<3>(c.model_id, c.params, q, t, point, x_px,
-                                                       y_px, weight, residuals, jq, jt, jx);
-            break;
-          case 4:
-            ok = colmap_lidar::EvaluateReprojection<4>(c.model_id, c.params, q, t, point, x_px,
-                                                       y_px, weight, residuals, jq, jt, jx);
-            break;
-          case 5:
-            ok = colmap_lidar::EvaluateReprojection<5>(c.model_id, c.params, q, t, point, x_px,
-                                                       y_px, weight, residuals, jq, jt, jx);
-            break;
-          case 8:
-            ok = colmap_lidar::EvaluateReprojection<8>(c.model_id, c.params, q, t, point, x_px,
-                                                       y_px, weight, residuals, jq, jt, jx);
-            break;
-          default:
-            ok = colmap_lidar::EvaluateReprojection<12>(c.model_id, c.params, q, t, point, x_px,
-                                                        y_px, weight, residuals, jq, jt, jx);
-        }
+        const bool ok = EvaluateAnyModel(num_params, c.model_id, c.params, q, t, point, x_px,
+                                         y_px, weight, residuals, jq, jt, jx);
         // Autodiff of the same composition.
         Jet10 qj[4], tj[3], xj[3], params_jet[kMaxParams];
         for (int i = 0; i < 4; ++i) qj[i] = Jet10(q[i], i);
