@@ -46,63 +46,32 @@ constexpr int kSparseNormalCholesky = 5;
   throw std::invalid_argument("bundle adjustment: " + what);
 }
 
-// X_cam = R(q) X + t.
-template <typename T>
-void CamFromWorld(const T* cam_from_world_q, const T* cam_from_world_t,
-                  const T* point_in_world, T* point_in_cam) {
-  ceres::UnitQuaternionRotatePoint(cam_from_world_q, point_in_world,
-                                   point_in_cam);
-  point_in_cam[0] += cam_from_world_t[0];
-  point_in_cam[1] += cam_from_world_t[1];
-  point_in_cam[2] += cam_from_world_t[2];
-}
-
-// r = w * (pi_model(K, X_cam) - x_observed); false when the model cannot
-// project X_cam.
-template <typename T>
-bool PixelResidual(int model_id, const T* params, const T* point_in_cam,
-                   double x_px, double y_px, double weight, T* residuals) {
-  T pixel[2];
-  if (!ProjectPoint(model_id, params, point_in_cam, pixel)) {
-    return false;
-  }
-  residuals[0] = T(weight) * (pixel[0] - T(x_px));
-  residuals[1] = T(weight) * (pixel[1] - T(y_px));
-  return true;
-}
-
 // Reprojection error of a world point seen by a posed camera:
 //   X_cam = R(q) X + t
 //   r     = w * (pi_model(K, X_cam) - x_observed)          [pixels * w]
-// The functor fails (returns false) when the model cannot project X_cam, e.g. a
-// point behind the camera; Ceres then rejects the step.
+// with Jacobians in closed form (cpp/reprojection.h). Evaluation fails
+// (returns false) when the model cannot project X_cam, e.g. a point behind
+// the camera; Ceres then rejects the step.
 template <int kNumParams>
-struct ReprojectionError {
-  ReprojectionError(int model_id, double x_px, double y_px, double weight)
-      : model_id(model_id), x_px(x_px), y_px(y_px), weight(weight) {}
+class ReprojectionCost : public ceres::SizedCostFunction<2, 4, 3, 3, kNumParams> {
+ public:
+  ReprojectionCost(int model_id, double x_px, double y_px, double weight)
+      : model_id_(model_id), x_px_(x_px), y_px_(y_px), weight_(weight) {}
 
-  template <typename T>
-  bool operator()(const T* cam_from_world_q, const T* cam_from_world_t,
-                  const T* point_in_world, const T* params,
-                  T* residuals) const {
-    T point_in_cam[3];
-    CamFromWorld(cam_from_world_q, cam_from_world_t, point_in_world,
-                 point_in_cam);
-    return PixelResidual(model_id, params, point_in_cam, x_px, y_px, weight,
-                         residuals);
+  bool Evaluate(double const* const* parameters, double* residuals,
+                double** jacobians) const override {
+    return EvaluateReprojection<kNumParams>(
+        model_id_, parameters[3], parameters[0], parameters[1], parameters[2],
+        x_px_, y_px_, weight_, residuals, jacobians ? jacobians[0] : nullptr,
+        jacobians ? jacobians[1] : nullptr, jacobians ? jacobians[2] : nullptr,
+        jacobians ? jacobians[3] : nullptr);
   }
 
-  static ceres::CostFunction* Create(int model_id, double x_px, double y_px,
-                                     double weight) {
-    return new ceres::AutoDiffCostFunction<ReprojectionError, 2, 4, 3, 3,
-                                           kNumParams>(
-        new ReprojectionError(model_id, x_px, y_px, weight));
-  }
-
-  int model_id;
-  double x_px;
-  double y_px;
-  double weight;
+ private:
+  int model_id_;
+  double x_px_;
+  double y_px_;
+  double weight_;
 };
 
 // The same residual with constant intrinsics, Jacobians in closed form
@@ -185,7 +154,7 @@ ceres::CostFunction* CreateReprojection(int model_id, double* q, double* t,
         model_id, intrinsics, x_px, y_px, weight);
   }
   *params = {q, t, point, intrinsics};
-  return ReprojectionError<kNumParams>::Create(model_id, x_px, y_px, weight);
+  return new ReprojectionCost<kNumParams>(model_id, x_px, y_px, weight);
 }
 
 // The parameter-block size of the intrinsics is a template argument, so

@@ -6,7 +6,8 @@
 //
 // Then the closed-form reprojection Jacobians of cpp/reprojection.h must
 // equal Ceres autodiff (10 dual parts: q, t, X) of the same residual for every
-// model, at several poses and points, to 1e-9 relative.
+// model, at several poses and points, to 1e-9 relative; so must the Jacobian
+// with respect to the intrinsics.
 //
 // Not part of the library: tests/camera_models.rs compiles and runs it
 // (header-only: needs Eigen and the Ceres headers, no linking).
@@ -55,23 +56,24 @@ const double kRadii[] = {0.0, 1e-12, 1e-5, 0.01, 0.0101, 0.3, 1.2};
 // EvaluateReprojection for the model's parameter count.
 bool EvaluateAnyModel(int num_params, int model_id, const double* params, const double* q,
                       const double* t, const double* point, double x_px, double y_px,
-                      double weight, double* residuals, double* jq, double* jt, double* jx) {
+                      double weight, double* residuals, double* jq, double* jt, double* jx,
+                      double* jp) {
   switch (num_params) {
     case 3:
       return colmap_lidar::EvaluateReprojection<3>(model_id, params, q, t, point, x_px, y_px,
-                                                   weight, residuals, jq, jt, jx);
+                                                   weight, residuals, jq, jt, jx, jp);
     case 4:
       return colmap_lidar::EvaluateReprojection<4>(model_id, params, q, t, point, x_px, y_px,
-                                                   weight, residuals, jq, jt, jx);
+                                                   weight, residuals, jq, jt, jx, jp);
     case 5:
       return colmap_lidar::EvaluateReprojection<5>(model_id, params, q, t, point, x_px, y_px,
-                                                   weight, residuals, jq, jt, jx);
+                                                   weight, residuals, jq, jt, jx, jp);
     case 8:
       return colmap_lidar::EvaluateReprojection<8>(model_id, params, q, t, point, x_px, y_px,
-                                                   weight, residuals, jq, jt, jx);
+                                                   weight, residuals, jq, jt, jx, jp);
     default:
       return colmap_lidar::EvaluateReprojection<12>(model_id, params, q, t, point, x_px, y_px,
-                                                    weight, residuals, jq, jt, jx);
+                                                    weight, residuals, jq, jt, jx, jp);
   }
 }
 
@@ -134,7 +136,7 @@ int main() {
     }
   }
   // Closed-form reprojection Jacobians against autodiff.
-  using Jet10 = ceres::Jet<double, 10>;
+  using JetAll = ceres::Jet<double, 10 + kMaxParams>;  // q, t, X, intrinsics
   // Unit quaternions (w, x, y, z), translations and world points.
   const double kQuats[][4] = {{1.0, 0.0, 0.0, 0.0},
                               {0.5895669440180283, 0.5829223938223662,
@@ -155,16 +157,16 @@ int main() {
         colmap_lidar::RotateByUnitQuaternion(q_inv, shifted, point);
         const double x_px = 612.25, y_px = 401.5, weight = 0.8;
 
-        double residuals[2], jq[8], jt[6], jx[6];
+        double residuals[2], jq[8], jt[6], jx[6], jp[2 * kMaxParams];
         const bool ok = EvaluateAnyModel(num_params, c.model_id, c.params, q, t, point, x_px,
-                                         y_px, weight, residuals, jq, jt, jx);
+                                         y_px, weight, residuals, jq, jt, jx, jp);
         // Autodiff of the same composition.
-        Jet10 qj[4], tj[3], xj[3], params_jet[kMaxParams];
-        for (int i = 0; i < 4; ++i) qj[i] = Jet10(q[i], i);
-        for (int i = 0; i < 3; ++i) tj[i] = Jet10(t[i], 4 + i);
-        for (int i = 0; i < 3; ++i) xj[i] = Jet10(point[i], 7 + i);
-        for (int i = 0; i < kMaxParams; ++i) params_jet[i] = Jet10(c.params[i]);
-        Jet10 cam[3], pixel_jet[2];
+        JetAll qj[4], tj[3], xj[3], params_jet[kMaxParams];
+        for (int i = 0; i < 4; ++i) qj[i] = JetAll(q[i], i);
+        for (int i = 0; i < 3; ++i) tj[i] = JetAll(t[i], 4 + i);
+        for (int i = 0; i < 3; ++i) xj[i] = JetAll(point[i], 7 + i);
+        for (int i = 0; i < kMaxParams; ++i) params_jet[i] = JetAll(c.params[i], 10 + i);
+        JetAll cam[3], pixel_jet[2];
         colmap_lidar::RotateByUnitQuaternion(qj, xj, cam);
         for (int i = 0; i < 3; ++i) cam[i] += tj[i];
         if (!ok || !colmap_lidar::ProjectPoint(c.model_id, params_jet, cam, pixel_jet)) {
@@ -181,8 +183,11 @@ int main() {
                         c.model_id, qi, ti, r, residuals[r], expected_residual);
             ++failures;
           }
-          for (int d = 0; d < 10; ++d) {
-            const double closed = d < 4 ? jq[4 * r + d] : d < 7 ? jt[3 * r + d - 4] : jx[3 * r + d - 7];
+          for (int d = 0; d < 10 + num_params; ++d) {
+            const double closed = d < 4    ? jq[4 * r + d]
+                                  : d < 7  ? jt[3 * r + d - 4]
+                                  : d < 10 ? jx[3 * r + d - 7]
+                                           : jp[num_params * r + d - 10];
             const double autodiff = weight * pixel_jet[r].v[d];
             ++checks;
             if (!(std::fabs(closed - autodiff) <= 1e-9 * (1.0 + std::fabs(autodiff)))) {
