@@ -50,6 +50,40 @@ void RotateByUnitQuaternion(const T* q, const T* p, T* out) {
   out[2] += q[1] * uv1 - q[2] * uv0;
 }
 
+// The pixel of (u, v) and d(pixel)/d(u, v) by a Jet through the camera model;
+// with kWithParams also weight * d(pixel)/dK into `jacobian_params`
+// (2 x kNumParams, row-major).
+template <int kNumParams, bool kWithParams>
+bool ProjectWithJet(int model_id, const double* params, double u, double v,
+                    double weight, double pixel[2], double d_pixel_d_uv[2][2],
+                    double* jacobian_params) {
+  using JetT = ceres::Jet<double, kWithParams ? 2 + kNumParams : 2>;
+  JetT params_jet[kNumParams];
+  for (int k = 0; k < kNumParams; ++k) {
+    if constexpr (kWithParams) {
+      params_jet[k] = JetT(params[k], 2 + k);
+    } else {
+      params_jet[k] = JetT(params[k]);
+    }
+  }
+  JetT pixel_jet[2];
+  if (!ProjectNormalized(model_id, params_jet, JetT(u, 0), JetT(v, 1),
+                         pixel_jet)) {
+    return false;
+  }
+  for (int r = 0; r < 2; ++r) {
+    pixel[r] = pixel_jet[r].a;
+    d_pixel_d_uv[r][0] = pixel_jet[r].v[0];
+    d_pixel_d_uv[r][1] = pixel_jet[r].v[1];
+    if constexpr (kWithParams) {
+      for (int k = 0; k < kNumParams; ++k) {
+        jacobian_params[kNumParams * r + k] = weight * pixel_jet[r].v[2 + k];
+      }
+    }
+  }
+  return true;
+}
+
 // The residual (2 values) and, for each non-null pointer, its row-major
 // Jacobian with respect to q (2 x 4), t (2 x 3) and X (2 x 3). `params` holds
 // the model's kNumParams intrinsics. False, with nothing written, when the
@@ -81,35 +115,14 @@ bool EvaluateReprojection(int model_id, const double* params, const double* q,
   double pixel[2];
   double d_pixel_d_uv[2][2] = {{0.0, 0.0}, {0.0, 0.0}};
   if (jacobian_params) {
-    using JetP = ceres::Jet<double, 2 + kNumParams>;
-    JetP params_jet[kNumParams];
-    for (int k = 0; k < kNumParams; ++k) params_jet[k] = JetP(params[k], 2 + k);
-    JetP pixel_jet[2];
-    if (!ProjectNormalized(model_id, params_jet, JetP(u, 0), JetP(v, 1),
-                           pixel_jet)) {
+    if (!ProjectWithJet<kNumParams, true>(model_id, params, u, v, weight, pixel,
+                                          d_pixel_d_uv, jacobian_params)) {
       return false;
-    }
-    for (int r = 0; r < 2; ++r) {
-      pixel[r] = pixel_jet[r].a;
-      d_pixel_d_uv[r][0] = pixel_jet[r].v[0];
-      d_pixel_d_uv[r][1] = pixel_jet[r].v[1];
-      for (int k = 0; k < kNumParams; ++k) {
-        jacobian_params[kNumParams * r + k] = weight * pixel_jet[r].v[2 + k];
-      }
     }
   } else if (any_jacobian) {
-    using Jet2 = ceres::Jet<double, 2>;
-    Jet2 params_jet[kNumParams];
-    for (int k = 0; k < kNumParams; ++k) params_jet[k] = Jet2(params[k]);
-    Jet2 pixel_jet[2];
-    if (!ProjectNormalized(model_id, params_jet, Jet2(u, 0), Jet2(v, 1),
-                           pixel_jet)) {
+    if (!ProjectWithJet<kNumParams, false>(model_id, params, u, v, weight,
+                                           pixel, d_pixel_d_uv, nullptr)) {
       return false;
-    }
-    for (int r = 0; r < 2; ++r) {
-      pixel[r] = pixel_jet[r].a;
-      d_pixel_d_uv[r][0] = pixel_jet[r].v[0];
-      d_pixel_d_uv[r][1] = pixel_jet[r].v[1];
     }
   } else if (!ProjectNormalized(model_id, params, u, v, pixel)) {
     return false;
