@@ -872,6 +872,39 @@ impl MapIndex {
         self.num_points
     }
 
+    /// The map's typical sample spacing on its surfaces (m): the side of the
+    /// square of surface one point stands for, `sqrt(pi / k) * r_k` with
+    /// `r_k` the median distance from a point to its `k = 8`th nearest
+    /// neighbour (for points on a surface, `k` neighbours fill a disc of
+    /// radius `r_k`; a square grid of spacing `s` gives `s`). Over at most
+    /// `max_samples` points taken at an even stride (deterministic); points
+    /// without 8 neighbours within 2 m (outliers, stray returns) are skipped.
+    /// `None` when no sampled point has them. `cloud` is the cloud the index
+    /// was built from.
+    pub fn surface_spacing_m(&self, cloud: &PointCloud, max_samples: usize) -> Option<f64> {
+        const K: usize = 8;
+        const MAX_RADIUS_M: f64 = 2.0;
+        let n = cloud.len();
+        if n == 0 || max_samples == 0 {
+            return None;
+        }
+        let stride = n.div_ceil(max_samples).max(1);
+        let mut radii: Vec<f64> = (0..n)
+            .step_by(stride)
+            .filter_map(|i| {
+                // The point itself comes first, at distance 0.
+                let found = self.k_nearest_within(&cloud.point_in_map(i), K + 1, MAX_RADIUS_M);
+                (found.len() == K + 1).then(|| found[K].dist_sq.sqrt())
+            })
+            .collect();
+        if radii.is_empty() {
+            return None;
+        }
+        radii.sort_by(f64::total_cmp);
+        let median = radii[radii.len() / 2];
+        Some((std::f64::consts::PI / K as f64).sqrt() * median)
+    }
+
     pub fn is_empty(&self) -> bool {
         self.num_points == 0
     }
@@ -1802,6 +1835,39 @@ mod tests {
             normals: None,
             planarity: None,
         }
+    }
+
+    /// Square grids of 2, 5 and 10 cm on a plane (tilted, far from the
+    /// origin), with a few far outliers: the estimate is the grid's spacing
+    /// to 15 % (a grid's 8th neighbour ring is not a disc).
+    #[test]
+    fn surface_spacing_of_square_grids() {
+        for spacing in [0.02f32, 0.05, 0.1] {
+            let mut points = Vec::new();
+            for i in 0..120 {
+                for j in 0..120 {
+                    let (u, v) = (i as f32 * spacing, j as f32 * spacing);
+                    points.push([u, 0.6 * v, 0.8 * v]);
+                }
+            }
+            for k in 0..30 {
+                points.push([-50.0 - 10.0 * k as f32, 40.0, 7.0 * k as f32]);
+            }
+            let c = cloud(points);
+            let index = MapIndex::build(&c).unwrap();
+            let estimate = index.surface_spacing_m(&c, 2000).unwrap();
+            let ratio = estimate / f64::from(spacing);
+            assert!(
+                (0.85..1.15).contains(&ratio),
+                "spacing {spacing}: {estimate}"
+            );
+            // Same answer every time.
+            assert_eq!(index.surface_spacing_m(&c, 2000), Some(estimate));
+        }
+        // Only isolated points: no estimate.
+        let lonely = cloud(vec![[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]]);
+        let index = MapIndex::build(&lonely).unwrap();
+        assert_eq!(index.surface_spacing_m(&lonely, 100), None);
     }
 
     #[test]

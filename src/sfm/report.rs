@@ -87,6 +87,10 @@ pub struct StageRecord {
 pub struct MapReport {
     pub seed: u64,
     pub association: String,
+    /// The map's sample spacing on its surfaces, metres
+    /// ([`crate::map::index::MapIndex::surface_spacing_m`]); splats and
+    /// plane radii grow with it ([`crate::sfm::options::MapperOptions::for_map_spacing`]).
+    pub map_spacing_m: Option<f64>,
     pub num_images: usize,
     pub num_registered: usize,
     pub num_points: usize,
