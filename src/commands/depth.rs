@@ -11,8 +11,12 @@ use nalgebra::Vector2;
 use crate::io::model::read_model;
 use crate::map::depth_image::{colourise, render_depth_image, write_png};
 use crate::map::grid::{FrustumGrid, GridOptions};
+use crate::map::index::MapIndex;
 use crate::map::io::read_point_cloud;
 use crate::map::projection::{project_map_at_pixels, ProjectionOptions};
+use crate::map::PointCloud;
+use crate::sfm::mapper::MAP_SPACING_SAMPLES;
+use crate::sfm::options::SPLAT_PER_SPACING;
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct DepthArgs {
@@ -50,6 +54,19 @@ impl DepthArgs {
     }
 }
 
+/// Widens the splats of `options` for a map sparser than the defaults suit,
+/// as the mapper does (`MapperOptions::for_map_spacing`): the half-width
+/// becomes at least [`SPLAT_PER_SPACING`] times the map's spacing. Returns
+/// the spacing (`None` when it cannot be estimated: options unchanged).
+pub fn widen_splats_for_map(options: &mut ProjectionOptions, cloud: &PointCloud) -> Option<f64> {
+    let spacing = MapIndex::build(cloud)
+        .ok()?
+        .surface_spacing_m(cloud, MAP_SPACING_SAMPLES)?;
+    let splat = &mut options.splat;
+    splat.patch_half_width_m = splat.patch_half_width_m.max(SPLAT_PER_SPACING * spacing);
+    Some(spacing)
+}
+
 pub fn run(args: &DepthArgs) -> anyhow::Result<()> {
     let options = args.options()?;
     let start = Instant::now();
@@ -84,6 +101,13 @@ pub fn run(args: &DepthArgs) -> anyhow::Result<()> {
         cloud.len(),
         start.elapsed().as_secs_f64()
     );
+    let mut options = options;
+    if let Some(spacing) = widen_splats_for_map(&mut options, &cloud) {
+        log::info!(
+            "map spacing about {spacing:.3} m: splat half-width {:.3} m",
+            options.splat.patch_half_width_m
+        );
+    }
     let t = Instant::now();
     let grid = FrustumGrid::build(&cloud, &GridOptions::default())
         .with_context(|| format!("indexing the LiDAR map {}", args.lidar.display()))?;

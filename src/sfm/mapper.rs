@@ -896,7 +896,7 @@ const WEAK_POSE_SIGMA_M: f64 = 0.05;
 
 /// Map points sampled for the map's spacing (an even stride; about 0.1 s
 /// on 1.5 million points).
-const MAP_SPACING_SAMPLES: usize = 20_000;
+pub const MAP_SPACING_SAMPLES: usize = 20_000;
 
 /// Each image's pose uncertainty at the final solution into the report
 /// (skipped above `bundle.uncertainty_max_images` images; a failure is

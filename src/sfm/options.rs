@@ -655,7 +655,8 @@ pub struct AssociationOptions {
     /// A plane's offset is the mean over the map points on it within this
     /// distance of the plane's map point, measured along the surface,
     /// metres: the map's range noise shrinks by the square root of their
-    /// number (about 80 at 2 cm spacing). A few times the map's spacing.
+    /// number (about 80 at 2 cm spacing). A few times the map's spacing:
+    /// raised to [`PLANE_RADIUS_PER_SPACING`] times it for sparser maps.
     /// Default 0.1.
     pub plane_radius_m: f64,
     /// ... and within this distance of the plane along its normal, metres

@@ -790,3 +790,60 @@ fn depth_command_writes_png() {
     assert!(format!("{err:#}").contains("missing.jpg"));
     assert!(!args.output.exists());
 }
+
+/// On a map sampled every 10 cm (sparser than the default splats suit),
+/// a camera 6.5 m from the frontal panel sees the wall behind it through
+/// the gaps between the default splats; `widen_splats_for_map` (the depth
+/// command's and, through `MapperOptions::for_map_spacing`, the mapper's
+/// rule) closes the panel.
+#[test]
+fn sparse_map_splats_are_widened_to_close_surfaces() {
+    use colmap_lidar::commands::depth::widen_splats_for_map;
+    let (cloud, _, rects) = planes_scene(0.1);
+    let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+    let cam = camera(
+        CameraModel::Pinhole,
+        320,
+        240,
+        vec![400.0, 400.0, 160.0, 120.0],
+    );
+    let centre_local = Vector3::new(0.5, -0.5, 1.6);
+    let pose = camera_pose(utm_origin() + centre_local, 0.0, 0.0, 0.0);
+    let world_from_cam = pose.inverse();
+    // Share of the pixels whose ray meets the panel (rectangle 3) that see
+    // something else (farther, or nothing).
+    let see_through = |options: &ProjectionOptions| -> f64 {
+        let depth = render_depth_image(&cloud, &grid, &cam, &pose, options).unwrap();
+        let (mut on_panel, mut through) = (0usize, 0usize);
+        for y in 0..240 {
+            for x in 0..320 {
+                let px = Vector2::new(x as f64 + 0.5, y as f64 + 0.5);
+                let dir = (world_from_cam.rotation * cam.unproject(&px).unwrap()).normalize();
+                if let Some((3, t)) = ray_cast(&rects, &centre_local, &dir) {
+                    on_panel += 1;
+                    let range = f64::from(depth.range_m[y * 320 + x]);
+                    if !(range < t + 0.5) {
+                        through += 1;
+                    }
+                }
+            }
+        }
+        assert!(on_panel > 10_000, "{on_panel} panel pixels");
+        through as f64 / on_panel as f64
+    };
+    let default = ProjectionOptions::default();
+    let mut widened = default.clone();
+    let spacing = widen_splats_for_map(&mut widened, &cloud).expect("a spacing");
+    // A square lattice's estimate: sqrt(pi / 4) of its spacing.
+    assert!((0.08..0.1).contains(&spacing), "{spacing}");
+    assert!(widened.splat.patch_half_width_m > default.splat.patch_half_width_m);
+    let (before, after) = (see_through(&default), see_through(&widened));
+    eprintln!("10 cm map: {before:.4} of the panel's pixels see through it with the default splats, {after:.4} widened");
+    assert!(before > 0.05, "{before}");
+    assert!(after < 0.005, "{after}");
+    // A dense map keeps the default splats.
+    let (dense, _, _) = planes_scene(0.02);
+    let mut kept = default.clone();
+    widen_splats_for_map(&mut kept, &dense).expect("a spacing");
+    assert_eq!(kept, default);
+}
