@@ -7,7 +7,8 @@
 // Then the closed-form reprojection Jacobians of cpp/reprojection.h must
 // equal Ceres autodiff (10 dual parts: q, t, X) of the same residual for every
 // model, at several poses and points, to 1e-9 relative; so must the Jacobian
-// with respect to the intrinsics.
+// with respect to the intrinsics, and the fixed-intrinsics path and every
+// subset of the Jacobians must give the same values bit for bit.
 //
 // Not part of the library: tests/camera_models.rs compiles and runs it
 // (header-only: needs Eigen and the Ceres headers, no linking).
@@ -160,6 +161,34 @@ int main() {
         double residuals[2], jq[8], jt[6], jx[6], jp[2 * kMaxParams];
         const bool ok = EvaluateAnyModel(num_params, c.model_id, c.params, q, t, point, x_px,
                                          y_px, weight, residuals, jq, jt, jx, jp);
+        // Without the intrinsics' Jacobian (the fixed-camera Jet path), and
+        // any subset of the others (Ceres passes null for constant blocks):
+        // bit for bit the values of the call above, which is compared with
+        // autodiff below.
+        double residuals_fixed[2], jq_fixed[8], jt_fixed[6], jx_fixed[6];
+        double residuals_point[2], jx_point[6], residuals_pose[2], jq_pose[8], jt_pose[6];
+        const bool ok_fixed =
+            EvaluateAnyModel(num_params, c.model_id, c.params, q, t, point, x_px, y_px, weight,
+                             residuals_fixed, jq_fixed, jt_fixed, jx_fixed, nullptr) &&
+            EvaluateAnyModel(num_params, c.model_id, c.params, q, t, point, x_px, y_px, weight,
+                             residuals_point, nullptr, nullptr, jx_point, nullptr) &&
+            EvaluateAnyModel(num_params, c.model_id, c.params, q, t, point, x_px, y_px, weight,
+                             residuals_pose, jq_pose, jt_pose, nullptr, nullptr);
+        for (int k = 0; ok && k < 8; ++k) {
+          const bool same =
+              ok_fixed && jq_fixed[k] == jq[k] && jq_pose[k] == jq[k] &&
+              (k >= 6 || (jt_fixed[k] == jt[k] && jt_pose[k] == jt[k] && jx_fixed[k] == jx[k] &&
+                          jx_point[k] == jx[k])) &&
+              (k >= 2 || (residuals_fixed[k] == residuals[k] &&
+                          residuals_point[k] == residuals[k] && residuals_pose[k] == residuals[k]));
+          ++checks;
+          if (!same) {
+            std::printf("model %d pose %d/%d: value %d differs without the intrinsics' Jacobian "
+                        "or for a subset of the Jacobians\n",
+                        c.model_id, qi, ti, k);
+            ++failures;
+          }
+        }
         // Autodiff of the same composition.
         JetAll qj[4], tj[3], xj[3], params_jet[kMaxParams];
         for (int i = 0; i < 4; ++i) qj[i] = JetAll(q[i], i);

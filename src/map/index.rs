@@ -876,7 +876,8 @@ impl MapIndex {
     /// square of surface one point stands for, `sqrt(pi / k) * r_k` with
     /// `r_k` the median distance from a point to its `k = 8`th nearest
     /// neighbour (for points on a surface, `k` neighbours fill a disc of
-    /// radius `r_k`; a square grid of spacing `s` gives `s`). Over at most
+    /// radius `r_k`; a square grid of spacing `s`, whose 8th neighbour lies at
+    /// `sqrt(2) s`, gives `sqrt(pi / 4) s = 0.89 s`). Over at most
     /// `max_samples` points taken at an even stride (deterministic); points
     /// without 8 neighbours within 2 m (outliers, stray returns) are skipped.
     /// `None` when no sampled point has them. `cloud` is the cloud the index
