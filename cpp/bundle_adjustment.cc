@@ -163,31 +163,17 @@ ceres::CostFunction* CreateReprojectionError(
     int model_id, int num_params, double* q, double* t, double* point,
     double* intrinsics, bool pose_constant, bool camera_constant, double x_px,
     double y_px, double weight, std::vector<double*>* params) {
-  switch (num_params) {
-    case 3:
-      return CreateReprojection<3>(model_id, q, t, point, intrinsics,
-                                   pose_constant, camera_constant, x_px, y_px,
-                                   weight, params);
-    case 4:
-      return CreateReprojection<4>(model_id, q, t, point, intrinsics,
-                                   pose_constant, camera_constant, x_px, y_px,
-                                   weight, params);
-    case 5:
-      return CreateReprojection<5>(model_id, q, t, point, intrinsics,
-                                   pose_constant, camera_constant, x_px, y_px,
-                                   weight, params);
-    case 8:
-      return CreateReprojection<8>(model_id, q, t, point, intrinsics,
-                                   pose_constant, camera_constant, x_px, y_px,
-                                   weight, params);
-    case 12:
-      return CreateReprojection<12>(model_id, q, t, point, intrinsics,
-                                    pose_constant, camera_constant, x_px,
-                                    y_px, weight, params);
-    default:
-      Fail("unsupported number of camera parameters " +
-           std::to_string(num_params));
+  ceres::CostFunction* cost = nullptr;
+  const bool known = WithNumParams(num_params, [&](auto n) {
+    cost = CreateReprojection<decltype(n)::value>(
+        model_id, q, t, point, intrinsics, pose_constant, camera_constant,
+        x_px, y_px, weight, params);
+  });
+  if (!known) {
+    Fail("unsupported number of camera parameters " +
+         std::to_string(num_params));
   }
+  return cost;
 }
 
 // Signed point-to-plane distance, scaled to pixel-equivalents:

@@ -32,6 +32,7 @@
 #pragma once
 
 #include <cmath>
+#include <type_traits>
 
 namespace colmap_lidar {
 
@@ -77,6 +78,33 @@ inline int NumParams(int model_id) {
       return 12;
     default:
       return -1;
+  }
+}
+
+// Calls f(std::integral_constant<int, N>{}) for N = num_params, one of the
+// models' parameter counts (3, 4, 5, 8 or 12), so that code templated on the
+// count (Ceres' fixed-size parameter blocks) is chosen at run time. False,
+// without calling f, for any other count.
+template <typename F>
+bool WithNumParams(int num_params, F&& f) {
+  switch (num_params) {
+    case 3:
+      f(std::integral_constant<int, 3>{});
+      return true;
+    case 4:
+      f(std::integral_constant<int, 4>{});
+      return true;
+    case 5:
+      f(std::integral_constant<int, 5>{});
+      return true;
+    case 8:
+      f(std::integral_constant<int, 8>{});
+      return true;
+    case 12:
+      f(std::integral_constant<int, 12>{});
+      return true;
+    default:
+      return false;
   }
 }
 

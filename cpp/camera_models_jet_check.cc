@@ -59,23 +59,12 @@ bool EvaluateAnyModel(int num_params, int model_id, const double* params, const 
                       const double* t, const double* point, double x_px, double y_px,
                       double weight, double* residuals, double* jq, double* jt, double* jx,
                       double* jp) {
-  switch (num_params) {
-    case 3:
-      return colmap_lidar::EvaluateReprojection<3>(model_id, params, q, t, point, x_px, y_px,
-                                                   weight, residuals, jq, jt, jx, jp);
-    case 4:
-      return colmap_lidar::EvaluateReprojection<4>(model_id, params, q, t, point, x_px, y_px,
-                                                   weight, residuals, jq, jt, jx, jp);
-    case 5:
-      return colmap_lidar::EvaluateReprojection<5>(model_id, params, q, t, point, x_px, y_px,
-                                                   weight, residuals, jq, jt, jx, jp);
-    case 8:
-      return colmap_lidar::EvaluateReprojection<8>(model_id, params, q, t, point, x_px, y_px,
-                                                   weight, residuals, jq, jt, jx, jp);
-    default:
-      return colmap_lidar::EvaluateReprojection<12>(model_id, params, q, t, point, x_px, y_px,
-                                                    weight, residuals, jq, jt, jx, jp);
-  }
+  bool ok = false;
+  const bool known = colmap_lidar::WithNumParams(num_params, [&](auto n) {
+    ok = colmap_lidar::EvaluateReprojection<decltype(n)::value>(
+        model_id, params, q, t, point, x_px, y_px, weight, residuals, jq, jt, jx, jp);
+  });
+  return known && ok;
 }
 
 }  // namespace
