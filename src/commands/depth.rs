@@ -11,12 +11,12 @@ use nalgebra::Vector2;
 use crate::io::model::read_model;
 use crate::map::depth_image::{colourise, render_depth_image, write_png};
 use crate::map::grid::{FrustumGrid, GridOptions};
-use crate::map::index::MapIndex;
+use crate::map::index::{MapIndex, SPACING_SAMPLES};
 use crate::map::io::read_point_cloud;
-use crate::map::projection::{project_map_at_pixels, ProjectionOptions};
+use crate::map::projection::{
+    project_map_at_pixels, splat_half_width_for_spacing, ProjectionOptions,
+};
 use crate::map::PointCloud;
-use crate::sfm::mapper::MAP_SPACING_SAMPLES;
-use crate::sfm::options::SPLAT_PER_SPACING;
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct DepthArgs {
@@ -56,14 +56,14 @@ impl DepthArgs {
 
 /// Widens the splats of `options` for a map sparser than the defaults suit,
 /// as the mapper does (`MapperOptions::for_map_spacing`): the half-width
-/// becomes at least [`SPLAT_PER_SPACING`] times the map's spacing. Returns
+/// becomes at least [`crate::map::projection::SPLAT_PER_SPACING`] times the map's spacing. Returns
 /// the spacing (`None` when it cannot be estimated: options unchanged).
 pub fn widen_splats_for_map(options: &mut ProjectionOptions, cloud: &PointCloud) -> Option<f64> {
     let spacing = MapIndex::build(cloud)
         .ok()?
-        .surface_spacing_m(cloud, MAP_SPACING_SAMPLES)?;
+        .surface_spacing_m(cloud, SPACING_SAMPLES)?;
     let splat = &mut options.splat;
-    splat.patch_half_width_m = splat.patch_half_width_m.max(SPLAT_PER_SPACING * spacing);
+    splat.patch_half_width_m = splat_half_width_for_spacing(splat.patch_half_width_m, spacing);
     Some(spacing)
 }
 

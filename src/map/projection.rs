@@ -93,6 +93,23 @@ impl Default for SplatOptions {
     }
 }
 
+/// Splat half-width per map spacing: a map point stands for at least this
+/// share of the map's spacing on its surface
+/// ([`super::index::MapIndex::surface_spacing_m`]), so that a camera does not
+/// see through a sparse map between its splats.
+pub const SPLAT_PER_SPACING: f64 = 0.6;
+
+/// `half_width_m` raised to [`SPLAT_PER_SPACING`] times `spacing_m` (the
+/// mapper's and `depth`'s rule for maps sparser than the defaults suit);
+/// unchanged for a spacing that is not a positive number.
+pub fn splat_half_width_for_spacing(half_width_m: f64, spacing_m: f64) -> f64 {
+    if spacing_m.is_finite() && spacing_m > 0.0 {
+        half_width_m.max(SPLAT_PER_SPACING * spacing_m)
+    } else {
+        half_width_m
+    }
+}
+
 impl SplatOptions {
     /// Half-size (px) of the square splat of a point at `depth_m` seen with
     /// focal length `focal_px` (see the type's doc).

@@ -43,7 +43,7 @@ use super::state::MapState;
 use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulate_image};
 use crate::io::database::DatabaseSnapshot;
 use crate::map::grid::{FrustumGrid, GridError, GridOptions};
-use crate::map::index::{IndexError, MapIndex};
+use crate::map::index::{IndexError, MapIndex, SPACING_SAMPLES};
 use crate::map::projection::ProjectionError;
 use crate::map::PointCloud;
 use crate::scene::{CameraId, ImageId, Point3DId, Reconstruction, Rigid3};
@@ -277,7 +277,7 @@ pub fn run_mapper_with_priors(
     let index = MapIndex::build(cloud)?;
     let grid = FrustumGrid::build(cloud, &GridOptions::default())?;
     // Sparser maps than the defaults suit get wider splats and plane radii.
-    let map_spacing_m = index.surface_spacing_m(cloud, MAP_SPACING_SAMPLES);
+    let map_spacing_m = index.surface_spacing_m(cloud, SPACING_SAMPLES);
     let adapted = options.for_map_spacing(map_spacing_m.unwrap_or(0.0));
     let options = &adapted;
     log::info!(
@@ -893,10 +893,6 @@ fn align_whole_model(
 /// Above this centre uncertainty (one sigma, metres) an image is named in a
 /// warning.
 const WEAK_POSE_SIGMA_M: f64 = 0.05;
-
-/// Map points sampled for the map's spacing (an even stride; about 0.1 s
-/// on 1.5 million points).
-pub const MAP_SPACING_SAMPLES: usize = 20_000;
 
 /// Each image's pose uncertainty at the final solution into the report
 /// (skipped above `bundle.uncertainty_max_images` images; a failure is

@@ -4,7 +4,7 @@
 //! unknown keys are errors).
 use serde::Deserialize;
 
-use crate::map::projection::{ProjectionOptions, SplatOptions};
+use crate::map::projection::{splat_half_width_for_spacing, ProjectionOptions, SplatOptions};
 
 /// An option out of range: names the option and the value.
 #[derive(Debug, thiserror::Error)]
@@ -62,7 +62,7 @@ pub struct InitOptions {
     /// Half-width of the surface patch a map point stands for when the map
     /// is seen from a camera (its square splat, see
     /// [`crate::map::projection::SplatOptions`]), metres; raised to
-    /// [`SPLAT_PER_SPACING`] times the map's spacing for sparser maps (so a
+    /// [`crate::map::projection::SPLAT_PER_SPACING`] times the map's spacing for sparser maps (so a
     /// camera does not see through the map's surfaces). Default 0.02632
     /// (the reference implementation's splat).
     pub splat_half_width_m: f64,
@@ -874,15 +874,13 @@ pub struct MapperOptions {
     pub filter: FilterOptions,
 }
 
-/// Splat half-width per map spacing (see [`MapperOptions::for_map_spacing`]).
-pub const SPLAT_PER_SPACING: f64 = 0.6;
 /// Plane-offset radius per map spacing (see [`MapperOptions::for_map_spacing`]).
 pub const PLANE_RADIUS_PER_SPACING: f64 = 2.5;
 
 impl MapperOptions {
     /// The options for a map whose surface samples lie about `spacing_m`
     /// apart ([`crate::map::index::MapIndex::surface_spacing_m`]): the splat
-    /// half-width is at least [`SPLAT_PER_SPACING`] and the plane-offset
+    /// half-width is at least [`crate::map::projection::SPLAT_PER_SPACING`] and the plane-offset
     /// radius at least [`PLANE_RADIUS_PER_SPACING`] times the spacing. The
     /// defaults suit maps of 2-5 cm (the reference's advice: 3-5 cm voxels);
     /// on a sparser map the cameras would see through its surfaces between
@@ -893,7 +891,8 @@ impl MapperOptions {
         let mut adapted = self.clone();
         if spacing_m.is_finite() && spacing_m > 0.0 {
             let init = &mut adapted.init;
-            init.splat_half_width_m = init.splat_half_width_m.max(SPLAT_PER_SPACING * spacing_m);
+            init.splat_half_width_m =
+                splat_half_width_for_spacing(init.splat_half_width_m, spacing_m);
             let assoc = &mut adapted.association;
             assoc.plane_radius_m = assoc
                 .plane_radius_m
