@@ -575,7 +575,7 @@ pub struct AssociationOptions {
     pub max_radius_m: f64,
     /// The radius shrinks by this much per global BA the point took part in, metres. Default 0.2.
     pub radius_drop_m: f64,
-    /// Smallest radius, metres. Default 0.1.
+    /// Smallest radius, metres; every point's radius in the final rounds. Default 0.1.
     pub min_radius_m: f64,
     /// Largest point-to-plane distance of an association, metres. Default 0.2.
     pub max_plane_distance_m: f64,
