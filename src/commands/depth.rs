@@ -13,9 +13,7 @@ use crate::map::depth_image::{colourise, render_depth_image, write_png};
 use crate::map::grid::{FrustumGrid, GridOptions};
 use crate::map::index::{MapIndex, SPACING_SAMPLES};
 use crate::map::io::read_point_cloud;
-use crate::map::projection::{
-    project_map_at_pixels, splat_half_width_for_spacing, ProjectionOptions,
-};
+use crate::map::projection::{project_map_at_pixels, widen_splats_for_spacing, ProjectionOptions};
 use crate::map::PointCloud;
 
 #[derive(clap::Args, Debug, Clone)]
@@ -56,14 +54,14 @@ impl DepthArgs {
 
 /// Widens the splats of `options` for a map sparser than the defaults suit,
 /// as the mapper does (`MapperOptions::for_map_spacing`): the half-width
-/// becomes at least [`crate::map::projection::SPLAT_PER_SPACING`] times the map's spacing. Returns
+/// becomes at least [`crate::map::projection::SPLAT_PER_SPACING`] times the map's spacing, at
+/// every depth ([`widen_splats_for_spacing`]). Returns
 /// the spacing (`None` when it cannot be estimated: options unchanged).
 pub fn widen_splats_for_map(options: &mut ProjectionOptions, cloud: &PointCloud) -> Option<f64> {
     let spacing = MapIndex::build(cloud)
         .ok()?
         .surface_spacing_m(cloud, SPACING_SAMPLES)?;
-    let splat = &mut options.splat;
-    splat.patch_half_width_m = splat_half_width_for_spacing(splat.patch_half_width_m, spacing);
+    widen_splats_for_spacing(&mut options.splat, spacing);
     Some(spacing)
 }
 
@@ -104,8 +102,9 @@ pub fn run(args: &DepthArgs) -> anyhow::Result<()> {
     let mut options = options;
     if let Some(spacing) = widen_splats_for_map(&mut options, &cloud) {
         log::info!(
-            "map spacing about {spacing:.3} m: splat half-width {:.3} m",
-            options.splat.patch_half_width_m
+            "map spacing about {spacing:.3} m: splat half-width {:.3} m ({:.3} m near)",
+            options.splat.patch_half_width_m,
+            options.splat.near_half_width_m
         );
     }
     let t = Instant::now();

@@ -58,7 +58,8 @@ pub enum ProjectionError {
 /// `d` (m) and focal length `f` (px) its square has half-size
 ///
 /// ```text
-/// h(d) = clamp(f * (patch_half_width_m / max(d, saturation_depth_m) + angular_margin_rad),
+/// h(d) = clamp(max(f * (patch_half_width_m / max(d, saturation_depth_m) + angular_margin_rad),
+///                  f * near_half_width_m / d),
 ///              min_half_size_px, max_half_size_px)
 /// ```
 ///
@@ -79,6 +80,12 @@ pub struct SplatOptions {
     pub min_half_size_px: f64,
     /// Largest half-size (px). Default 64.
     pub max_half_size_px: f64,
+    /// Half-width of the surface patch a point stands for at every depth,
+    /// nearer than `saturation_depth_m` too (m): the saturated splat of a
+    /// map point near the camera is narrower than the gaps between the
+    /// map's points there. Default 0 (the reference's splat); the mapper
+    /// and `depth` set it from the map's spacing ([`widen_splats_for_spacing`]).
+    pub near_half_width_m: f64,
 }
 
 impl Default for SplatOptions {
@@ -89,6 +96,7 @@ impl Default for SplatOptions {
             saturation_depth_m: 2.0,
             min_half_size_px: 0.5,
             max_half_size_px: 64.0,
+            near_half_width_m: 0.0,
         }
     }
 }
@@ -102,12 +110,23 @@ pub const SPLAT_PER_SPACING: f64 = 0.6;
 /// `half_width_m` raised to [`SPLAT_PER_SPACING`] times `spacing_m` (the
 /// mapper's and `depth`'s rule for maps sparser than the defaults suit);
 /// unchanged for a spacing that is not a positive number.
-pub fn splat_half_width_for_spacing(half_width_m: f64, spacing_m: f64) -> f64 {
+fn splat_half_width_for_spacing(half_width_m: f64, spacing_m: f64) -> f64 {
     if spacing_m.is_finite() && spacing_m > 0.0 {
         half_width_m.max(SPLAT_PER_SPACING * spacing_m)
     } else {
         half_width_m
     }
+}
+
+/// Splats for a map of surface spacing `spacing_m` (the mapper's and
+/// `depth`'s rule): a map point stands for at least [`SPLAT_PER_SPACING`]
+/// times the spacing at every depth, so that a camera does not see through
+/// the map between its points, far (a sparse map: the saturating half-width
+/// is raised) or near (any map: the floor below the saturation depth).
+/// Unchanged for a spacing that is not a positive number.
+pub fn widen_splats_for_spacing(splat: &mut SplatOptions, spacing_m: f64) {
+    splat.patch_half_width_m = splat_half_width_for_spacing(splat.patch_half_width_m, spacing_m);
+    splat.near_half_width_m = splat_half_width_for_spacing(splat.near_half_width_m, spacing_m);
 }
 
 impl SplatOptions {
@@ -116,7 +135,10 @@ impl SplatOptions {
     pub fn half_size_px(&self, depth_m: f64, focal_px: f64) -> f64 {
         let d = depth_m.max(self.saturation_depth_m);
         let h = focal_px * (self.patch_half_width_m / d + self.angular_margin_rad);
-        h.clamp(self.min_half_size_px, self.max_half_size_px)
+        let near = focal_px * self.near_half_width_m / depth_m;
+        // `max` ignores a NaN `near` (depth 0 with no floor).
+        h.max(near)
+            .clamp(self.min_half_size_px, self.max_half_size_px)
     }
 
     pub fn validate(&self) -> Result<(), ProjectionError> {
@@ -129,6 +151,9 @@ impl SplatOptions {
         }
         if !(self.saturation_depth_m >= 0.0 && self.saturation_depth_m.is_finite()) {
             return bad("saturation_depth_m must be finite and >= 0");
+        }
+        if !(self.near_half_width_m >= 0.0 && self.near_half_width_m.is_finite()) {
+            return bad("near_half_width_m must be finite and >= 0");
         }
         if !(self.min_half_size_px >= 0.0
             && self.max_half_size_px >= self.min_half_size_px
@@ -949,6 +974,36 @@ mod tests {
             assert!(h <= last);
             last = h;
         }
+    }
+
+    #[test]
+    fn splats_for_a_maps_spacing() {
+        // A 2 cm map: the reference's splat from 0.77 m on (f 640: 10 px at
+        // 1 m), 0.6 x 2 cm = 1.2 cm at every depth nearer.
+        let mut s = SplatOptions::default();
+        widen_splats_for_spacing(&mut s, 0.02);
+        assert_eq!(
+            s.patch_half_width_m,
+            SplatOptions::default().patch_half_width_m
+        );
+        assert!((s.near_half_width_m - 0.012).abs() < 1e-12);
+        assert!((s.half_size_px(1.0, 640.0) - 10.0).abs() < 0.01);
+        assert!((s.half_size_px(40.0, 640.0) - 2.0).abs() < 0.01);
+        assert!((s.half_size_px(0.5, 640.0) - 640.0 * 0.012 / 0.5).abs() < 1e-9);
+        // A 10 cm map: 6 cm, saturating from 2 m as before and growing nearer.
+        let mut s = SplatOptions::default();
+        widen_splats_for_spacing(&mut s, 0.1);
+        assert!((s.patch_half_width_m - 0.06).abs() < 1e-12);
+        let far = 640.0 * (0.06 / 4.0 + s.angular_margin_rad);
+        assert!((s.half_size_px(4.0, 640.0) - far).abs() < 1e-9);
+        assert!((s.half_size_px(1.0, 640.0) - 38.4).abs() < 1e-9);
+        assert_eq!(s.half_size_px(0.2, 640.0), s.max_half_size_px);
+        assert_eq!(s.half_size_px(0.0, 640.0), s.max_half_size_px);
+        // No spacing: unchanged; no floor at depth 0: the saturated size.
+        let mut s = SplatOptions::default();
+        widen_splats_for_spacing(&mut s, f64::NAN);
+        assert_eq!(s, SplatOptions::default());
+        assert!((s.half_size_px(0.0, 640.0) - 10.0).abs() < 0.01);
     }
 
     #[test]

@@ -281,10 +281,11 @@ pub fn run_mapper_with_priors(
     let adapted = options.for_map_spacing(map_spacing_m.unwrap_or(0.0));
     let options = &adapted;
     log::info!(
-        "map: {} points, spacing about {} (splat half-width {:.3} m, plane radius {:.3} m)",
+        "map: {} points, spacing about {} (splat half-width {:.3} m, {:.3} m near, plane radius {:.3} m)",
         cloud.len(),
         map_spacing_m.map_or("unknown".to_owned(), |s| format!("{s:.3} m")),
         options.init.splat_half_width_m,
+        options.init.splat_near_half_width_m,
         options.association.plane_radius_m
     );
     stages.done("map index");

@@ -4,7 +4,7 @@
 //! unknown keys are errors).
 use serde::Deserialize;
 
-use crate::map::projection::{splat_half_width_for_spacing, ProjectionOptions, SplatOptions};
+use crate::map::projection::{widen_splats_for_spacing, ProjectionOptions, SplatOptions};
 
 /// An option out of range: names the option and the value.
 #[derive(Debug, thiserror::Error)]
@@ -66,6 +66,12 @@ pub struct InitOptions {
     /// camera does not see through the map's surfaces). Default 0.02632
     /// (the reference implementation's splat).
     pub splat_half_width_m: f64,
+    /// Half-width of that patch at every depth, also nearer than 2 m where
+    /// the reference's splat stops growing (there a camera would see
+    /// between a map's points), metres; raised to
+    /// [`crate::map::projection::SPLAT_PER_SPACING`] times the map's
+    /// spacing. Default 0.
+    pub splat_near_half_width_m: f64,
 }
 
 impl Default for InitOptions {
@@ -78,6 +84,7 @@ impl Default for InitOptions {
             min_lidar_features: 30,
             max_candidates: 20,
             splat_half_width_m: SplatOptions::default().patch_half_width_m,
+            splat_near_half_width_m: 0.0,
         }
     }
 }
@@ -91,6 +98,7 @@ impl InitOptions {
             max_depth_m: self.max_depth_m,
             splat: SplatOptions {
                 patch_half_width_m: self.splat_half_width_m,
+                near_half_width_m: self.splat_near_half_width_m,
                 ..Default::default()
             },
         }
@@ -99,6 +107,7 @@ impl InitOptions {
     pub fn validate(&self) -> Result<(), OptionsError> {
         positive("init.min_depth_m", self.min_depth_m)?;
         non_negative("init.splat_half_width_m", self.splat_half_width_m)?;
+        non_negative("init.splat_near_half_width_m", self.splat_near_half_width_m)?;
         check(
             self.max_depth_m.is_finite() && self.max_depth_m > self.min_depth_m,
             "init.max_depth_m",
@@ -891,8 +900,10 @@ impl MapperOptions {
         let mut adapted = self.clone();
         if spacing_m.is_finite() && spacing_m > 0.0 {
             let init = &mut adapted.init;
-            init.splat_half_width_m =
-                splat_half_width_for_spacing(init.splat_half_width_m, spacing_m);
+            let mut splat = init.projection().splat;
+            widen_splats_for_spacing(&mut splat, spacing_m);
+            init.splat_half_width_m = splat.patch_half_width_m;
+            init.splat_near_half_width_m = splat.near_half_width_m;
             let assoc = &mut adapted.association;
             assoc.plane_radius_m = assoc
                 .plane_radius_m

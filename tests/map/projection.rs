@@ -279,6 +279,7 @@ fn test_options(spacing_m: f64) -> ProjectionOptions {
             saturation_depth_m: 0.0,
             min_half_size_px: 0.5,
             max_half_size_px: 64.0,
+            near_half_width_m: 0.0,
         },
     }
 }
@@ -793,9 +794,10 @@ fn depth_command_writes_png() {
 
 /// On a map sampled every 10 cm (sparser than the default splats suit),
 /// a camera 6.5 m from the frontal panel sees the wall behind it through
-/// the gaps between the default splats; `widen_splats_for_map` (the depth
-/// command's and, through `MapperOptions::for_map_spacing`, the mapper's
-/// rule) closes the panel.
+/// the gaps between the default splats, and one 1.2 m from it too (the
+/// reference's splat stops growing nearer than 2 m); `widen_splats_for_map`
+/// (the depth command's and, through `MapperOptions::for_map_spacing`, the
+/// mapper's rule) closes the panel at both distances.
 #[test]
 fn sparse_map_splats_are_widened_to_close_surfaces() {
     use colmap_lidar::commands::depth::widen_splats_for_map;
@@ -807,12 +809,12 @@ fn sparse_map_splats_are_widened_to_close_surfaces() {
         240,
         vec![400.0, 400.0, 160.0, 120.0],
     );
-    let centre_local = Vector3::new(0.5, -0.5, 1.6);
-    let pose = camera_pose(utm_origin() + centre_local, 0.0, 0.0, 0.0);
-    let world_from_cam = pose.inverse();
-    // Share of the pixels whose ray meets the panel (rectangle 3) that see
-    // something else (farther, or nothing).
-    let see_through = |options: &ProjectionOptions| -> f64 {
+    // Share of the pixels whose ray meets the panel (rectangle 3, x = 7 m)
+    // that see something else (farther, or nothing), from `centre_local`
+    // looking along +x.
+    let see_through = |options: &ProjectionOptions, centre_local: Vector3<f64>| -> f64 {
+        let pose = camera_pose(utm_origin() + centre_local, 0.0, 0.0, 0.0);
+        let world_from_cam = pose.inverse();
         let depth = render_depth_image(&cloud, &grid, &cam, &pose, options).unwrap();
         let (mut on_panel, mut through) = (0usize, 0usize);
         for y in 0..240 {
@@ -837,13 +839,33 @@ fn sparse_map_splats_are_widened_to_close_surfaces() {
     // A square lattice's estimate: sqrt(pi / 4) of its spacing.
     assert!((0.08..0.1).contains(&spacing), "{spacing}");
     assert!(widened.splat.patch_half_width_m > default.splat.patch_half_width_m);
-    let (before, after) = (see_through(&default), see_through(&widened));
-    eprintln!("10 cm map: {before:.4} of the panel's pixels see through it with the default splats, {after:.4} widened");
-    assert!(before > 0.05, "{before}");
-    assert!(after < 0.005, "{after}");
-    // A dense map keeps the default splats.
+    for (label, centre, min_before) in [
+        ("6.5 m", Vector3::new(0.5, -0.5, 1.6), 0.05),
+        ("1.2 m", Vector3::new(5.8, -0.25, 1.55), 0.3),
+    ] {
+        let (before, after) = (see_through(&default, centre), see_through(&widened, centre));
+        eprintln!("10 cm map, camera {label} from the panel: {before:.4} of its pixels see through it with the default splats, {after:.4} widened");
+        assert!(before > min_before, "{label}: {before}");
+        assert!(after < 0.005, "{label}: {after}");
+    }
+    // The far-field splat saturating at 2 m (the width above) alone leaves
+    // the near camera seeing through.
+    let mut saturating = widened.clone();
+    saturating.splat.near_half_width_m = 0.0;
+    let gaps = see_through(&saturating, Vector3::new(5.8, -0.25, 1.55));
+    assert!(gaps > 0.1, "{gaps}");
+    // A dense map keeps the reference's splat, with a floor that only
+    // matters nearer than about 0.8 m.
     let (dense, _, _) = planes_scene(0.02);
     let mut kept = default.clone();
-    widen_splats_for_map(&mut kept, &dense).expect("a spacing");
-    assert_eq!(kept, default);
+    let dense_spacing = widen_splats_for_map(&mut kept, &dense).expect("a spacing");
+    assert_eq!(
+        kept.splat.patch_half_width_m,
+        default.splat.patch_half_width_m
+    );
+    assert!((kept.splat.near_half_width_m - 0.6 * dense_spacing).abs() < 1e-12);
+    assert_eq!(
+        kept.splat.half_size_px(1.0, 400.0),
+        default.splat.half_size_px(1.0, 400.0)
+    );
 }
