@@ -52,8 +52,9 @@ impl DepthArgs {
     }
 }
 
-/// Widens the splats of `options` for a map sparser than the defaults suit,
-/// as the mapper does (`MapperOptions::for_map_spacing`): the half-width
+/// Widens the splats of `options` for the map's spacing (far from the
+/// camera on maps sparser than the defaults suit, near it on any), as the
+/// mapper does (`MapperOptions::for_map_spacing`): the half-width
 /// becomes at least [`crate::map::projection::SPLAT_PER_SPACING`] times the map's spacing, at
 /// every depth ([`widen_splats_for_spacing`]). Returns
 /// the spacing (`None` when it cannot be estimated: options unchanged).

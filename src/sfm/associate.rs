@@ -5,7 +5,7 @@
 //! `w * (n . X - n . l)`. Three associators exist: [`NoAssociation`] (plain
 //! SfM, option `--no-lidar-constraints`), [`NearestNeighbourAssociator`]
 //! (nearest map point within a radius that shrinks as the point takes part in
-//! global BAs; the smallest radius in the final rounds) and [`ProjectionAssociator`] (short tracks: the map point seen
+//! global BAs; the smallest radius in the final rounds after the first) and [`ProjectionAssociator`] (short tracks: the map point seen
 //! at the point's features; longer ones: nearest). A plane is a map point's
 //! normal with the offset of the map's surface around it
 //! ([`NearestNeighbourAssociator::plane_offset_at`]).
@@ -129,17 +129,19 @@ impl NearestNeighbourAssociator<'_> {
 
     /// The search radius of a point in a solve of `kind`: shrinking with the
     /// global BAs the point took part in ([`Self::radius_m`]), except in the
-    /// final rounds, where every point gets the smallest radius. The model is
-    /// on the map by then (aligned as a whole, pulled in by the solves), and
-    /// a radius still shrinking for the younger points (those of the last
-    /// images and of the re-triangulation) changed the objective from one
-    /// round to the next: the rounds' stop rule then took a dip in the
-    /// camera moves for convergence. Seed-0 corridor, perturbed initial pose,
-    /// the map shifted by 20 um or offset by 500000,4400000,200: 4.1-4.3 mm
-    /// after 3 rounds against 3.0 mm for the unshifted map after 6 rounds;
-    /// with the smallest radius all three end at 3.1 mm after 3 rounds.
+    /// final rounds after the first ([`SolveKind::Final`]), where every point
+    /// gets the smallest radius. The first final round still pulls in the
+    /// younger points (those of the last images, of the re-triangulation,
+    /// placed at a known pose) from afar, e.g. when the whole-model alignment
+    /// was not applied; a radius still shrinking in the later rounds changed
+    /// the objective from one round to the next, and the rounds' stop rule
+    /// then took a dip in the camera moves for convergence. Seed-0 corridor,
+    /// perturbed initial pose, the map shifted by 20 um or offset by
+    /// 500000,4400000,200: 4.1-4.3 mm after 3 rounds against 3.0 mm for the
+    /// unshifted map after 6 rounds; with the smallest radius all three end
+    /// at 3.1 mm after 3 rounds.
     pub fn radius_for(&self, kind: SolveKind, num_global_ba: u32) -> f64 {
-        if kind.is_final() {
+        if kind == SolveKind::Final {
             self.options.min_radius_m
         } else {
             self.radius_m(num_global_ba)
@@ -679,14 +681,15 @@ pub(crate) mod tests {
         assert_eq!(planes[0].family, PlaneFamily::Ground);
         assert!((planes[0].offset_m - 10.0).abs() < 1e-6);
         // 0.3 m beyond the patch edge, in no global BA yet: radius 1.5 m in
-        // the periodic solves, the smallest (0.1 m) in the final rounds.
+        // the periodic solves and the first final round, the smallest (0.1 m)
+        // in the later final rounds.
         let young = [q(3, 1.3, 0.0, 0.01, 0)];
-        assert_eq!(assoc.radius_for(SolveKind::Global, 0), 1.5);
-        assert_eq!(assoc.associate_points(SolveKind::Global, &young).len(), 1);
-        for kind in [SolveKind::FinalFirst, SolveKind::Final] {
-            assert_eq!(assoc.radius_for(kind, 0), 0.1);
-            assert!(assoc.associate_points(kind, &young).is_empty());
+        for kind in [SolveKind::Global, SolveKind::FinalFirst] {
+            assert_eq!(assoc.radius_for(kind, 0), 1.5);
+            assert_eq!(assoc.associate_points(kind, &young).len(), 1);
         }
+        assert_eq!(assoc.radius_for(SolveKind::Final, 0), 0.1);
+        assert!(assoc.associate_points(SolveKind::Final, &young).is_empty());
     }
 }
 

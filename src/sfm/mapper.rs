@@ -276,7 +276,7 @@ pub fn run_mapper_with_priors(
     // 2. Map index.
     let index = MapIndex::build(cloud)?;
     let grid = FrustumGrid::build(cloud, &GridOptions::default())?;
-    // Sparser maps than the defaults suit get wider splats and plane radii.
+    // Splats (near the cameras on any map) and plane radii follow the map's spacing.
     let map_spacing_m = index.surface_spacing_m(cloud, SPACING_SAMPLES);
     let adapted = options.for_map_spacing(map_spacing_m.unwrap_or(0.0));
     let options = &adapted;

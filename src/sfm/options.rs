@@ -70,7 +70,8 @@ pub struct InitOptions {
     /// the reference's splat stops growing (there a camera would see
     /// between a map's points), metres; raised to
     /// [`crate::map::projection::SPLAT_PER_SPACING`] times the map's
-    /// spacing. Default 0.
+    /// spacing (so it cannot be switched off: on a 2 cm map it matters
+    /// nearer than about 0.7 m). Default 0.
     pub splat_near_half_width_m: f64,
 }
 
@@ -584,7 +585,8 @@ pub struct AssociationOptions {
     pub max_radius_m: f64,
     /// The radius shrinks by this much per global BA the point took part in, metres. Default 0.2.
     pub radius_drop_m: f64,
-    /// Smallest radius, metres; every point's radius in the final rounds. Default 0.1.
+    /// Smallest radius, metres; every point's radius in the final rounds after the first
+    /// (there `max_plane_distance_m` above 0.1 m gates nothing). Default 0.1.
     pub min_radius_m: f64,
     /// Largest point-to-plane distance of an association, metres. Default 0.2.
     pub max_plane_distance_m: f64,
@@ -889,7 +891,8 @@ pub const PLANE_RADIUS_PER_SPACING: f64 = 2.5;
 impl MapperOptions {
     /// The options for a map whose surface samples lie about `spacing_m`
     /// apart ([`crate::map::index::MapIndex::surface_spacing_m`]): the splat
-    /// half-width is at least [`crate::map::projection::SPLAT_PER_SPACING`] and the plane-offset
+    /// half-width, far and near ([`crate::map::projection::widen_splats_for_spacing`]), is at
+    /// least [`crate::map::projection::SPLAT_PER_SPACING`] and the plane-offset
     /// radius at least [`PLANE_RADIUS_PER_SPACING`] times the spacing. The
     /// defaults suit maps of 2-5 cm (the reference's advice: 3-5 cm voxels);
     /// on a sparser map the cameras would see through its surfaces between
@@ -946,6 +949,29 @@ mod tests {
         bad.bundle.probe_max_iterations = 0;
         let err = bad.validate().unwrap_err().to_string();
         assert!(err.contains("bundle.probe_max_iterations"), "{err}");
+    }
+
+    #[test]
+    fn splats_and_plane_radii_follow_the_maps_spacing() {
+        // An options file's floors, raised by a 10 cm map, kept by a 1 cm one.
+        let o: MapperOptions =
+            toml::from_str("[init]\nsplat_half_width_m = 0.03\nsplat_near_half_width_m = 0.02\n")
+                .unwrap();
+        let sparse = o.for_map_spacing(0.1);
+        assert!((sparse.init.splat_half_width_m - 0.06).abs() < 1e-12);
+        assert!((sparse.init.splat_near_half_width_m - 0.06).abs() < 1e-12);
+        assert!((sparse.association.plane_radius_m - 0.25).abs() < 1e-12);
+        let splat = sparse.init.projection().splat;
+        assert_eq!(splat.near_half_width_m, sparse.init.splat_near_half_width_m);
+        let dense = o.for_map_spacing(0.01);
+        assert_eq!(dense.init.splat_half_width_m, 0.03);
+        assert_eq!(dense.init.splat_near_half_width_m, 0.02);
+        assert_eq!(dense.association.plane_radius_m, 0.1);
+        // No spacing: the options as given.
+        assert_eq!(o.for_map_spacing(f64::NAN), o);
+        let mut bad = MapperOptions::default();
+        bad.init.splat_near_half_width_m = -0.01;
+        assert!(bad.validate().is_err());
     }
 
     #[test]

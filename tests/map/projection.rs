@@ -462,10 +462,15 @@ fn culled_projection_equals_reference_on_random_scenes() {
                 rng.gen_range(-0.4..0.4),
                 rng.gen_range(-1.0..1.0),
             );
-            let mut options = if k % 2 == 0 {
-                ProjectionOptions::default()
-            } else {
-                test_options(0.1)
+            let mut options = match k % 3 {
+                0 => ProjectionOptions::default(),
+                1 => test_options(0.1),
+                _ => {
+                    // The splats the mapper uses on a 10 cm map (near floor too).
+                    let mut o = ProjectionOptions::default();
+                    colmap_lidar::map::projection::widen_splats_for_spacing(&mut o.splat, 0.1);
+                    o
+                }
             };
             options.min_depth_m = rng.gen_range(0.1..1.5);
             options.max_depth_m = rng.gen_range(5.0..40.0);
