@@ -5,8 +5,9 @@
 //! `w * (n . X - n . l)`. Three associators exist: [`NoAssociation`] (plain
 //! SfM, option `--no-lidar-constraints`), [`NearestNeighbourAssociator`]
 //! (nearest map point within a radius that shrinks as the point takes part in
-//! global BAs; the smallest radius in the final rounds after the first) and [`ProjectionAssociator`] (short tracks: the map point seen
-//! at the point's features; longer ones: nearest). A plane is a map point's
+//! global BAs; the smallest radius in the final rounds after the first) and
+//! [`ProjectionAssociator`] (short tracks: the map point seen at the point's
+//! features; longer ones: nearest). A plane is a map point's
 //! normal with the offset of the map's surface around it
 //! ([`NearestNeighbourAssociator::plane_offset_at`]).
 use nalgebra::Vector3;
@@ -138,8 +139,8 @@ impl NearestNeighbourAssociator<'_> {
     /// then took a dip in the camera moves for convergence. Seed-0 corridor,
     /// perturbed initial pose, the map shifted by 20 um or offset by
     /// 500000,4400000,200: 4.1-4.3 mm after 3 rounds against 3.0 mm for the
-    /// unshifted map after 6 rounds; with the smallest radius all three end
-    /// at 3.1 mm after 3 rounds.
+    /// unshifted map after 6 rounds; now 2.9 / 3.0 mm (shifted / offset)
+    /// and 2.8 mm unshifted, after 3-4 rounds.
     pub fn radius_for(&self, kind: SolveKind, num_global_ba: u32) -> f64 {
         if kind == SolveKind::Final {
             self.options.min_radius_m
