@@ -52,12 +52,10 @@ impl DepthArgs {
     }
 }
 
-/// Widens the splats of `options` for the map's spacing (far from the
-/// camera on maps sparser than the defaults suit, near it on any), as the
-/// mapper does (`MapperOptions::for_map_spacing`): the half-width
-/// becomes at least [`crate::map::projection::SPLAT_PER_SPACING`] times the map's spacing, at
-/// every depth ([`widen_splats_for_spacing`]). Returns
-/// the spacing (`None` when it cannot be estimated: options unchanged).
+/// Widens the splats of `options` for the map's spacing by the mapper's rule
+/// ([`widen_splats_for_spacing`], as `MapperOptions::for_map_spacing`).
+/// Returns the spacing (`None` when it cannot be estimated: options
+/// unchanged).
 pub fn widen_splats_for_map(options: &mut ProjectionOptions, cloud: &PointCloud) -> Option<f64> {
     let spacing = MapIndex::build(cloud)
         .ok()?

@@ -109,9 +109,9 @@ impl Default for SplatOptions {
 /// see through a sparse map between its splats.
 pub const SPLAT_PER_SPACING: f64 = 0.6;
 
-/// `half_width_m` raised to [`SPLAT_PER_SPACING`] times `spacing_m` (the
-/// mapper's and `depth`'s rule for maps sparser than the defaults suit);
-/// unchanged for a spacing that is not a positive number.
+/// `half_width_m` raised to [`SPLAT_PER_SPACING`] times `spacing_m` (for
+/// both half-widths of [`widen_splats_for_spacing`]); unchanged for a
+/// spacing that is not a positive number.
 fn splat_half_width_for_spacing(half_width_m: f64, spacing_m: f64) -> f64 {
     if spacing_m.is_finite() && spacing_m > 0.0 {
         half_width_m.max(SPLAT_PER_SPACING * spacing_m)
