@@ -251,6 +251,7 @@ fn synth_evaluate_command_on_ground_truth() {
         reference: out.join("gt"),
         align: Alignment::Sim3,
         json: Some(json.clone()),
+        lidar: None,
     };
     colmap_lidar::commands::evaluate::run(&args).unwrap();
     let v: serde_json::Value =

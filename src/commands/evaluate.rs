@@ -1,12 +1,18 @@
 //! `colmap-lidar evaluate`: compare a model's image poses with reference poses.
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 
 use std::collections::BTreeMap;
 
+use super::map::load_map;
+use crate::eval::map_agreement::{map_agreement, MapAgreement};
 use crate::eval::{evaluate, load_poses, Alignment, ReportedSigma};
 use crate::io::atomic::write_file_atomically;
+use crate::io::model::read_model;
+use crate::map::index::{MapIndex, SPACING_SAMPLES};
+use crate::sfm::associate::NearestNeighbourAssociator;
+use crate::sfm::MapperOptions;
 
 /// Compare a model with reference poses (matched by image name).
 #[derive(Debug, clap::Args)]
@@ -23,6 +29,12 @@ pub struct EvaluateArgs {
     /// Also write the full report (with per-image errors) as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// LiDAR map (PLY/LAS/XYZ): also measure how far the model's tracks,
+    /// triangulated at the reference poses, and the model's own points lie
+    /// from the map's surfaces, by the incidence at which they were seen
+    /// (what the images themselves say about the map, apart from the solve).
+    #[arg(long)]
+    pub lidar: Option<PathBuf>,
 }
 
 pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
@@ -43,14 +55,42 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
         }
     }
     print!("{}", report.table());
+    let agreement = match &args.lidar {
+        Some(path) => Some(agreement_with_map(args, path)?),
+        None => None,
+    };
+    if let Some(a) = &agreement {
+        print!("{}", a.table());
+    }
     if let Some(path) = &args.json {
+        let mut value = serde_json::to_value(&report)?;
+        if let Some(a) = &agreement {
+            value["map_agreement"] = serde_json::to_value(a)?;
+        }
         write_file_atomically(path, |w| -> std::io::Result<()> {
-            serde_json::to_writer_pretty(&mut *w, &report)?;
+            serde_json::to_writer_pretty(&mut *w, &value)?;
             std::io::Write::write_all(w, b"\n")
         })
         .with_context(|| format!("cannot write {}", path.display()))?;
     }
     Ok(())
+}
+
+/// [`map_agreement`] of the model with the map at `path`, its planes found
+/// as the mapper finds them (default options, adapted to the map's spacing).
+fn agreement_with_map(args: &EvaluateArgs, path: &Path) -> anyhow::Result<MapAgreement> {
+    let model = read_model(&args.model)
+        .with_context(|| format!("reading the model {}", args.model.display()))?;
+    let reference = load_poses(&args.reference).context("cannot read the reference")?;
+    let cloud = load_map(path)?;
+    let index = MapIndex::build(&cloud)
+        .with_context(|| format!("indexing the LiDAR map {}", path.display()))?;
+    let options = match index.surface_spacing_m(&cloud, SPACING_SAMPLES) {
+        Some(spacing) => MapperOptions::default().for_map_spacing(spacing),
+        None => MapperOptions::default(),
+    };
+    let planes = NearestNeighbourAssociator::new(&cloud, &index, options.association);
+    Ok(map_agreement(&model, &reference, &planes))
 }
 
 /// Per image name, the sigmas of `report.json` (`images[].pose_uncertainty`);

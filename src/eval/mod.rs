@@ -19,6 +19,7 @@ use serde::Serialize;
 
 use crate::scene::Rigid3;
 
+pub mod map_agreement;
 pub mod model_poses;
 
 pub use model_poses::load_poses;

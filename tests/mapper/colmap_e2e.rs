@@ -324,6 +324,7 @@ fn yard_with_colmap_database() {
         reference: scene.join("gt"),
         align: Alignment::None,
         json: Some(eval_json.clone()),
+        lidar: Some(scene.join("lidar.ply")),
     })
     .unwrap();
     let evaluation: serde_json::Value =
@@ -332,6 +333,20 @@ fn yard_with_colmap_database() {
     assert_eq!(over["count"].as_u64(), Some(a.none.num_registered as u64));
     let median = over["centre"]["median"].as_f64().unwrap();
     assert!((0.2..10.0).contains(&median), "{over}");
+    // The tracks at the true poses and the model's points lie on the map
+    // where seen head-on (measured: medians within 0.25 mm; the map's
+    // noise is 15 mm, its planes average it).
+    let agreement = &evaluation["map_agreement"];
+    let head_on = &agreement["classes"][4];
+    assert_eq!(head_on["min_cos"].as_f64(), Some(0.7), "{agreement}");
+    for side in ["reference", "model"] {
+        assert!(
+            head_on[format!("{side}_count")].as_u64().unwrap() > 1000,
+            "{agreement}"
+        );
+        let m = head_on[format!("{side}_median_m")].as_f64().unwrap();
+        assert!(m.abs() < 0.001, "{side}: {agreement}");
+    }
     // Same inputs and seed: byte-identical model files.
     let b = map_scene(&scene, &dir.path().join("b"), |_| {});
     for f in ["cameras.txt", "images.txt", "points3D.txt"] {
