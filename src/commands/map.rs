@@ -17,6 +17,7 @@ use serde::Deserialize;
 use crate::io::database::{read_database, DatabaseSnapshot};
 use crate::io::model::{write_model, ModelFormat};
 use crate::io::pose_ply::{format_pose_ply, read_pose_ply};
+use crate::map::index::{MapIndex, SPACING_SAMPLES};
 use crate::map::io::read_point_cloud;
 use crate::map::prepare::{estimate_normals, NormalOptions};
 use crate::map::PointCloud;
@@ -298,7 +299,14 @@ fn check_output(dir: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Reads the map; estimates normals where missing.
+/// Normal radius per map spacing for maps whose normals the mapper estimates
+/// (the default radius when that is larger).
+pub const NORMAL_RADIUS_PER_SPACING: f64 = 3.0;
+
+/// Reads the map; estimates normals where missing, over a radius of at
+/// least [`NORMAL_RADIUS_PER_SPACING`] times the map's spacing (a 10 cm map
+/// got no normal for 12 % of its points at the default 0.15 m, a 20 cm one
+/// none).
 pub fn load_map(path: &Path) -> Result<PointCloud> {
     let (mut cloud, load) = read_point_cloud(path)
         .with_context(|| format!("reading the LiDAR map {}", path.display()))?;
@@ -306,10 +314,18 @@ pub fn load_map(path: &Path) -> Result<PointCloud> {
         bail!("the LiDAR map {} holds no points", path.display());
     }
     if !load.had_normals || load.normals_invalid > 0 {
-        let report = estimate_normals(&mut cloud, &NormalOptions::default())
+        let mut options = NormalOptions::default();
+        let spacing = MapIndex::build(&cloud)
+            .ok()
+            .and_then(|index| index.surface_spacing_m(&cloud, SPACING_SAMPLES));
+        if let Some(spacing) = spacing {
+            options.radius_m = options.radius_m.max(NORMAL_RADIUS_PER_SPACING * spacing);
+        }
+        let report = estimate_normals(&mut cloud, &options)
             .with_context(|| format!("estimating normals of {}", path.display()))?;
         log::info!(
-            "map normals: {} kept, {} estimated, {} failed",
+            "map normals ({:.3} m radius): {} kept, {} estimated, {} failed",
+            options.radius_m,
             report.kept,
             report.estimated,
             report.failed

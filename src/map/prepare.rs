@@ -72,7 +72,32 @@ pub struct NormalOptions {
     /// Default false (valid input normals are kept; the planarity is computed
     /// for every point).
     pub recompute_all: bool,
+    /// Robust refits of each plane (radius mode; the `k_nearest` mode fits
+    /// once): Tukey biweights on the neighbours' distances to the plane,
+    /// zero from [`ROBUST_C_PER_NOISE`] times the map's noise on (the
+    /// median RMS distance of the plain fits over a sample of the map). 0:
+    /// the plain fit. Default 3. Near edges the plain fit leans toward the
+    /// other surface: on the synthetic room (seed 0, 15 mm noise, 2 cm
+    /// spacing, 0.15 m radius) 11.2 % of the normals were more than 10 deg
+    /// off, 7.0 % after the refits (90th percentile 12.1 -> 6.2 deg); the
+    /// map's noise came out 14.8 mm. Only the neighbourhoods that do not
+    /// look flat are refitted ([`ROBUST_REFIT_ABOVE_NOISE`]): the 20 M-point
+    /// map of `scripts/bench_map.sh`, a normal for every point, took 31.9 s
+    /// against 11.6 s for the plain fit (41.3 s refitting every point); the
+    /// room above 0.78 s against 0.47 s.
+    pub robust_iterations: usize,
 }
+
+/// Only neighbourhoods whose plain fit leaves an RMS distance above this
+/// many times the map's noise are refitted (one flat surface leaves about
+/// the noise; the refit changes nothing there and the plain fit costs a
+/// third of it).
+pub const ROBUST_REFIT_ABOVE_NOISE: f64 = 1.5;
+
+/// The robust refit's zero-weight distance, in units of the map's noise
+/// (measured on the room above: 2 -> 8.3 %, 3 -> 7.1 %, 4 -> 6.9 % of the
+/// normals more than 10 deg off).
+pub const ROBUST_C_PER_NOISE: f64 = 4.0;
 
 impl Default for NormalOptions {
     fn default() -> Self {
@@ -83,6 +108,7 @@ impl Default for NormalOptions {
             max_neighbours: 512,
             orientation: NormalOrientation::UpThenTowardsCentre,
             recompute_all: false,
+            robust_iterations: 3,
         }
     }
 }
@@ -475,10 +501,25 @@ pub fn smallest_eigenvector(a: &[[f64; 3]; 3]) -> Option<([f64; 3], [f64; 3])> {
     Some(([l1, l2, l3], [v[0] / len, v[1] / len, v[2] / len]))
 }
 
-/// Normal and planarity of a neighbourhood given as offsets from the query
-/// point (metres): sums `s1 = sum d`, `s2 = sum d d^T`, count `n`.
-fn fit_plane(n: usize, s1: &[f64; 3], s2: &[[f64; 3]; 3]) -> Option<([f64; 3], f32)> {
-    let inv = 1.0 / n as f64;
+/// A plane fitted to (weighted) moments: unit normal, planarity, the mean
+/// offset from the query point and the RMS distance of the points to the
+/// plane (metres).
+#[derive(Clone, Copy, Debug)]
+struct PlaneFit {
+    normal: [f64; 3],
+    planarity: f32,
+    mean: [f64; 3],
+    rms_m: f64,
+}
+
+/// The plane of a neighbourhood given as offsets `d` from the query point
+/// (metres), by its moments: `s1 = sum w d`, `s2 = sum w d d^T`, the
+/// weights `w` summing to `weight` (1 each for a plain fit).
+fn fit_plane_weighted(weight: f64, s1: &[f64; 3], s2: &[[f64; 3]; 3]) -> Option<PlaneFit> {
+    if !(weight > 0.0) {
+        return None;
+    }
+    let inv = 1.0 / weight;
     let m = [s1[0] * inv, s1[1] * inv, s1[2] * inv];
     let mut cov = [[0.0; 3]; 3];
     for r in 0..3 {
@@ -492,7 +533,12 @@ fn fit_plane(n: usize, s1: &[f64; 3], s2: &[[f64; 3]; 3]) -> Option<([f64; 3], f
     } else {
         0.0
     };
-    Some((normal, planarity as f32))
+    Some(PlaneFit {
+        normal,
+        planarity: planarity as f32,
+        mean: m,
+        rms_m: l[2].max(0.0).sqrt(),
+    })
 }
 
 /// Lanes of the neighbour accumulation (the compiler vectorises them).
@@ -554,6 +600,42 @@ impl Candidates {
     /// lane (offsets are below the radius, so sums of a few hundred squares
     /// lose nothing that matters), lanes summed in f64 in a fixed order.
     fn radius_moments(&self, q: [f32; 3], radius_sq: f32) -> (usize, [f64; 3], [[f64; 3]; 3]) {
+        let (n, s1, s2) = self.weighted_moments(q, radius_sq, |_| 1.0);
+        (n.round() as usize, s1, s2)
+    }
+
+    /// [`Self::radius_moments`], each offset `d` weighted by Tukey's
+    /// biweight of its distance to the plane through `q + mean` with unit
+    /// normal `normal` (`c_m`: the distance at which the weight reaches 0);
+    /// the count is the weights' sum.
+    fn biweight_moments(
+        &self,
+        q: [f32; 3],
+        radius_sq: f32,
+        normal: [f64; 3],
+        mean: [f64; 3],
+        c_m: f64,
+    ) -> (f64, [f64; 3], [[f64; 3]; 3]) {
+        let nf = [normal[0] as f32, normal[1] as f32, normal[2] as f32];
+        let offset = (normal[0] * mean[0] + normal[1] * mean[1] + normal[2] * mean[2]) as f32;
+        let inv_c_sq = (1.0 / (c_m * c_m)) as f32;
+        self.weighted_moments(q, radius_sq, |d| {
+            let r = nf[0] * d[0] + nf[1] * d[1] + nf[2] * d[2] - offset;
+            let u = (1.0 - r * r * inv_c_sq).max(0.0);
+            u * u
+        })
+    }
+
+    /// Weight sum, first and second moments of the offsets `d = p - q` of
+    /// the candidates within `sqrt(radius_sq)` of `q`, each weighted by
+    /// `weight(d)`.
+    #[inline(always)]
+    fn weighted_moments(
+        &self,
+        q: [f32; 3],
+        radius_sq: f32,
+        weight: impl Fn([f32; 3]) -> f32,
+    ) -> (f64, [f64; 3], [[f64; 3]; 3]) {
         let mut n = [0.0f32; LANES];
         let (mut sx, mut sy, mut sz) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
         let (mut sxx, mut sxy, mut sxz) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
@@ -564,7 +646,7 @@ impl Candidates {
                 let dy = yb[l] - q[1];
                 let dz = zb[l] - q[2];
                 let w = if dx * dx + dy * dy + dz * dz <= radius_sq {
-                    1.0f32
+                    weight([dx, dy, dz])
                 } else {
                     0.0
                 };
@@ -585,11 +667,36 @@ impl Candidates {
         let (xx, xy, xz) = (total(&sxx), total(&sxy), total(&sxz));
         let (yy, yz, zz) = (total(&syy), total(&syz), total(&szz));
         (
-            total(&n).round() as usize,
+            total(&n),
             [total(&sx), total(&sy), total(&sz)],
             [[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]],
         )
     }
+}
+
+/// Refits `fit` (the plain PCA plane of `q`'s neighbourhood) with Tukey
+/// biweights on the points' distances to the plane (weight 0 from `c_m`
+/// on), `iterations` times: near an edge, where the plain fit leans toward
+/// the other surface, the surface holding most of the neighbourhood wins.
+/// The plain fit is kept when a refit fails (no weight left).
+fn robust_refit(
+    candidates: &Candidates,
+    q: [f32; 3],
+    radius_sq: f32,
+    fit: PlaneFit,
+    c_m: f64,
+    iterations: usize,
+) -> PlaneFit {
+    let mut current = fit;
+    for _ in 0..iterations {
+        let (w, s1, s2) =
+            candidates.biweight_moments(q, radius_sq, current.normal, current.mean, c_m);
+        match fit_plane_weighted(w, &s1, &s2) {
+            Some(next) => current = next,
+            None => return fit,
+        }
+    }
+    current
 }
 
 /// Cosine of the largest angle from the z axis at which a normal counts as
@@ -665,37 +772,68 @@ pub fn estimate_normals(
         slices.push(head);
         rest = tail;
     }
+    // Neighbour cells' points of cell `c`; in radius mode, a regular
+    // subsample when there are many more than `max_neighbours`.
+    let gather = |c: usize, candidates: &mut Candidates| {
+        let key = grid.keys[c];
+        let mut cells = [usize::MAX; 27];
+        let mut total = 0usize;
+        let mut slot = 0;
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                for dz in -1..=1 {
+                    if let Some(nc) = grid.find(grid.neighbour_key(key, [dx, dy, dz])) {
+                        cells[slot] = nc;
+                        total += grid.cell_range(nc).len();
+                    }
+                    slot += 1;
+                }
+            }
+        }
+        let stride = match options.k_nearest {
+            Some(_) => 1,
+            None => total.div_ceil(3 * options.max_neighbours).max(1),
+        };
+        candidates.fill(
+            cells
+                .iter()
+                .filter(|&&nc| nc != usize::MAX)
+                .map(|&nc| &sorted_points[grid.cell_range(nc)]),
+            stride,
+        );
+    };
+    // The robust refit's scale: from the plain fits of a sample of cells.
+    let robust_c_m = if options.robust_iterations > 0 && options.k_nearest.is_none() {
+        let step = (grid.keys.len() / 2000).max(1);
+        let mut rms: Vec<f64> = (0..grid.keys.len())
+            .into_par_iter()
+            .step_by(step)
+            .map_init(Candidates::default, |candidates, c| {
+                gather(c, candidates);
+                sorted_points[grid.cell_range(c)]
+                    .iter()
+                    .filter_map(|&q| {
+                        let (count, s1, s2) = candidates.radius_moments(q, radius_sq);
+                        let fit = fit_plane_weighted(count as f64, &s1, &s2)?;
+                        (count >= options.min_neighbours && fit.planarity >= 0.5)
+                            .then_some(fit.rms_m)
+                    })
+                    .collect::<Vec<f64>>()
+            })
+            .flatten()
+            .collect();
+        rms.sort_by(f64::total_cmp);
+        let noise_m = rms.get(rms.len() / 2).copied().unwrap_or(0.0);
+        log::debug!("map noise for the robust normal fits: {:.4} m", noise_m);
+        let c_m = (ROBUST_C_PER_NOISE * noise_m).max(options.radius_m / 100.0);
+        Some((c_m, ROBUST_REFIT_ABOVE_NOISE * noise_m))
+    } else {
+        None
+    };
     slices.into_par_iter().enumerate().for_each_init(
         || (Candidates::default(), Vec::<(f32, u32)>::new()),
         |(candidates, nearest), (c, out)| {
-            // Neighbour cells' points; in radius mode, a regular subsample
-            // when there are many more than `max_neighbours`.
-            let key = grid.keys[c];
-            let mut cells = [usize::MAX; 27];
-            let mut total = 0usize;
-            let mut slot = 0;
-            for dx in -1..=1 {
-                for dy in -1..=1 {
-                    for dz in -1..=1 {
-                        if let Some(nc) = grid.find(grid.neighbour_key(key, [dx, dy, dz])) {
-                            cells[slot] = nc;
-                            total += grid.cell_range(nc).len();
-                        }
-                        slot += 1;
-                    }
-                }
-            }
-            let stride = match options.k_nearest {
-                Some(_) => 1,
-                None => total.div_ceil(3 * options.max_neighbours).max(1),
-            };
-            candidates.fill(
-                cells
-                    .iter()
-                    .filter(|&&nc| nc != usize::MAX)
-                    .map(|&nc| &sorted_points[grid.cell_range(nc)]),
-                stride,
-            );
+            gather(c, candidates);
             for (&q, slot) in sorted_points[grid.cell_range(c)].iter().zip(out.iter_mut()) {
                 let (count, s1, s2) = match options.k_nearest {
                     None => candidates.radius_moments(q, radius_sq),
@@ -734,9 +872,20 @@ pub fn estimate_normals(
                 if count < options.min_neighbours {
                     continue;
                 }
-                let Some((mut normal, planarity)) = fit_plane(count, &s1, &s2) else {
+                let Some(mut fit) = fit_plane_weighted(count as f64, &s1, &s2) else {
                     continue;
                 };
+                if let Some((c_m, _)) = robust_c_m.filter(|&(_, above_m)| fit.rms_m > above_m) {
+                    fit = robust_refit(
+                        candidates,
+                        q,
+                        radius_sq,
+                        fit,
+                        c_m,
+                        options.robust_iterations,
+                    );
+                }
+                let (mut normal, planarity) = (fit.normal, fit.planarity);
                 let p = [f64::from(q[0]), f64::from(q[1]), f64::from(q[2])];
                 let flip = if up_first && normal[2].abs() >= VERTICAL_COS {
                     normal[2] < 0.0

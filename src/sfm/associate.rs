@@ -281,6 +281,13 @@ impl NearestNeighbourAssociator<'_> {
         d
     }
 
+    /// Whether map point `i` may give a plane: its planarity reaches
+    /// `min_planarity` (always when the map has no planarity).
+    pub fn is_planar(&self, i: usize) -> bool {
+        let min = self.options.min_planarity as f32;
+        min <= 0.0 || self.cloud.planarity.as_ref().is_none_or(|p| p[i] >= min)
+    }
+
     /// Unit normal of map point `i`; `None` when the map has no normals or
     /// this one is zero or not finite.
     pub fn normal_of(&self, i: usize) -> Option<Vector3<f64>> {
@@ -289,7 +296,7 @@ impl NearestNeighbourAssociator<'_> {
     }
 
     /// The map's plane near `x` (world frame): among the `num_neighbours`
-    /// nearest map points within `radius_m`, the one whose tangent plane
+    /// nearest map points within `radius_m` ([`Self::is_planar`] ones), the one whose tangent plane
     /// lies closest to `x` (at a corner the nearest point may belong to the
     /// other surface) gives the plane: its normal and
     /// [`Self::plane_offset_at`]. `None` without a neighbour with a normal.
@@ -303,6 +310,9 @@ impl NearestNeighbourAssociator<'_> {
             let Some(n) = self.normal_of(i) else {
                 continue;
             };
+            if !self.is_planar(i) {
+                continue;
+            }
             let d = n.dot(&(x - self.cloud.point_in_map(i))).abs();
             if best.as_ref().is_none_or(|(bd, _, _)| d < *bd) {
                 best = Some((d, i, n));
@@ -510,7 +520,9 @@ impl PlaneAssociator for ProjectionAssociator<'_> {
                 continue;
             };
             for ((qi, _), hit) in pixels.iter().zip(hits) {
-                let Some(hit) = hit else { continue };
+                let Some(hit) = hit.filter(|h| self.nearest.is_planar(h.point_idx as usize)) else {
+                    continue;
+                };
                 let Some(n) = hit.normal_in_map.and_then(|n| n.try_normalize(1e-9)) else {
                     continue;
                 };
@@ -691,6 +703,37 @@ pub(crate) mod tests {
         }
         assert_eq!(assoc.radius_for(SolveKind::Final, 0), 0.1);
         assert!(assoc.associate_points(SolveKind::Final, &young).is_empty());
+
+        // A map with a planarity per point: the points below
+        // `min_planarity` (0.7) give no plane, here all but one column.
+        let mut scored = cloud.clone();
+        scored.planarity = Some(
+            scored
+                .points
+                .iter()
+                .map(|p| if p[0] == 0.5 { 0.9 } else { 0.6 })
+                .collect(),
+        );
+        let scored_index = MapIndex::build(&scored).unwrap();
+        let gated =
+            NearestNeighbourAssociator::new(&scored, &scored_index, AssociationOptions::default());
+        let near = |x: f64| [q(0, x, 0.02, 0.01, 10)];
+        assert!(gated
+            .associate_points(SolveKind::Local, &near(0.0))
+            .is_empty());
+        assert_eq!(
+            gated.associate_points(SolveKind::Local, &near(0.47)).len(),
+            1
+        );
+        let open = NearestNeighbourAssociator::new(
+            &scored,
+            &scored_index,
+            AssociationOptions {
+                min_planarity: 0.0,
+                ..AssociationOptions::default()
+            },
+        );
+        assert_eq!(open.associate_points(SolveKind::Local, &near(0.0)).len(), 1);
     }
 }
 
