@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 
 use super::map::load_map;
 use crate::eval::map_agreement::{map_agreement, MapAgreement};
-use crate::eval::{evaluate, load_poses, Alignment, ReportedSigma};
+use crate::eval::{evaluate, load_poses, umeyama, Alignment, EvalError, ReportedSigma};
 use crate::io::atomic::write_file_atomically;
 use crate::io::model::read_model;
 use crate::map::index::{MapIndex, SPACING_SAMPLES};
@@ -32,7 +32,8 @@ pub struct EvaluateArgs {
     /// LiDAR map (PLY/LAS/XYZ): also measure how far the model's tracks,
     /// triangulated at the reference poses, and the model's own points lie
     /// from the map's surfaces, by the incidence at which they were seen
-    /// (what the images themselves say about the map, apart from the solve).
+    /// (what the images themselves say about the map, apart from the solve;
+    /// the map's planes as `map` finds them with its default options).
     #[arg(long)]
     pub lidar: Option<PathBuf>,
 }
@@ -77,11 +78,29 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
 }
 
 /// [`map_agreement`] of the model with the map at `path`, its planes found
-/// as the mapper finds them (default options, adapted to the map's spacing).
+/// as the mapper finds them with its default options (adapted to the map's
+/// spacing), whatever options made the model. With `--align sim3` the
+/// model's own points are moved by the similarity first.
 fn agreement_with_map(args: &EvaluateArgs, path: &Path) -> anyhow::Result<MapAgreement> {
-    let model = read_model(&args.model)
+    let mut model = read_model(&args.model)
         .with_context(|| format!("reading the model {}", args.model.display()))?;
     let reference = load_poses(&args.reference).context("cannot read the reference")?;
+    if args.align == Alignment::Sim3 {
+        // The model's own points in the reference frame, by the similarity
+        // of the pose comparison.
+        let (src, dst): (Vec<_>, Vec<_>) = model
+            .registered_images()
+            .filter_map(|image| {
+                let pose = image.cam_from_world?;
+                let truth = reference.get(&image.name)?;
+                Some((pose.camera_center(), truth.camera_center()))
+            })
+            .unzip();
+        let sim3 = umeyama(&src, &dst).ok_or(EvalError::TooFewForSim3(src.len()))?;
+        for point in model.points3d.values_mut() {
+            point.xyz = sim3.transform_point(&point.xyz);
+        }
+    }
     let cloud = load_map(path)?;
     let index = MapIndex::build(&cloud)
         .with_context(|| format!("indexing the LiDAR map {}", path.display()))?;

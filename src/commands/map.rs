@@ -17,9 +17,8 @@ use serde::Deserialize;
 use crate::io::database::{read_database, DatabaseSnapshot};
 use crate::io::model::{write_model, ModelFormat};
 use crate::io::pose_ply::{format_pose_ply, read_pose_ply};
-use crate::map::index::{MapIndex, SPACING_SAMPLES};
 use crate::map::io::read_point_cloud;
-use crate::map::prepare::{estimate_normals, NormalOptions};
+use crate::map::prepare::{estimate_normals, widen_normal_radius, NormalOptions};
 use crate::map::PointCloud;
 use crate::scene::{BodyPose, ImageId, Rigid3};
 use crate::sfm::options::{AssociationKind, IntrinsicsRefinement};
@@ -299,14 +298,8 @@ fn check_output(dir: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Normal radius per map spacing for maps whose normals the mapper estimates
-/// (the default radius when that is larger).
-pub const NORMAL_RADIUS_PER_SPACING: f64 = 3.0;
-
-/// Reads the map; estimates normals where missing, over a radius of at
-/// least [`NORMAL_RADIUS_PER_SPACING`] times the map's spacing (a 10 cm map
-/// got no normal for 12 % of its points at the default 0.15 m, a 20 cm one
-/// none).
+/// Reads the map; estimates normals where missing, over a radius that
+/// follows the map's spacing ([`widen_normal_radius`]).
 pub fn load_map(path: &Path) -> Result<PointCloud> {
     let (mut cloud, load) = read_point_cloud(path)
         .with_context(|| format!("reading the LiDAR map {}", path.display()))?;
@@ -315,12 +308,7 @@ pub fn load_map(path: &Path) -> Result<PointCloud> {
     }
     if !load.had_normals || load.normals_invalid > 0 {
         let mut options = NormalOptions::default();
-        let spacing = MapIndex::build(&cloud)
-            .ok()
-            .and_then(|index| index.surface_spacing_m(&cloud, SPACING_SAMPLES));
-        if let Some(spacing) = spacing {
-            options.radius_m = options.radius_m.max(NORMAL_RADIUS_PER_SPACING * spacing);
-        }
+        widen_normal_radius(&mut options, &cloud);
         let report = estimate_normals(&mut cloud, &options)
             .with_context(|| format!("estimating normals of {}", path.display()))?;
         log::info!(

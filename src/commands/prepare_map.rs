@@ -22,13 +22,10 @@ pub struct PrepareMapArgs {
     /// Voxel size for downsampling, metres (0 = keep every point).
     #[arg(long, default_value_t = 0.03)]
     pub voxel: f64,
-    /// Neighbourhood radius for normal estimation, metres.
-    #[arg(
-        long = "normal-radius",
-        alias = "normal_radius",
-        default_value_t = 0.15
-    )]
-    pub normal_radius: f64,
+    /// Neighbourhood radius for normal estimation, metres [default: 0.15,
+    /// or 3 times the (downsampled) cloud's spacing when that is larger].
+    #[arg(long = "normal-radius", alias = "normal_radius")]
+    pub normal_radius: Option<f64>,
     /// Use the k nearest neighbours (within the radius) instead of all.
     #[arg(long = "normal-k", alias = "normal_k")]
     pub normal_k: Option<usize>,
@@ -66,7 +63,10 @@ impl PrepareMapArgs {
             drop_without_normal: !self.keep_without_normal,
             ..Default::default()
         };
-        options.normals.radius_m = self.normal_radius;
+        if let Some(radius_m) = self.normal_radius {
+            options.normals.radius_m = radius_m;
+            options.radius_follows_spacing = false;
+        }
         options.normals.k_nearest = self.normal_k;
         options.normals.recompute_all = self.recompute_normals;
         if let Some(sensor) = &self.sensor {
@@ -136,12 +136,13 @@ pub fn run(args: &PrepareMapArgs) -> anyhow::Result<()> {
     let (load, report) = prepare_map_file(&args.input, &args.output, &options)?;
     println!(
         "{}: {} points read ({} dropped as NaN/inf), {} after voxel grid, \
-         {} normals estimated, {} kept, {} points written to {}",
+         {} normals estimated ({:.3} m radius), {} kept, {} points written to {}",
         args.input.display(),
         load.points_read,
         load.dropped_non_finite,
         report.after_voxel,
         report.normals.estimated,
+        report.normal_radius_m,
         report.normals.kept,
         report.output_points,
         args.output.display()

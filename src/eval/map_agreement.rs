@@ -113,12 +113,15 @@ pub fn map_agreement(
         } else {
             (normal, offset_m)
         };
-        let cos = views
+        let cosines: Vec<f64> = views
             .iter()
             .filter_map(|(_, p, _)| (at - p.camera_center()).try_normalize(1e-12))
             .map(|ray| ray.dot(&normal).abs())
-            .sum::<f64>()
-            / views.len() as f64;
+            .collect();
+        if cosines.is_empty() {
+            continue;
+        }
+        let cos = cosines.iter().sum::<f64>() / cosines.len() as f64;
         let signed = |x: &Vector3<f64>| {
             let d = normal.dot(x) - offset_m;
             (d.abs() <= MAX_DISTANCE_M).then_some(d)
@@ -300,12 +303,25 @@ mod tests {
             .collect();
         let got = triangulate_at(&views).unwrap();
         assert!((got - x).norm() < 1e-9, "{got}");
-        // One view cannot place a point; a point behind the cameras is refused.
+        // One view cannot place a point.
         assert!(triangulate_at(&views[..1]).is_none());
+        // Rays whose lines meet 1 m above the cameras (each pixel is that of
+        // the point mirrored through the camera's centre): refused.
+        let above = Vector3::new(0.3, -0.2, 4.0);
         let behind: Vec<_> = views
             .iter()
-            .map(|(c, p, _)| (*c, *p, Vector2::new(320.0, 240.0)))
+            .map(|(c, p, _)| {
+                let mirrored = 2.0 * p.camera_center() - above;
+                (*c, *p, c.project(&p.transform_point(&mirrored)).unwrap())
+            })
             .collect();
+        assert!(triangulate_dlt(
+            &behind
+                .iter()
+                .map(|(c, p, xy)| (*p, c.unproject(xy).unwrap()))
+                .collect::<Vec<_>>()
+        )
+        .is_some_and(|x| (x - above).norm() < 1e-6));
         assert!(triangulate_at(&behind).is_none());
     }
 
@@ -334,6 +350,12 @@ mod tests {
         };
         let index = MapIndex::build(&cloud).unwrap();
         let planes = NearestNeighbourAssociator::new(&cloud, &index, AssociationOptions::default());
+        // The same floor with its normals pointing down: turned toward the cameras.
+        let mut down = cloud.clone();
+        down.normals = Some(vec![[0.0, 0.0, -1.0]; down.points.len()]);
+        let down_index = MapIndex::build(&down).unwrap();
+        let down_planes =
+            NearestNeighbourAssociator::new(&down, &down_index, AssociationOptions::default());
         let cam = camera();
         let seen = [
             floor + Vector3::new(0.1, 0.05, 0.001),
@@ -405,6 +427,7 @@ mod tests {
             .map(|c| c.reference_count + c.model_count)
             .sum();
         assert_eq!(counted, 2);
+        assert_eq!(map_agreement(&model, &reference, &down_planes), a);
         assert_eq!(a.classes.len(), COS_BOUNDS.len());
         let table = a.table();
         assert!(

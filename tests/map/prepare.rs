@@ -321,10 +321,13 @@ fn k_nearest_mode_valid_input_normals_and_sparse_points() {
     );
     assert_eq!(report.estimated + report.kept + report.failed, n);
     let normals = cloud.normals.as_ref().unwrap();
+    let planarity = cloud.planarity.as_ref().unwrap();
     let mut errors = Vec::new();
     for i in 0..n - 2 {
         if i % 4 == 0 {
             assert_eq!(normals[i], [0.0, 1.0, 0.0]);
+            // Kept, not judged by the fit (which disagrees with it).
+            assert_eq!(planarity[i], 1.0);
         } else if samples[i].1 > 0.2 {
             let m = normals[i];
             errors.push(angle_deg(
@@ -508,9 +511,9 @@ fn prepare_map_cli_end_to_end() {
     assert!(!status.success());
 }
 
-/// `map` estimates the normals of a map that has none over a radius that
-/// follows the map's spacing: on a 20 cm grid the default 0.15 m radius
-/// holds no neighbour at all.
+/// `map` and `prepare-map` estimate the normals of a map that has none
+/// over a radius that follows the map's spacing: on a 20 cm grid the
+/// default 0.15 m radius holds no neighbour at all.
 #[test]
 fn a_sparse_map_without_normals_gets_them() {
     let dir = tempfile::tempdir().unwrap();
@@ -554,4 +557,17 @@ fn a_sparse_map_without_normals_gets_them() {
         "{with_normal} of {n}"
     );
     assert!(checked > 1000, "{checked}");
+
+    // `prepare-map` follows the spacing unless given a radius: a grid of
+    // spacing s reads as 0.89 s, so the radius is about 0.53 m here.
+    let (prepared, report) = prepare(cloud.clone(), &PrepareOptions::default()).unwrap();
+    assert!((0.45..0.65).contains(&report.normal_radius_m), "{report:?}");
+    assert!(prepared.len() as f64 >= 0.95 * n as f64, "{report:?}");
+    let fixed = PrepareOptions {
+        radius_follows_spacing: false,
+        ..Default::default()
+    };
+    let (prepared, report) = prepare(cloud, &fixed).unwrap();
+    assert_eq!(report.normal_radius_m, 0.15);
+    assert_eq!(prepared.len(), 0, "{report:?}");
 }
