@@ -633,6 +633,57 @@ pub(crate) mod tests {
         (state, point)
     }
 
+    /// The floor z = 0 under [`two_view_state`]'s cameras (2 cm grid,
+    /// normals up), every point with planarity `planarity`.
+    fn floor_with_planarity(planarity: f32) -> PointCloud {
+        let mut points = Vec::new();
+        for i in -100..=100 {
+            for j in -100..=100 {
+                points.push([i as f32 * 0.02, j as f32 * 0.02, 0.0]);
+            }
+        }
+        let n = points.len();
+        PointCloud {
+            origin: Vector3::zeros(),
+            points,
+            normals: Some(vec![[0.0, 0.0, 1.0]; n]),
+            planarity: Some(vec![planarity; n]),
+        }
+    }
+
+    #[test]
+    fn projection_planes_respect_the_planarity_gate() {
+        let (state, point) = two_view_state();
+        let query = AssociationQuery {
+            point_idx: 0,
+            point_id: point,
+            position_in_world: state.points[&point].xyz,
+            num_global_ba: 0,
+            track_len: 2,
+        };
+        let planes_with = |planarity: f32| {
+            let cloud = floor_with_planarity(planarity);
+            let index = MapIndex::build(&cloud).unwrap();
+            let grid = FrustumGrid::build(&cloud, &Default::default()).unwrap();
+            let nearest =
+                NearestNeighbourAssociator::new(&cloud, &index, AssociationOptions::default());
+            let projection = ProjectionAssociator {
+                nearest: &nearest,
+                grid: &grid,
+                projection: ProjectionOptions::default(),
+            };
+            projection.associate(SolveKind::Local, &state, &[query])
+        };
+        // Flat map points: the point 1 cm above the floor gets the floor
+        // from the map point seen at its features.
+        let planes = planes_with(0.9);
+        assert_eq!(planes.len(), 1);
+        assert_eq!(planes[0].family, PlaneFamily::Projection);
+        assert!(planes[0].offset_m.abs() < 1e-6);
+        // Below the gate: neither the projection nor the nearest fallback.
+        assert!(planes_with(0.6).is_empty());
+    }
+
     #[test]
     fn on_plane_error_is_the_best_reprojection_on_the_plane() {
         let (state, point) = two_view_state();
