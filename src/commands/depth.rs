@@ -11,7 +11,7 @@ use nalgebra::Vector2;
 use crate::io::model::read_model;
 use crate::map::depth_image::{colourise, render_depth_image, write_png};
 use crate::map::grid::{FrustumGrid, GridOptions};
-use crate::map::index::{MapIndex, SPACING_SAMPLES};
+use crate::map::index::MapIndex;
 use crate::map::io::read_point_cloud;
 use crate::map::projection::{project_map_at_pixels, widen_splats_for_spacing, ProjectionOptions};
 use crate::map::PointCloud;
@@ -57,9 +57,7 @@ impl DepthArgs {
 /// Returns the spacing (`None` when it cannot be estimated: options
 /// unchanged).
 pub fn widen_splats_for_map(options: &mut ProjectionOptions, cloud: &PointCloud) -> Option<f64> {
-    let spacing = MapIndex::build(cloud)
-        .ok()?
-        .surface_spacing_m(cloud, SPACING_SAMPLES)?;
+    let spacing = MapIndex::spacing_of(cloud)?;
     widen_splats_for_spacing(&mut options.splat, spacing);
     Some(spacing)
 }

@@ -7,10 +7,11 @@ use std::collections::BTreeMap;
 
 use super::map::load_map;
 use crate::eval::map_agreement::{map_agreement, MapAgreement};
-use crate::eval::{evaluate, load_poses, umeyama, Alignment, EvalError, ReportedSigma};
+use crate::eval::{evaluate, load_poses, Alignment, ReportedSigma, Sim3};
 use crate::io::atomic::write_file_atomically;
 use crate::io::model::read_model;
 use crate::map::index::{MapIndex, SPACING_SAMPLES};
+use crate::scene::Rigid3;
 use crate::sfm::associate::NearestNeighbourAssociator;
 use crate::sfm::MapperOptions;
 
@@ -57,7 +58,11 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
     }
     print!("{}", report.table());
     let agreement = match &args.lidar {
-        Some(path) => Some(agreement_with_map(args, path)?),
+        Some(path) => {
+            // `--align sim3` failed above without a similarity.
+            let sim3 = report.sim3.filter(|_| args.align == Alignment::Sim3);
+            Some(agreement_with_map(&args.model, &reference, sim3, path)?)
+        }
         None => None,
     };
     if let Some(a) = &agreement {
@@ -79,24 +84,17 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
 
 /// [`map_agreement`] of the model with the map at `path`, its planes found
 /// as the mapper finds them with its default options (adapted to the map's
-/// spacing), whatever options made the model. With `--align sim3` the
-/// model's own points are moved by the similarity first.
-fn agreement_with_map(args: &EvaluateArgs, path: &Path) -> anyhow::Result<MapAgreement> {
-    let mut model = read_model(&args.model)
-        .with_context(|| format!("reading the model {}", args.model.display()))?;
-    let reference = load_poses(&args.reference).context("cannot read the reference")?;
-    if args.align == Alignment::Sim3 {
-        // The model's own points in the reference frame, by the similarity
-        // of the pose comparison.
-        let (src, dst): (Vec<_>, Vec<_>) = model
-            .registered_images()
-            .filter_map(|image| {
-                let pose = image.cam_from_world?;
-                let truth = reference.get(&image.name)?;
-                Some((pose.camera_center(), truth.camera_center()))
-            })
-            .unzip();
-        let sim3 = umeyama(&src, &dst).ok_or(EvalError::TooFewForSim3(src.len()))?;
+/// spacing), whatever options made the model. With `sim3` (the pose
+/// comparison's similarity) the model's own points are moved by it first.
+fn agreement_with_map(
+    model_dir: &Path,
+    reference: &BTreeMap<String, Rigid3>,
+    sim3: Option<Sim3>,
+    path: &Path,
+) -> anyhow::Result<MapAgreement> {
+    let mut model = read_model(model_dir)
+        .with_context(|| format!("reading the model {}", model_dir.display()))?;
+    if let Some(sim3) = sim3 {
         for point in model.points3d.values_mut() {
             point.xyz = sim3.transform_point(&point.xyz);
         }
@@ -109,7 +107,7 @@ fn agreement_with_map(args: &EvaluateArgs, path: &Path) -> anyhow::Result<MapAgr
         None => MapperOptions::default(),
     };
     let planes = NearestNeighbourAssociator::new(&cloud, &index, options.association);
-    Ok(map_agreement(&model, &reference, &planes))
+    Ok(map_agreement(&model, reference, &planes))
 }
 
 /// Per image name, the sigmas of `report.json` (`images[].pose_uncertainty`);

@@ -176,6 +176,9 @@ pub struct EvaluationReport {
     pub num_unknown: usize,
     /// Scale of the best Sim3 from the model to the reference.
     pub sim3_scale: Option<f64>,
+    /// That similarity itself.
+    #[serde(skip)]
+    pub sim3: Option<Sim3>,
     /// Sim3 scale on the last third over the first third (1 = no drift).
     pub scale_drift: Option<f64>,
     pub centre_error_m: Option<Stats>,
@@ -282,6 +285,7 @@ pub fn evaluate(
         registered_share: share(common.len()),
         num_unknown: model.keys().filter(|k| !reference.contains_key(*k)).count(),
         sim3_scale: best.map(|s| s.scale),
+        sim3: best,
         scale_drift,
         centre_error_m: Stats::of(&centres),
         rotation_error_deg: Stats::of(&rotations),

@@ -886,7 +886,8 @@ impl MapIndex {
     /// without 8 neighbours within 2 m (outliers, stray returns) are skipped.
     /// `None` when no sampled point has them. `cloud` is the cloud the index
     /// was built from.
-    /// ([`SPACING_SAMPLES`] is the count the mapper and `depth` use.)
+    /// ([`SPACING_SAMPLES`] is the count the mapper, `depth` and the normal
+    /// estimation use.)
     pub fn surface_spacing_m(&self, cloud: &PointCloud, max_samples: usize) -> Option<f64> {
         const K: usize = 8;
         const MAX_RADIUS_M: f64 = 2.0;
@@ -909,6 +910,15 @@ impl MapIndex {
         radii.sort_by(f64::total_cmp);
         let median = radii[radii.len() / 2];
         Some((std::f64::consts::PI / K as f64).sqrt() * median)
+    }
+
+    /// [`Self::surface_spacing_m`] of a cloud without an index yet (one is
+    /// built for it, over [`SPACING_SAMPLES`] samples); `None` when the
+    /// index cannot be built or no spacing estimated.
+    pub fn spacing_of(cloud: &PointCloud) -> Option<f64> {
+        Self::build(cloud)
+            .ok()?
+            .surface_spacing_m(cloud, SPACING_SAMPLES)
     }
 
     pub fn is_empty(&self) -> bool {

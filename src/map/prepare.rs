@@ -197,9 +197,7 @@ pub const NORMAL_RADIUS_PER_SPACING: f64 = 3.0;
 /// ([`crate::map::index::MapIndex::surface_spacing_m`]) when that is larger.
 /// Returns the spacing (`None` when it cannot be estimated: radius kept).
 pub fn widen_normal_radius(options: &mut NormalOptions, cloud: &PointCloud) -> Option<f64> {
-    let spacing = crate::map::index::MapIndex::build(cloud)
-        .ok()?
-        .surface_spacing_m(cloud, crate::map::index::SPACING_SAMPLES)?;
+    let spacing = crate::map::index::MapIndex::spacing_of(cloud)?;
     options.radius_m = options.radius_m.max(NORMAL_RADIUS_PER_SPACING * spacing);
     Some(spacing)
 }
@@ -951,19 +949,13 @@ pub fn estimate_normals(
     // A kept input normal keeps the input's planarity, or gets 1 (not
     // judged: the mapper's planarity gate must not drop a normal the file
     // gave because the fit here was poor, e.g. too few neighbours).
-    let (mut planarity, had_planarity) = match cloud.planarity.take() {
-        Some(p) => (p, true),
-        None => (vec![1.0; n], false),
-    };
+    let mut planarity = cloud.planarity.take().unwrap_or_else(|| vec![1.0; n]);
     for (slot, &i) in grid.order.iter().enumerate() {
         let i = i as usize;
         let (estimate, score) = results[slot];
         let had = normal_is_set(&normals[i]);
         if had && !options.recompute_all {
             report.kept += 1;
-            if !had_planarity {
-                planarity[i] = 1.0;
-            }
         } else if score >= 0.0 {
             report.estimated += 1;
             normals[i] = estimate;
