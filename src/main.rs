@@ -33,6 +33,9 @@ enum Command {
     Evaluate(commands::evaluate::EvaluateArgs),
     /// Render what the map looks like from a registered image: a colour-mapped depth PNG.
     Depth(commands::depth::DepthArgs),
+    /// Figures of a `map` run (SVG): plane terms, point-to-plane distances and
+    /// reprojection errors per solve, and per image.
+    Plot(commands::plot::PlotArgs),
     /// Benchmark helpers for the map (generate / load a large building-like cloud).
     #[command(hide = true)]
     BenchMap(commands::bench_map::BenchMapArgs),
@@ -54,6 +57,7 @@ fn main() -> ExitCode {
         Command::Map(args) => commands::map::run(args),
         Command::PrepareMap(args) => commands::prepare_map::run(args),
         Command::Depth(args) => commands::depth::run(args),
+        Command::Plot(args) => commands::plot::run(args),
         Command::Synth(args) => commands::synth::run(args),
         Command::Evaluate(args) => commands::evaluate::run(args),
         Command::BenchMap(args) => commands::bench_map::run(args),

@@ -4,5 +4,6 @@ pub mod depth;
 pub mod evaluate;
 pub mod inspect;
 pub mod map;
+pub mod plot;
 pub mod prepare_map;
 pub mod synth;

@@ -1,6 +1,6 @@
 //! `report.json`: what the mapper did, per image and per solve. Everything in
 //! it is deterministic except the `time_s` fields.
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::bundle::{PoseUncertainty, SolveRecord};
 use super::initialize::InitSummary;
@@ -9,7 +9,7 @@ use crate::scene::{Camera, CameraId, ImageId};
 use crate::solver::PlaneFamily;
 
 /// One image.
-#[derive(Clone, Debug, Default, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct ImageRecord {
     pub image_id: u32,
     pub name: String,
