@@ -44,9 +44,13 @@ init_pose=$(awk '$1 == "perturbed:" {print $2}' "$out/scene/init_pose.txt")
 step "evaluate against ground truth (no alignment: poses must already be in the map frame)"
 "$bin" evaluate --model "$out/sparse/0" --reference "$out/scene/gt" --align none
 
+step "figures of the run (SVG)"
+"$bin" plot "$out/sparse/0" --output "$out/figures"
+
 step "done"
 cat <<MSG
 Model (map frame, metres): $out/sparse/0   (report: $out/sparse/0/report.json)
+Figures (planes, point-to-plane distances, reprojection errors per solve): $out/figures
 Open it in COLMAP:
   colmap gui --import_path $out/sparse/0 --database_path $db --image_path $out/scene/images
 MSG

@@ -34,7 +34,8 @@ pub struct EvaluateArgs {
     /// triangulated at the reference poses, and the model's own points lie
     /// from the map's surfaces, by the incidence at which they were seen
     /// (what the images themselves say about the map, apart from the solve;
-    /// the map's planes as `map` finds them with its default options).
+    /// the map's planes as `map` found them, with the options in the
+    /// model's report.json, or the defaults).
     #[arg(long)]
     pub lidar: Option<PathBuf>,
 }
@@ -83,8 +84,8 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
 }
 
 /// [`map_agreement`] of the model with the map at `path`, its planes found
-/// as the mapper finds them with its default options (adapted to the map's
-/// spacing), whatever options made the model. With `sim3` (the pose
+/// as the mapper finds them with the options that made the model (its
+/// `report.json`; the defaults without one), adapted to the map's spacing. With `sim3` (the pose
 /// comparison's similarity) the model's own points are moved by it first.
 fn agreement_with_map(
     model_dir: &Path,
@@ -102,12 +103,43 @@ fn agreement_with_map(
     let cloud = load_map(path)?;
     let index = MapIndex::build(&cloud)
         .with_context(|| format!("indexing the LiDAR map {}", path.display()))?;
+    let own = model_dir.join("report.json");
+    let options = match options_of_run(&own) {
+        Ok(Some(options)) => {
+            log::info!(
+                "the map's planes as found with the options in {}",
+                own.display()
+            );
+            options
+        }
+        Ok(None) => MapperOptions::default(),
+        Err(e) => {
+            log::warn!(
+                "{}: options not read ({e:#}); the map's planes as found with the defaults",
+                own.display()
+            );
+            MapperOptions::default()
+        }
+    };
     let options = match index.surface_spacing_m(&cloud, SPACING_SAMPLES) {
-        Some(spacing) => MapperOptions::default().for_map_spacing(spacing),
-        None => MapperOptions::default(),
+        Some(spacing) => options.for_map_spacing(spacing),
+        None => options,
     };
     let planes = NearestNeighbourAssociator::new(&cloud, &index, options.association);
     Ok(map_agreement(&model, reference, &planes))
+}
+
+/// The options a `map` run used (`report.json` -> `options`); `None` when
+/// there is no report or it has no options (older reports).
+fn options_of_run(path: &Path) -> anyhow::Result<Option<MapperOptions>> {
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let mut report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path)?)?;
+    match report.get_mut("options").map(serde_json::Value::take) {
+        None | Some(serde_json::Value::Null) => Ok(None),
+        Some(options) => Ok(Some(serde_json::from_value(options)?)),
+    }
 }
 
 /// Per image name, the sigmas of `report.json` (`images[].pose_uncertainty`);
@@ -132,4 +164,32 @@ fn reported_sigmas(path: &std::path::Path) -> anyhow::Result<BTreeMap<String, Re
         }
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn options_come_from_the_runs_report() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("report.json");
+        assert!(options_of_run(&path).unwrap().is_none());
+        let mut options = MapperOptions::default();
+        options.association.min_planarity = 0.4;
+        options.association.plane_radius_m = 0.3;
+        let report = serde_json::json!({"seed": 0, "solves": [], "options": options});
+        std::fs::write(&path, report.to_string()).unwrap();
+        assert_eq!(options_of_run(&path).unwrap(), Some(options));
+        // An older report without options, and one whose options do not parse.
+        std::fs::write(&path, r#"{"seed": 0, "options": null}"#).unwrap();
+        assert!(options_of_run(&path).unwrap().is_none());
+        std::fs::write(
+            &path,
+            r#"{"options": {"association": {"no_such_option": 1}}}"#,
+        )
+        .unwrap();
+        let err = format!("{:#}", options_of_run(&path).unwrap_err());
+        assert!(err.contains("no_such_option"), "{err}");
+    }
 }

@@ -330,6 +330,7 @@ pub fn run_mapper_with_priors(
             })
             .collect(),
         intrinsics: refine.records(db, &focal_estimates, &map_focal),
+        options: Some(options.clone()),
         ..Default::default()
     };
 

@@ -2,7 +2,7 @@
 //! (units in the names) and a `validate()`. All of them deserialise from the
 //! `[mapper]` table of a TOML options file (missing keys keep their defaults,
 //! unknown keys are errors).
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 use crate::map::projection::{widen_splats_for_spacing, ProjectionOptions, SplatOptions};
 
@@ -42,7 +42,7 @@ fn non_negative(name: &str, v: f64) -> Result<(), OptionsError> {
 }
 
 /// Initialisation from the map (method.md 4.4).
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct InitOptions {
     /// Map points closer than this along the optical axis are ignored, metres. Default 0.5.
@@ -137,7 +137,7 @@ impl InitOptions {
 }
 
 /// Registration of an image by PnP (P3P in LO-RANSAC, then refinement).
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct RegisterOptions {
     /// RANSAC inlier threshold on the reprojection error, pixels. Default 4.
@@ -210,7 +210,7 @@ impl RegisterOptions {
 }
 
 /// Triangulation, track continuation and merging.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct TriangulateOptions {
     /// Largest reprojection error of an observation of a new point, pixels. Default 4.
@@ -240,7 +240,7 @@ impl TriangulateOptions {
 }
 
 /// Bundle adjustment schedule and losses.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct BundleOptions {
     /// Images co-visible with the new one that join its local BA. Default 5.
@@ -533,6 +533,12 @@ impl std::str::FromStr for IntrinsicsRefinement {
     }
 }
 
+impl Serialize for IntrinsicsRefinement {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
+
 impl<'de> Deserialize<'de> for IntrinsicsRefinement {
     fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
         #[derive(Deserialize)]
@@ -550,7 +556,7 @@ impl<'de> Deserialize<'de> for IntrinsicsRefinement {
 }
 
 /// How 3D points are tied to the map during BA.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum AssociationKind {
     /// No LiDAR terms: plain SfM with the gauge fixed by the first two images.
@@ -563,7 +569,7 @@ pub enum AssociationKind {
 }
 
 /// Robust loss on the plane residuals of the final bundle adjustments.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum PlaneLoss {
     /// Quadratic within the scale, linear beyond: a far point still pulls
@@ -576,7 +582,7 @@ pub enum PlaneLoss {
 }
 
 /// LiDAR point-to-plane associations.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct AssociationOptions {
     /// Default: nearest.
@@ -844,7 +850,7 @@ impl AssociationOptions {
 }
 
 /// Outlier filtering after each BA.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct FilterOptions {
     /// Observations with a larger reprojection error are removed, pixels. Default 4.
@@ -897,7 +903,7 @@ impl FilterOptions {
 }
 
 /// Everything the mapper needs, one struct per stage.
-#[derive(Clone, Debug, PartialEq, Default, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Default, Deserialize, Serialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MapperOptions {
     /// Seed of every random choice. Default 0.
@@ -1072,5 +1078,27 @@ mod tests {
             "{err}"
         );
         assert!(read("3").is_err());
+    }
+
+    #[test]
+    fn options_round_trip_through_json_and_toml() {
+        // report.json records the options; reading them back gives the same
+        // options, non-default values included, and so does TOML.
+        let mut options = MapperOptions::default().for_map_spacing(0.1);
+        options.seed = 7;
+        options.bundle.refine_intrinsics = IntrinsicsRefinement::Final;
+        options.association.kind = AssociationKind::Projection;
+        options.association.min_planarity = 0.55;
+        options.association.final_loss = PlaneLoss::Huber;
+        assert_ne!(options, MapperOptions::default());
+        for o in [MapperOptions::default(), options] {
+            let json = serde_json::to_string(&o).unwrap();
+            assert_eq!(serde_json::from_str::<MapperOptions>(&json).unwrap(), o);
+            let toml_text = toml::to_string(&o).unwrap();
+            assert_eq!(toml::from_str::<MapperOptions>(&toml_text).unwrap(), o);
+        }
+        let json = serde_json::to_value(MapperOptions::default()).unwrap();
+        assert_eq!(json["bundle"]["refine_intrinsics"], "auto");
+        assert_eq!(json["association"]["kind"], "nearest");
     }
 }

@@ -4,6 +4,7 @@ use serde::{Deserialize, Serialize};
 
 use super::bundle::{PoseUncertainty, SolveRecord};
 use super::initialize::InitSummary;
+use super::options::MapperOptions;
 use super::state::MapState;
 use crate::scene::{Camera, CameraId, ImageId};
 use crate::solver::PlaneFamily;
@@ -125,6 +126,9 @@ pub struct MapReport {
     /// found it off).
     pub final_rounds: Vec<RoundRecord>,
     pub stages: Vec<StageRecord>,
+    /// The options the run used, adapted to the map's spacing (the TOML
+    /// file's `[mapper]` sections, as JSON).
+    pub options: Option<MapperOptions>,
 }
 
 /// One camera's intrinsics (COLMAP's parameter order for its model).
