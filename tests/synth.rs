@@ -7,9 +7,9 @@ use std::path::Path;
 use colmap_lidar::eval::{evaluate, load_poses, Alignment};
 use colmap_lidar::io::database::read_database;
 use colmap_lidar::scene::Rigid3;
-use colmap_lidar::synth::geometry::Scene;
+use colmap_lidar::synth::geometry::{Scene, SolidBox};
 use colmap_lidar::synth::lidar::{sample_lidar, LidarOptions};
-use colmap_lidar::synth::scenes::{build_scene, trajectory};
+use colmap_lidar::synth::scenes::{build_changed_scene, build_scene, trajectory};
 use colmap_lidar::synth::{
     generate_scene, lens, read_init_pose, BodyPose, SceneKind, SynthOptions,
 };
@@ -169,6 +169,68 @@ fn synth_lidar_points_lie_on_the_surfaces() {
     // Points were dropped inside the holes: fewer than area / spacing^2.
     let area: f64 = scene.quads.iter().map(|q| q.area_m2()).sum();
     assert!((points.len() as f64) < 0.99 * area / summary.lidar_spacing_m.powi(2));
+}
+
+/// The centre of a box's top face.
+fn top_centre(b: &SolidBox) -> Vector3<f64> {
+    Vector3::new(b.center_xy_m[0], b.center_xy_m[1], b.base_z_m + b.size_m[2])
+}
+
+fn same_box(a: &SolidBox, b: &SolidBox) -> bool {
+    a.center_xy_m == b.center_xy_m && a.size_m == b.size_m && a.yaw_rad == b.yaw_rad
+}
+
+#[test]
+fn changed_scenes_move_objects_between_scan_and_photos() {
+    for kind in [SceneKind::Yard, SceneKind::Room, SceneKind::Corridor] {
+        let scan = build_scene(kind, 0);
+        let (same, removed, added) = build_changed_scene(kind, 0, 0);
+        assert_eq!((removed, added), (0, 0));
+        assert_eq!(same.quads.len(), scan.quads.len());
+        let (photo, removed, added) = build_changed_scene(kind, 0, 3);
+        assert_eq!((removed, added), (3, 3), "{kind:?}");
+        let new: Vec<&SolidBox> = photo
+            .solids
+            .iter()
+            .filter(|b| !scan.solids.iter().any(|s| same_box(s, b)))
+            .collect();
+        let gone: Vec<&SolidBox> = scan
+            .solids
+            .iter()
+            .filter(|s| !photo.solids.iter().any(|b| same_box(s, b)))
+            .collect();
+        assert_eq!((new.len(), gone.len()), (3, 3), "{kind:?}");
+        // New boxes stand clear of the scan's surfaces, removed ones are
+        // only in the scan.
+        for b in new {
+            let top = top_centre(b);
+            assert!(photo.distance_to_surfaces(&top) < 1e-9);
+            assert!(scan.distance_to_surfaces(&top) > 0.1, "{kind:?} {b:?}");
+            assert!(scan.solids.iter().all(|s| !s.contains(&top, -0.1)));
+        }
+        for b in gone {
+            let top = top_centre(b);
+            assert!(scan.distance_to_surfaces(&top) < 1e-9);
+            assert!(photo.distance_to_surfaces(&top) > 0.05, "{kind:?} {b:?}");
+        }
+    }
+    // The map is sampled from the scan, the images from the changed scene.
+    let dir = tempfile::tempdir().unwrap();
+    let mut opts = small_options(SceneKind::Yard, 3);
+    let plain = generate_scene(&opts, &dir.path().join("plain")).unwrap();
+    opts.changes = 3;
+    let changed = generate_scene(&opts, &dir.path().join("changed")).unwrap();
+    assert_eq!((changed.objects_removed, changed.objects_added), (3, 3));
+    assert_eq!((plain.objects_removed, plain.objects_added), (0, 0));
+    let read = |d: &str, f: &str| std::fs::read(dir.path().join(d).join(f)).unwrap();
+    assert!(read("plain", "lidar.ply") == read("changed", "lidar.ply"));
+    let differ = (0..3)
+        .filter(|&i| {
+            let f = format!("images/frame_{i:04}.jpg");
+            read("plain", &f) != read("changed", &f)
+        })
+        .count();
+    assert!(differ > 0, "the first images see the changes");
 }
 
 #[test]

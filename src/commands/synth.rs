@@ -52,6 +52,10 @@ pub struct SynthArgs {
     /// Fraction of LiDAR outliers (random points with random normals in the scene's box).
     #[arg(long, default_value_t = 0.001)]
     pub lidar_outliers: f64,
+    /// The scene changed since the scan: N of its objects are in the map but
+    /// not in the images, and up to N new boxes in the images but not in the map.
+    #[arg(long, default_value_t = 0)]
+    pub changes: usize,
 }
 
 fn parse_offset(s: &str) -> Result<[f64; 3], String> {
@@ -81,6 +85,7 @@ impl SynthArgs {
                 .unwrap_or_else(Vector3::zeros),
             supersample: self.supersample,
             jpeg_quality: self.jpeg_quality,
+            changes: self.changes,
             ..SynthOptions::default()
         };
         opts.lidar.spacing_m = self.lidar_spacing;

@@ -28,7 +28,7 @@ use serde::Serialize;
 
 use super::lidar::{sample_lidar, write_ply, LidarOptions};
 use super::render::{render, RayTable, RenderSettings};
-use super::scenes::{build_scene, trajectory, SceneKind};
+use super::scenes::{build_changed_scene, build_scene, trajectory, SceneKind};
 use super::{lens, SynthError};
 use crate::io::atomic::{write_dir_atomically, write_file_atomically};
 use crate::scene::BodyPose;
@@ -61,6 +61,10 @@ pub struct SynthOptions {
     /// Relative amplitude of the per-image exposure variation. Default 0.15.
     pub exposure_variation: f32,
     pub lidar: LidarOptions,
+    /// The scene changed since the scan: this many of its movable objects are
+    /// in the map but not in the images, and up to this many new boxes are in
+    /// the images but not in the map ([`build_changed_scene`]). Default 0.
+    pub changes: usize,
 }
 
 impl Default for SynthOptions {
@@ -79,6 +83,7 @@ impl Default for SynthOptions {
             noise_sigma_u8: 2.0,
             exposure_variation: 0.15,
             lidar: LidarOptions::default(),
+            changes: 0,
         }
     }
 }
@@ -180,6 +185,9 @@ pub struct SceneSummary {
     pub lidar_spacing_m: f64,
     pub init_pose_exact: [f64; 6],
     pub init_pose_perturbed: [f64; 6],
+    /// Objects of the scan not in the images, and new ones in the images only.
+    pub objects_removed: usize,
+    pub objects_added: usize,
     pub render_seconds: f64,
 }
 
@@ -292,7 +300,10 @@ fn write_gt(
 /// Renders and writes a scene into `output` (replaced atomically).
 pub fn generate_scene(opts: &SynthOptions, output: &Path) -> Result<SceneSummary, SynthError> {
     opts.validate()?;
+    // The map is scanned from `scene`, the images are taken of `photographed`.
     let scene = build_scene(opts.scene, opts.seed);
+    let (photographed, objects_removed, objects_added) =
+        build_changed_scene(opts.scene, opts.seed, opts.changes);
     let poses_local = trajectory(opts.scene, opts.num_images, opts.seed);
     let camera = opts.camera();
     let names: Vec<String> = (0..poses_local.len()).map(image_name).collect();
@@ -313,7 +324,7 @@ pub fn generate_scene(opts: &SynthOptions, output: &Path) -> Result<SceneSummary
                 noise_sigma_u8: opts.noise_sigma_u8,
                 noise_seed: super::texture::hash64(opts.seed ^ (i as u64 + 1)),
             };
-            let rgb = render(&scene, &table, &pose.to_cam_from_world(), &settings);
+            let rgb = render(&photographed, &table, &pose.to_cam_from_world(), &settings);
             let path = images_dir.join(&names[i]);
             write_jpeg(&path, &rgb, opts.width, opts.height, opts.jpeg_quality)?;
             log::debug!("rendered {}", path.display());
@@ -376,6 +387,8 @@ pub fn generate_scene(opts: &SynthOptions, output: &Path) -> Result<SceneSummary
             lidar_spacing_m: map.spacing_m,
             init_pose_exact: exact,
             init_pose_perturbed: perturbed,
+            objects_removed,
+            objects_added,
             render_seconds,
         };
         let path = dir.join("scene.json");

@@ -43,11 +43,162 @@ impl SceneKind {
 
 /// Builds the geometry of a scene. The seed changes the textures only.
 pub fn build_scene(kind: SceneKind, seed: u64) -> Scene {
-    match kind {
-        SceneKind::Yard => yard(seed),
-        SceneKind::Room => room(seed),
-        SceneKind::Corridor => corridor(seed),
+    build_changed_scene(kind, seed, 0).0
+}
+
+/// The scene as photographed after it changed since the scan: `changes` of
+/// its movable objects (the yard's objects, the room's furniture, the
+/// corridor's cabinets; those the first images see first) are gone and up to
+/// `changes` new boxes stand where there was nothing (none on the cameras'
+/// paths). `changes` = 0 is [`build_scene`]. Also returns how many
+/// objects were taken away and how many added.
+pub fn build_changed_scene(kind: SceneKind, seed: u64, changes: usize) -> (Scene, usize, usize) {
+    let mut edit = Edit {
+        removed: removal_order(kind).take(changes).collect(),
+        added: new_objects(kind, seed, changes),
+        num_removed: 0,
+    };
+    let scene = edit.apply(kind, seed);
+    (scene, edit.num_removed, edit.added.len())
+}
+
+/// Changes applied to a scene's movable objects.
+struct Edit {
+    /// Indices of the movable objects left out.
+    removed: Vec<usize>,
+    /// New boxes, added with their own textures.
+    added: Vec<SolidBox>,
+    /// Objects left out so far.
+    num_removed: usize,
+}
+
+impl Edit {
+    fn apply(&mut self, kind: SceneKind, seed: u64) -> Scene {
+        match kind {
+            SceneKind::Yard => yard(seed, self),
+            SceneKind::Room => room(seed, self),
+            SceneKind::Corridor => corridor(seed, self),
+        }
     }
+
+    /// Adds the movable objects (`k`-th of `objects` unless removed) and then
+    /// the new ones, with seeds from `seed_base` upwards.
+    fn place(&mut self, s: &mut Scene, objects: Vec<SolidBox>, seed: u64, seed_base: u64) {
+        for (k, b) in objects.into_iter().enumerate() {
+            if self.removed.contains(&k) {
+                self.num_removed += 1;
+                continue;
+            }
+            add_box(
+                s,
+                b,
+                Material::Object,
+                hash64(seed ^ (seed_base + k as u64)),
+            );
+        }
+        for (k, b) in self.added.iter().enumerate() {
+            add_box(
+                s,
+                b.clone(),
+                Material::Object,
+                hash64(seed ^ (900 + k as u64)),
+            );
+        }
+    }
+}
+
+/// Which movable objects go first: those the first images of the
+/// trajectory see (the yard's walk starts facing south-east).
+fn removal_order(kind: SceneKind) -> Box<dyn Iterator<Item = usize>> {
+    match kind {
+        SceneKind::Yard => Box::new([5, 3, 1, 6, 2, 4, 0].into_iter()),
+        SceneKind::Room | SceneKind::Corridor => Box::new(0..),
+    }
+}
+
+/// Up to `n` new boxes for `kind`: candidates in view of the trajectory,
+/// those that would touch one of the scene's own solids skipped.
+fn new_objects(kind: SceneKind, seed: u64, n: usize) -> Vec<SolidBox> {
+    if n == 0 {
+        return Vec::new();
+    }
+    let candidates: Vec<SolidBox> = match kind {
+        SceneKind::Yard => vec![
+            boxed(4.8, -8.6, 1.2, 0.8, 1.2, 20.0),
+            boxed(10.0, -3.0, 1.0, 1.4, 1.0, 0.0),
+            boxed(-1.5, -8.6, 1.4, 0.9, 1.5, -10.0),
+            boxed(-2.0, 8.5, 1.4, 1.0, 1.5, 20.0),
+            boxed(9.0, 3.0, 1.0, 1.8, 1.2, -15.0),
+            boxed(-9.5, 3.0, 1.2, 1.2, 2.0, 0.0),
+            boxed(4.5, -8.5, 1.6, 0.8, 1.0, 30.0),
+            boxed(8.5, 7.5, 1.0, 1.0, 0.9, 10.0),
+        ],
+        SceneKind::Room => vec![
+            boxed(0.0, -3.8, 1.2, 0.7, 0.9, 0.0),
+            boxed(-4.8, -2.8, 0.8, 0.8, 1.4, 0.0),
+            boxed(5.2, -0.8, 0.8, 1.0, 0.7, 0.0),
+            boxed(-4.0, 3.8, 1.4, 0.6, 1.1, 0.0),
+            boxed(-5.3, -1.5, 0.8, 0.6, 1.0, 0.0),
+        ],
+        SceneKind::Corridor => (0..24)
+            .map(|i| {
+                let x = 3.0 + 1.5 * i as f64;
+                let side = if i % 2 == 0 { 1.0 } else { -1.0 };
+                boxed(x, side * (1.2 - 0.176), 0.7, 0.35, 1.3, 0.0)
+            })
+            .collect(),
+    };
+    let existing = build_scene_solids(kind, seed);
+    let mut chosen: Vec<SolidBox> = Vec::new();
+    for c in candidates {
+        if chosen.len() == n {
+            break;
+        }
+        let clear = existing
+            .iter()
+            .chain(&chosen)
+            .all(|b| !boxes_touch(b, &c, 0.1));
+        if clear {
+            chosen.push(c);
+        }
+    }
+    chosen
+}
+
+/// The solids of the unchanged scene.
+fn build_scene_solids(kind: SceneKind, seed: u64) -> Vec<SolidBox> {
+    let mut edit = Edit {
+        removed: Vec::new(),
+        added: Vec::new(),
+        num_removed: 0,
+    };
+    edit.apply(kind, seed).solids
+}
+
+/// Whether two upright boxes standing on the ground come within `margin_m`
+/// of each other: a point of one's footprint outline (every 5 cm) or centre
+/// inside the other grown by the margin.
+fn boxes_touch(a: &SolidBox, b: &SolidBox, margin_m: f64) -> bool {
+    let outline = |x: &SolidBox| -> Vec<Vector3<f64>> {
+        let (sin, cos) = x.yaw_rad.sin_cos();
+        let (ex, ey) = (v(cos, sin, 0.0), v(-sin, cos, 0.0));
+        let centre = v(x.center_xy_m[0], x.center_xy_m[1], x.base_z_m + 0.05);
+        let (hx, hy) = (x.size_m[0] / 2.0, x.size_m[1] / 2.0);
+        let corners = [(-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy)];
+        let mut points = vec![centre];
+        for k in 0..4 {
+            let (p, q) = (corners[k], corners[(k + 1) % 4]);
+            let steps = ((q.0 - p.0).hypot(q.1 - p.1) / 0.05).ceil().max(1.0) as usize;
+            for i in 0..steps {
+                let t = i as f64 / steps as f64;
+                let (u, w) = (p.0 + t * (q.0 - p.0), p.1 + t * (q.1 - p.1));
+                points.push(centre + ex * u + ey * w);
+            }
+        }
+        points
+    };
+    outline(a).iter().any(|p| b.contains(p, -margin_m))
+        || outline(b).iter().any(|p| a.contains(p, -margin_m))
 }
 
 /// Camera trajectory of `num_images` poses (local frame).
@@ -171,7 +322,7 @@ fn boxed(cx: f64, cy: f64, sx: f64, sy: f64, sz: f64, yaw_deg: f64) -> SolidBox 
     }
 }
 
-fn yard(seed: u64) -> Scene {
+fn yard(seed: u64, edit: &mut Edit) -> Scene {
     let mut s = Scene {
         quads: vec![Quad::new(
             v(-22.0, -22.0, 0.0),
@@ -197,7 +348,7 @@ fn yard(seed: u64) -> Scene {
     for (k, b) in buildings.into_iter().enumerate() {
         add_box(&mut s, b, Material::Facade, hash64(seed ^ (100 + k as u64)));
     }
-    let objects = [
+    let objects = vec![
         boxed(5.0, 5.5, 2.2, 1.6, 2.6, 15.0),
         boxed(-4.5, -5.5, 1.0, 1.0, 1.0, 30.0),
         boxed(-5.8, -4.8, 1.2, 0.8, 0.8, -10.0),
@@ -206,9 +357,7 @@ fn yard(seed: u64) -> Scene {
         boxed(2.0, -8.0, 1.5, 1.5, 1.8, 45.0),
         boxed(-9.0, -1.0, 1.8, 0.9, 1.1, 80.0),
     ];
-    for (k, b) in objects.into_iter().enumerate() {
-        add_box(&mut s, b, Material::Object, hash64(seed ^ (200 + k as u64)));
-    }
+    edit.place(&mut s, objects, seed, 200);
     s
 }
 
@@ -271,7 +420,7 @@ fn indoor_lighting() -> Lighting {
     }
 }
 
-fn room(seed: u64) -> Scene {
+fn room(seed: u64, edit: &mut Edit) -> Scene {
     let mut s = Scene {
         quads: vec![],
         solids: vec![],
@@ -293,20 +442,18 @@ fn room(seed: u64) -> Scene {
             hash64(seed ^ (300 + k as u64)),
         );
     }
-    let furniture = [
+    let furniture = vec![
         boxed(-5.2, 0.5, 1.2, 2.0, 0.8, 0.0),
         boxed(4.8, -3.5, 1.6, 0.8, 1.9, 0.0),
         boxed(1.5, 3.8, 2.0, 0.6, 1.0, 0.0),
         boxed(-1.8, -3.9, 1.0, 0.9, 0.75, 10.0),
         boxed(5.3, 2.0, 0.8, 1.4, 1.2, 0.0),
     ];
-    for (k, b) in furniture.into_iter().enumerate() {
-        add_box(&mut s, b, Material::Object, hash64(seed ^ (400 + k as u64)));
-    }
+    edit.place(&mut s, furniture, seed, 400);
     s
 }
 
-fn corridor(seed: u64) -> Scene {
+fn corridor(seed: u64, edit: &mut Edit) -> Scene {
     let mut s = Scene {
         quads: vec![],
         solids: vec![],
@@ -316,21 +463,16 @@ fn corridor(seed: u64) -> Scene {
     // Cabinets, benches and pilasters along both walls, from a seeded layout.
     let mut rng = ChaCha8Rng::seed_from_u64(hash64(seed ^ 0xC0DE));
     let mut x = 1.5;
-    let mut k = 0u64;
+    let mut cabinets = Vec::new();
     while x < 38.0 {
         let len = rng.gen_range(0.4..1.6);
         let depth = rng.gen_range(0.15..0.45);
         let height = rng.gen_range(0.5..2.2);
         let side = if rng.gen_bool(0.5) { 1.0 } else { -1.0 };
         let y = side * (1.2 - depth / 2.0 - 0.001);
-        add_box(
-            &mut s,
-            boxed(x + len / 2.0, y, len, depth, height, 0.0),
-            Material::Object,
-            hash64(seed ^ (500 + k)),
-        );
-        k += 1;
+        cabinets.push(boxed(x + len / 2.0, y, len, depth, height, 0.0));
         x += len + rng.gen_range(1.0..3.0);
     }
+    edit.place(&mut s, cabinets, seed, 500);
     s
 }
