@@ -99,6 +99,9 @@ pub struct MapReport {
     pub mean_track_length: f64,
     pub mean_reprojection_error_px: f64,
     pub init: Option<InitSummary>,
+    /// How far the initial image ended from its given pose (with LiDAR
+    /// constraints; a warning beyond half the accepted change).
+    pub initial_pose_change: Option<PoseChangeRecord>,
     /// The alignment of the initial pair's model to the map, when run.
     pub initial_alignment: Option<AlignmentRecord>,
     /// The whole-model alignment to the map before the final rounds, when run.
@@ -129,6 +132,13 @@ pub struct MapReport {
     /// The options the run used, adapted to the map's spacing (the TOML
     /// file's `[mapper]` sections, as JSON).
     pub options: Option<MapperOptions>,
+}
+
+/// A pose's change: its centre's move and its rotation's angle.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct PoseChangeRecord {
+    pub moved_m: f64,
+    pub turned_deg: f64,
 }
 
 /// One camera's intrinsics (COLMAP's parameter order for its model).
