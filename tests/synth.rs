@@ -202,16 +202,41 @@ fn changed_scenes_move_objects_between_scan_and_photos() {
         assert_eq!((new.len(), gone.len()), (3, 3), "{kind:?}");
         // New boxes stand clear of the scan's surfaces, removed ones are
         // only in the scan.
-        for b in new {
+        for b in &new {
             let top = top_centre(b);
             assert!(photo.distance_to_surfaces(&top) < 1e-9);
             assert!(scan.distance_to_surfaces(&top) > 0.1, "{kind:?} {b:?}");
             assert!(scan.solids.iter().all(|s| !s.contains(&top, -0.1)));
         }
-        for b in gone {
+        for b in &gone {
             let top = top_centre(b);
             assert!(scan.distance_to_surfaces(&top) < 1e-9);
             assert!(photo.distance_to_surfaces(&top) > 0.05, "{kind:?} {b:?}");
+        }
+        // The default 24-image walk sees them: in the room all six, in the
+        // yard the three new boxes and two of the removed objects (only two
+        // of its objects are in view of that walk).
+        let camera = SynthOptions::default().camera();
+        let poses = trajectory(kind, 24, 0);
+        // Its top's or its middle's centre in an image.
+        let in_view = |b: &SolidBox| {
+            let top = top_centre(b);
+            let mid = top - Vector3::new(0.0, 0.0, 0.5 * b.size_m[2]);
+            poses.iter().any(|pose| {
+                [top, mid].iter().any(|x| {
+                    let c = pose.to_cam_from_world().transform_point(x);
+                    c.z > 0.3
+                        && camera.project(&c).is_some_and(|px| {
+                            (0.0..640.0).contains(&px.x) && (0.0..480.0).contains(&px.y)
+                        })
+                })
+            })
+        };
+        let seen = |boxes: &[&SolidBox]| boxes.iter().filter(|b| in_view(b)).count();
+        match kind {
+            SceneKind::Room => assert_eq!((seen(&new), seen(&gone)), (3, 3)),
+            SceneKind::Yard => assert_eq!((seen(&new), seen(&gone)), (3, 2)),
+            SceneKind::Corridor => {}
         }
     }
     // The map is sampled from the scan, the images from the changed scene.

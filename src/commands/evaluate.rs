@@ -138,7 +138,11 @@ fn options_of_run(path: &Path) -> anyhow::Result<Option<MapperOptions>> {
     let mut report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path)?)?;
     match report.get_mut("options").map(serde_json::Value::take) {
         None | Some(serde_json::Value::Null) => Ok(None),
-        Some(options) => Ok(Some(serde_json::from_value(options)?)),
+        Some(options) => {
+            let options: MapperOptions = serde_json::from_value(options)?;
+            options.validate()?;
+            Ok(Some(options))
+        }
     }
 }
 

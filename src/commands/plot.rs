@@ -24,27 +24,83 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 use serde::Deserialize;
 
-use crate::io::atomic::write_dir_atomically;
+use crate::io::atomic::write_file_atomically;
 use crate::sfm::associate::SolveKind;
-use crate::sfm::bundle::SolveRecord;
-use crate::sfm::report::ImageRecord;
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct PlotArgs {
     /// A `map` run's report.json, or the model folder holding it.
     pub report: PathBuf,
-    /// Output folder for the SVG files (replaced as a whole, atomically).
+    /// Output folder for the SVG files (created if missing; only the four
+    /// figures' files in it are replaced, each atomically).
     #[arg(long)]
     pub output: PathBuf,
 }
 
-/// The parts of `report.json` the figures use.
-#[derive(Debug, Deserialize)]
+/// The parts of `report.json` the figures use. Every field is optional (older
+/// reports lack some) and a number may be `null` (JSON has no NaN: an
+/// undetermined sigma is written so); such values are left out.
+#[derive(Debug, Default, Deserialize)]
+#[serde(default)]
 pub struct ReportForPlots {
+    pub solves: Vec<SolveForPlots>,
+    pub images: Vec<ImageForPlots>,
+}
+
+/// One solve of `report.json` -> `solves`.
+#[derive(Debug, Deserialize)]
+pub struct SolveForPlots {
+    pub kind: SolveKind,
     #[serde(default)]
-    pub solves: Vec<SolveRecord>,
+    pub num_registered: usize,
     #[serde(default)]
-    pub images: Vec<ImageRecord>,
+    pub num_points: usize,
+    #[serde(default)]
+    pub num_planes: usize,
+    #[serde(default)]
+    pub num_projection_planes: usize,
+    #[serde(default)]
+    pub num_nearest_planes: usize,
+    #[serde(default)]
+    pub num_ground_planes: usize,
+    #[serde(default)]
+    pub plane_distance_before_m: MeanStd,
+    #[serde(default)]
+    pub plane_distance_after_m: MeanStd,
+    #[serde(default)]
+    pub reprojection_before_px: MeanStd,
+    #[serde(default)]
+    pub reprojection_after_px: MeanStd,
+    #[serde(default)]
+    pub discarded: bool,
+}
+
+/// A mean (and spread) as report.json has them.
+#[derive(Debug, Default, Deserialize)]
+#[serde(default)]
+pub struct MeanStd {
+    pub mean: Option<f64>,
+    pub std: Option<f64>,
+    pub count: Option<usize>,
+}
+
+impl MeanStd {
+    /// The mean when it is a finite number (and, with a count, over at least one value).
+    fn mean(&self) -> Option<f64> {
+        self.mean.filter(|m| m.is_finite() && self.count != Some(0))
+    }
+}
+
+/// One image of `report.json` -> `images`.
+#[derive(Debug, Default, Deserialize)]
+#[serde(default)]
+pub struct ImageForPlots {
+    pub registered: bool,
+    pub registration_index: Option<usize>,
+    pub num_projection_planes: usize,
+    pub num_nearest_planes: usize,
+    pub num_ground_planes: usize,
+    pub mean_plane_distance_m: Option<f64>,
 }
 
 /// A series of (x, y) points.
@@ -68,25 +124,25 @@ pub struct SolveSeries {
 }
 
 impl SolveSeries {
-    fn push(&mut self, s: &SolveRecord) {
+    fn push(&mut self, s: &SolveForPlots) {
         let x = s.num_registered as f64;
         self.projection.push((x, s.num_projection_planes as f64));
         self.nearest.push((x, s.num_nearest_planes as f64));
         self.ground.push((x, s.num_ground_planes as f64));
         self.planes.push((x, s.num_planes as f64));
         if s.num_planes > 0 {
+            let mm = |d: &MeanStd| d.mean().map(|m| (x, 1e3 * m));
             self.distance_before_mm
-                .push((x, 1e3 * s.plane_distance_before_m.mean));
-            self.distance_after_mm
-                .push((x, 1e3 * s.plane_distance_after_m.mean));
+                .extend(mm(&s.plane_distance_before_m));
+            self.distance_after_mm.extend(mm(&s.plane_distance_after_m));
         }
-        if s.reprojection_after_px.count > 0 {
-            self.reprojection_before_px
-                .push((x, s.reprojection_before_px.mean));
-            self.reprojection_after_px
-                .push((x, s.reprojection_after_px.mean));
-            self.reprojection_after_std_px
-                .push((x, s.reprojection_after_px.std));
+        let px = |e: &MeanStd| e.mean().map(|m| (x, m));
+        self.reprojection_before_px
+            .extend(px(&s.reprojection_before_px));
+        let after = &s.reprojection_after_px;
+        if let (Some(m), Some(sd)) = (after.mean(), after.std.filter(|v| v.is_finite())) {
+            self.reprojection_after_px.push((x, m));
+            self.reprojection_after_std_px.push((x, sd));
         }
     }
 }
@@ -134,7 +190,7 @@ impl PlotData {
         {
             bail!("the report holds no solve to plot");
         }
-        let mut registered: Vec<&ImageRecord> = report
+        let mut registered: Vec<&ImageForPlots> = report
             .images
             .iter()
             .filter(|r| r.registered && r.registration_index.is_some())
@@ -147,7 +203,7 @@ impl PlotData {
                 .push((x, r.num_projection_planes as f64));
             data.images.nearest.push((x, r.num_nearest_planes as f64));
             data.images.ground.push((x, r.num_ground_planes as f64));
-            if let Some(d) = r.mean_plane_distance_m {
+            if let Some(d) = r.mean_plane_distance_m.filter(|d| d.is_finite()) {
                 data.images.distance_mm.push((x, 1e3 * d));
             }
         }
@@ -172,15 +228,15 @@ pub fn read_report(path: &Path) -> anyhow::Result<(PathBuf, ReportForPlots)> {
 pub fn run(args: &PlotArgs) -> anyhow::Result<()> {
     let (file, report) = read_report(&args.report)?;
     let data = PlotData::from_report(&report).with_context(|| format!("{}", file.display()))?;
+    // Everything is drawn before anything is written.
     let figures = render(&data)?;
-    write_dir_atomically::<anyhow::Error>(&args.output, |dir| {
-        for (name, svg) in &figures {
-            fs::write(dir.join(name), svg)
-                .with_context(|| format!("writing {}", dir.join(name).display()))?;
-        }
-        Ok(())
-    })
-    .with_context(|| format!("writing the figures to {}", args.output.display()))?;
+    fs::create_dir_all(&args.output)
+        .with_context(|| format!("creating the folder {}", args.output.display()))?;
+    for (name, svg) in &figures {
+        let path = args.output.join(name);
+        write_file_atomically(&path, |w| std::io::Write::write_all(w, svg.as_bytes()))
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
     log::info!(
         "wrote {} figures of {} solves to {}",
         figures.len(),
@@ -239,9 +295,13 @@ fn y_log_range<'a>(series: impl IntoIterator<Item = &'a Series>) -> Range<f64> {
     (lo / 2.0)..(hi * 40.0)
 }
 
+/// Values beyond this (only in a corrupt report) are left out of the axes'
+/// ranges, which stay finite.
+const MAX_AXIS_VALUE: f64 = 1e12;
+
 fn bounds(values: impl Iterator<Item = f64>) -> (f64, f64) {
     values
-        .filter(|v| v.is_finite())
+        .filter(|v| v.is_finite() && v.abs() <= MAX_AXIS_VALUE)
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
             (lo.min(v), hi.max(v))
         })
@@ -272,7 +332,14 @@ where
         .y_label_area_size(60)
         .build_cartesian_2d(x, y)
         .map_err(plot_error)?;
-    let whole = |v: &f64| format!("{v:.0}");
+    // Whole numbers only: padded or short axes get fractional ticks.
+    let whole = |v: &f64| {
+        if (v - v.round()).abs() < 1e-9 {
+            format!("{v:.0}")
+        } else {
+            String::new()
+        }
+    };
     let mut mesh = chart.configure_mesh();
     // The x axes count images; counts on y are whole numbers too.
     mesh.x_desc(x_desc).y_desc(y_desc).x_label_formatter(&whole);
@@ -620,6 +687,10 @@ mod tests {
     }
 
     fn sample_report() -> ReportForPlots {
+        serde_json::from_value(sample_json()).unwrap()
+    }
+
+    fn sample_json() -> serde_json::Value {
         let mut discarded = solve("final", 4, [0, 50, 0], 3.0, 2.0);
         discarded["discarded"] = serde_json::json!(true);
         let mut empty = solve("local", 4, [0, 0, 0], 0.0, 0.0);
@@ -644,7 +715,7 @@ mod tests {
                 image(10, Some(2), [0, 0, 0], None),
             ],
         });
-        serde_json::from_value(json).unwrap()
+        json
     }
 
     #[test]
@@ -776,6 +847,33 @@ mod tests {
     }
 
     #[test]
+    fn nulls_missing_fields_and_absurd_values_are_left_out() {
+        // An undetermined sigma is written as null, older reports lack
+        // fields, a corrupt one may hold absurd numbers.
+        let mut image_with_null = image(3, Some(0), [0, 5, 0], Some(1.0));
+        image_with_null["pose_uncertainty"] = serde_json::json!(
+            {"centre_sigma_m": [null, 0.001, 0.001], "rotation_sigma_deg": null}
+        );
+        let mut old = solve("local", 2, [0, 50, 0], 3.0, 0.01);
+        old.as_object_mut().unwrap().remove("discarded");
+        old.as_object_mut().unwrap().remove("intrinsics_held");
+        let mut nulls = solve("local", 3, [0, 60, 0], 2.0, 0.02);
+        nulls["plane_distance_after_m"]["mean"] = serde_json::Value::Null;
+        nulls["reprojection_after_px"]["std"] = serde_json::Value::Null;
+        let huge = solve("global", 4, [0, 70, 0], 1e300, 0.03);
+        let json = serde_json::json!({"solves": [old, nulls, huge], "images": [image_with_null]});
+        let report: ReportForPlots = serde_json::from_value(json).unwrap();
+        let data = PlotData::from_report(&report).unwrap();
+        assert_eq!(data.local.planes, vec![(2.0, 50.0), (3.0, 60.0)]);
+        assert_eq!(data.local.distance_after_mm.len(), 1);
+        assert_eq!(data.local.reprojection_after_px, vec![(2.0, 0.25)]);
+        assert_eq!(data.images.nearest, vec![(0.0, 5.0)]);
+        // The 1e303 mm value is left off the axis, which stays finite.
+        let figures = render(&data).unwrap();
+        assert!(figures[1].1.trim_end().ends_with("</svg>"));
+    }
+
+    #[test]
     fn reports_without_solves_and_bad_files_are_errors() {
         let empty: ReportForPlots =
             serde_json::from_str(r#"{"solves": [], "images": []}"#).unwrap();
@@ -791,13 +889,28 @@ mod tests {
             read_report(&dir.path().join("missing.json")).unwrap_err()
         );
         assert!(err.contains("missing.json"), "{err}");
-        // Nothing written on error.
+        // Nothing written on error: a report that parses but has nothing to draw.
+        fs::write(&bad, r#"{"seed": 0, "solves": []}"#).unwrap();
         let out = dir.path().join("plots");
         let args = PlotArgs {
-            report: bad,
+            report: bad.clone(),
             output: out.clone(),
         };
-        assert!(run(&args).is_err());
+        let err = format!("{:#}", run(&args).unwrap_err());
+        assert!(
+            err.contains("no solve") && err.contains("report.json"),
+            "{err}"
+        );
         assert!(!out.exists());
+        // Into the model's own folder: the figures join its files, which stay.
+        fs::write(&bad, sample_json().to_string()).unwrap();
+        let model_file = dir.path().join("cameras.txt");
+        fs::write(&model_file, "# camera").unwrap();
+        run(&PlotArgs {
+            report: dir.path().to_path_buf(),
+            output: dir.path().to_path_buf(),
+        })
+        .unwrap();
+        assert!(model_file.exists() && dir.path().join("planes.svg").exists());
     }
 }

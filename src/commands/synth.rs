@@ -112,6 +112,12 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         summary.lidar_spacing_m,
         args.output.display()
     );
+    if opts.changes > 0 {
+        println!(
+            "changed since the scan: {} objects in the map only, {} new ones in the images only",
+            summary.objects_removed, summary.objects_added
+        );
+    }
     Ok(())
 }
 

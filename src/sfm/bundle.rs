@@ -5,7 +5,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 
 use nalgebra::Vector3;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 use super::associate::{AssociationQuery, PlaneAssociator, SolveKind};
 use super::options::BundleOptions;
@@ -90,7 +90,7 @@ pub struct SoftPosePrior {
 }
 
 /// One solve, as reported.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize)]
 pub struct SolveRecord {
     pub kind: SolveKind,
     /// Registered images when the solve ran.
@@ -129,7 +129,7 @@ pub struct SolveRecord {
 }
 
 /// Mean and median of unsigned distances.
-#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, Serialize)]
 pub struct DistanceStats {
     pub mean: f64,
     pub median: f64,
@@ -148,7 +148,7 @@ impl DistanceStats {
 }
 
 /// Mean and standard deviation of errors.
-#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, Serialize)]
 pub struct ErrorStats {
     pub mean: f64,
     pub std: f64,
@@ -556,7 +556,7 @@ pub fn bundle_adjust(
 /// there (planes associated afresh, then held fixed), every residual scaled by
 /// the residual variance the fit estimates (pose priors too: their weights
 /// are pixel equivalents like the planes'); see [`crate::solver::covariance`].
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize)]
 pub struct PoseUncertainty {
     /// Camera centre along the map's x, y and z axes, metres.
     pub centre_sigma_m: [f64; 3],

@@ -1,6 +1,6 @@
 //! `report.json`: what the mapper did, per image and per solve. Everything in
 //! it is deterministic except the `time_s` fields.
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 use super::bundle::{PoseUncertainty, SolveRecord};
 use super::initialize::InitSummary;
@@ -10,7 +10,7 @@ use crate::scene::{Camera, CameraId, ImageId};
 use crate::solver::PlaneFamily;
 
 /// One image.
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, Serialize)]
 pub struct ImageRecord {
     pub image_id: u32,
     pub name: String,
@@ -113,6 +113,9 @@ pub struct MapReport {
     /// at their feature in at least one of their images (with LiDAR
     /// constraints; over at most 20000 of them, every k-th by id).
     pub points_on_seen_surface_share: Option<f64>,
+    /// That share counting the points removed for lying behind the map as
+    /// off it: what `min_points_on_map_share` is checked against.
+    pub fit_share: Option<f64>,
     /// Points deleted before the final rounds because they lie behind the
     /// surface the map shows at their features (with LiDAR constraints).
     pub points_behind_map_removed: Option<usize>,

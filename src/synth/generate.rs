@@ -34,6 +34,10 @@ use crate::io::atomic::{write_dir_atomically, write_file_atomically};
 use crate::scene::BodyPose;
 use crate::scene::{Camera, CameraId, CameraModel, Rigid3};
 
+/// Most objects `changes` may move (the scenes have fewer to remove or add;
+/// `scene.json` says how many were).
+pub const MAX_CHANGES: usize = 32;
+
 /// Everything that defines a generated scene.
 #[derive(Clone, Debug)]
 pub struct SynthOptions {
@@ -96,6 +100,12 @@ impl SynthOptions {
                 "camera model {} is not supported by the renderer (use one of {})",
                 self.camera_model.name(),
                 lens::SUPPORTED_MODELS.map(|m| m.name()).join(", ")
+            ));
+        }
+        if self.changes > MAX_CHANGES {
+            return bad(format!(
+                "--changes must be at most {MAX_CHANGES}, got {}",
+                self.changes
             ));
         }
         if self.num_images < 2 {
