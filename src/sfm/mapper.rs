@@ -14,7 +14,8 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::align::{
-    align_to_map, apply_sim3, count_points_on_map, within_bounds, AlignOptions, INLIER_M,
+    align_to_map, apply_sim3, count_points_on_map, similarity_constraint, within_bounds,
+    AlignOptions, INLIER_M, MIN_SIMILARITY_CONSTRAINT,
 };
 use super::associate::{
     NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
@@ -841,6 +842,16 @@ pub fn run_mapper_with_priors(
         }
         report.initial_pose_change =
             check_initial_pose(&state, init_image, init_cam_from_world, &options.bundle)?;
+        report.similarity_constraint = similarity_constraint(&state);
+        if let Some(c) = &report.similarity_constraint {
+            if c.ratio < MIN_SIMILARITY_CONSTRAINT {
+                log::warn!(
+                    "the map's surfaces the model is tied to leave its placement or scale nearly free in one direction (constraint ratio {:.1e}, weakest [rotation, translation, scale] {:?}): e.g. only the ground and walls meeting at one corner; the map cannot vouch for the result along it",
+                    c.ratio,
+                    c.weakest.map(|v| (v * 100.0).round() / 100.0)
+                );
+            }
+        }
         stages.done("fit to the map");
     }
     report.finish(&state);

@@ -116,6 +116,9 @@ pub struct MapReport {
     /// That share counting the points removed for lying behind the map as
     /// off it: what `min_points_on_map_share` is checked against.
     pub fit_share: Option<f64>,
+    /// How well the final planes fix the model's similarity (a warning below
+    /// `MIN_SIMILARITY_CONSTRAINT`).
+    pub similarity_constraint: Option<super::align::SimilarityConstraint>,
     /// Points deleted before the final rounds because they lie behind the
     /// surface the map shows at their features (with LiDAR constraints).
     pub points_behind_map_removed: Option<usize>,

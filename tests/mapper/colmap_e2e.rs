@@ -348,6 +348,26 @@ fn yard_with_colmap_database() {
         let m = head_on[format!("{side}_median_m")].as_f64().unwrap();
         assert!(m.abs() < 0.001, "{side}: {agreement}");
     }
+    // The map fixes the whole model (no warning), the initial image stays at
+    // its exact pose, and the fit counts the points removed behind the map.
+    let report = &a.report;
+    let ratio = report["similarity_constraint"]["ratio"].as_f64().unwrap();
+    assert!(
+        ratio > colmap_lidar::sfm::align::MIN_SIMILARITY_CONSTRAINT,
+        "{ratio}"
+    );
+    assert!(report["initial_pose_change"]["moved_m"].as_f64().unwrap() < 0.02);
+    let fit = report["fit_share"].as_f64().unwrap();
+    let seen = report["points_on_seen_surface_share"].as_f64().unwrap();
+    let (n, removed) = (
+        report["num_points"].as_f64().unwrap(),
+        report["points_behind_map_removed"].as_f64().unwrap(),
+    );
+    assert!(
+        (fit - seen * n / (n + removed)).abs() < 1e-9 && fit > 0.6,
+        "{fit} {seen}"
+    );
+
     // The run's figures; every local solve brings its points to the planes
     // (the paper's second figure; the seed-0 corridor: 0.7-7 mm before,
     // 0.003-0.06 mm after).
