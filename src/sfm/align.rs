@@ -157,16 +157,7 @@ pub fn align_to_map(
                 }
                 let r = y - centroid;
                 let w = 1.0 / (1.0 + (e / c).powi(2));
-                let rxn = r.cross(&n);
-                let j = SVector::<f64, 7>::from_column_slice(&[
-                    rxn.x,
-                    rxn.y,
-                    rxn.z,
-                    n.x,
-                    n.y,
-                    n.z,
-                    n.dot(&r),
-                ]);
+                let j = similarity_row(&r, &n);
                 h += w * j * j.transpose();
                 g += w * e * j;
                 used += 1;
@@ -260,9 +251,7 @@ pub fn similarity_constraint(state: &MapState) -> Option<SimilarityConstraint> {
     let mut h = SMatrix::<f64, 7, 7>::zeros();
     for (x, n) in &tied {
         let r = (x - centroid) / rms;
-        let rxn = r.cross(n);
-        let j =
-            SVector::<f64, 7>::from_column_slice(&[rxn.x, rxn.y, rxn.z, n.x, n.y, n.z, n.dot(&r)]);
+        let j = similarity_row(&r, n);
         h += j * j.transpose();
     }
     h /= tied.len() as f64;
@@ -290,6 +279,14 @@ pub fn similarity_constraint(state: &MapState) -> Option<SimilarityConstraint> {
         },
         weakest: std::array::from_fn(|i| sign * v[i]),
     })
+}
+
+/// The derivative of the distance of a point at `r` (from the centre of a
+/// small similarity) to a plane of normal `n`, by the similarity's rotation
+/// (axis-angle), translation and log-scale.
+fn similarity_row(r: &Vector3<f64>, n: &Vector3<f64>) -> SVector<f64, 7> {
+    let rxn = r.cross(n);
+    SVector::<f64, 7>::from_column_slice(&[rxn.x, rxn.y, rxn.z, n.x, n.y, n.z, n.dot(r)])
 }
 
 /// The tangent plane (normal, offset) of the map point nearest to `y`

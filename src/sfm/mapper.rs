@@ -161,26 +161,21 @@ fn check_initial_pose(
     let Some(pose) = state.pose(init_image) else {
         return Ok(None);
     };
-    let moved_m = (pose.camera_center() - given.camera_center()).norm();
-    let turned_deg = (pose.rotation * given.rotation.inverse())
-        .angle()
-        .to_degrees();
-    let (max_m, max_deg) = (
-        options.max_initial_pose_change_m,
-        options.max_initial_pose_change_deg,
-    );
-    if (max_m > 0.0 && moved_m > max_m) || (max_deg > 0.0 && turned_deg > max_deg) {
+    let change = PoseChangeRecord {
+        moved_m: (pose.camera_center() - given.camera_center()).norm(),
+        turned_deg: (pose.rotation * given.rotation.inverse())
+            .angle()
+            .to_degrees(),
+    };
+    let (moved_m, turned_deg) = (change.moved_m, change.turned_deg);
+    if pose_change_beyond(&change, options, 1.0) {
         return Err(MapperError::InitialPoseFarOff {
             moved_m,
             turned_deg,
-            max_m,
-            max_deg,
+            max_m: options.max_initial_pose_change_m,
+            max_deg: options.max_initial_pose_change_deg,
         });
     }
-    let change = PoseChangeRecord {
-        moved_m,
-        turned_deg,
-    };
     if initial_pose_moved_far(&change, options) {
         log::warn!(
             "the initial image ended {moved_m:.2} m and {turned_deg:.1} deg from its given pose: if that pose is better than this, the map did not hold the model in place (the images may see too few of the map's surfaces, e.g. the ground and one wall, or the scene changed since the scan); check the result, e.g. with `colmap-lidar depth`"
@@ -189,18 +184,23 @@ fn check_initial_pose(
     Ok(Some(change))
 }
 
-/// Whether the initial image moved more than half the accepted change
-/// (`max_initial_pose_change_m` / `_deg`; a limit of 0 is off): a perturbed
-/// pose (0.3 m, 3 deg) moves back less; on a scene whose movable objects
-/// changed since the scan (`synth --changes 3`, seed-0 yard), the model
-/// slid and the initial image, given its exact pose, ended 0.92 m off.
-fn initial_pose_moved_far(change: &PoseChangeRecord, options: &BundleOptions) -> bool {
+/// Whether `change` exceeds `fraction` of the accepted change
+/// (`max_initial_pose_change_m` / `_deg`; a limit of 0 is off).
+fn pose_change_beyond(change: &PoseChangeRecord, options: &BundleOptions, fraction: f64) -> bool {
     let (max_m, max_deg) = (
         options.max_initial_pose_change_m,
         options.max_initial_pose_change_deg,
     );
-    (max_m > 0.0 && change.moved_m > 0.5 * max_m)
-        || (max_deg > 0.0 && change.turned_deg > 0.5 * max_deg)
+    (max_m > 0.0 && change.moved_m > fraction * max_m)
+        || (max_deg > 0.0 && change.turned_deg > fraction * max_deg)
+}
+
+/// Whether the initial image moved more than half the accepted change: a
+/// perturbed pose (0.3 m, 3 deg) moves back less; on a scene whose movable
+/// objects changed since the scan (`synth --changes 3`, seed-0 yard), the
+/// model slid and the initial image, given its exact pose, ended 0.92 m off.
+fn initial_pose_moved_far(change: &PoseChangeRecord, options: &BundleOptions) -> bool {
+    pose_change_beyond(change, options, 0.5)
 }
 
 /// Called after every registration with (registered, total).
