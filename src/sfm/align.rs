@@ -464,7 +464,7 @@ mod tests {
         // scale about the corner moves none of them off its plane.
         let (mut state, _) = two_view_state();
         state.points.clear();
-        let mut add = |state: &mut MapState, x: Vector3<f64>, axis: usize, offset: f64| {
+        let add = |state: &mut MapState, x: Vector3<f64>, axis: usize, offset: f64| {
             let id = state.add_point(x, Vec::new());
             let mut normal = Vector3::zeros();
             normal[axis] = 1.0;

@@ -102,6 +102,10 @@ pub struct MapReport {
     /// How far the initial image ended from its given pose (with LiDAR
     /// constraints; a warning beyond half the accepted change).
     pub initial_pose_change: Option<PoseChangeRecord>,
+    /// Why the run was mapped again with the initial image held at its given
+    /// pose, when it was and this model is that run's
+    /// (`bundle.retry_holding_initial`).
+    pub initial_image_held: Option<String>,
     /// The alignment of the initial pair's model to the map, when run.
     pub initial_alignment: Option<AlignmentRecord>,
     /// The whole-model alignment to the map before the final rounds, when run.
