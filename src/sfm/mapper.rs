@@ -37,8 +37,8 @@ use super::register::{
     RegistrationOutcome,
 };
 use super::report::{
-    AlignmentRecord, ImageRecord, IntrinsicsRecord, MapReport, PoseChangeRecord, RoundRecord,
-    StageRecord, UncertaintySummary,
+    AlignmentRecord, ImageRecord, IntrinsicsRecord, MapReport, PoseChangeRecord, RetryRecord,
+    RoundRecord, StageRecord, UncertaintySummary,
 };
 use super::state::MapState;
 use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulate_image};
@@ -286,31 +286,36 @@ pub fn run_mapper_with_priors(
     log::warn!("{reason}: mapping again with the initial image held at its given pose");
     let mut held = options.clone();
     held.bundle.fix_initial_for = db.images.len();
-    match pick_run(first, run(&held)) {
-        (Ok(mut second), true) => {
-            log::warn!(
-                "kept the run with the initial image held at its given pose ({:.1} % of the points on the map): along the directions the map leaves free the model is only as right as that pose",
-                100.0 * second.report.fit_share.unwrap_or(0.0)
-            );
-            second.report.initial_image_held = Some(reason);
-            Ok(second)
-        }
-        (outcome, _) => outcome,
+    let (mut outcome, held_kept, note) = pick_run(first, run(&held));
+    if held_kept {
+        log::warn!(
+            "{note}: along the directions the map leaves free the model is only as right as the given pose"
+        );
+    } else {
+        log::warn!("{note}");
     }
+    if let Ok(out) = &mut outcome {
+        out.report.retry = Some(RetryRecord {
+            reason,
+            held_kept,
+            outcome: note,
+        });
+    }
+    outcome
 }
 
 /// Of a first run and the run with the initial image held, the one to keep,
-/// and whether it is the held one: the held run when it passed its checks,
-/// its planes leave a direction nearly free (else the map fixes the whole
-/// model and disagrees with the given pose: the seed-7 yard from a pose
-/// 1.1 m and 8 deg off must fail) and the first failed or fits the map less
-/// (a smaller `fit_share`); the first otherwise (with its error when both
-/// failed).
+/// whether it is the held one, and what was decided (for the log and the
+/// report): the held run when it passed its checks, its planes leave a
+/// direction nearly free (else the map fixes the whole model and disagrees
+/// with the given pose: the seed-7 yard from a pose 1.1 m and 8 deg off
+/// must fail) and the first failed or fits the map less (a smaller
+/// `fit_share`); the first otherwise (with its error when both failed).
 fn pick_run(
     first: Result<MapperOutput, MapperError>,
     held: Result<MapperOutput, MapperError>,
-) -> (Result<MapperOutput, MapperError>, bool) {
-    let fit = |out: &MapperOutput| out.report.fit_share.unwrap_or(0.0);
+) -> (Result<MapperOutput, MapperError>, bool, String) {
+    let fit = |out: &MapperOutput| 100.0 * out.report.fit_share.unwrap_or(0.0);
     let ratio = |out: &MapperOutput| {
         out.report
             .similarity_constraint
@@ -319,24 +324,30 @@ fn pick_run(
     };
     match (first, held) {
         (first, Ok(held)) if ratio(&held) >= MIN_SIMILARITY_CONSTRAINT => {
-            log::warn!(
+            let note = format!(
                 "with the initial image held at its given pose the map fixes the whole model (constraint ratio {:.1e}), so the map and that pose disagree: kept the first run's outcome",
                 ratio(&held)
             );
-            (first, false)
+            (first, false, note)
         }
         (Ok(first), Ok(held)) if fit(&held) < fit(&first) => {
-            log::info!(
+            let note = format!(
                 "the run with the initial image held fits the map less ({:.1} % against {:.1} %): kept the first",
-                100.0 * fit(&held),
-                100.0 * fit(&first)
+                fit(&held),
+                fit(&first)
             );
-            (Ok(first), false)
+            (Ok(first), false, note)
         }
-        (_, Ok(held)) => (Ok(held), true),
+        (_, Ok(held)) => {
+            let note = format!(
+                "kept the run with the initial image held at its given pose ({:.1} % of the points on the map)",
+                fit(&held)
+            );
+            (Ok(held), true, note)
+        }
         (first, Err(e)) => {
-            log::warn!("holding the initial image at its given pose did not help: {e}");
-            (first, false)
+            let note = format!("holding the initial image at its given pose did not help: {e}");
+            (first, false, note)
         }
     }
 }
@@ -1619,26 +1630,28 @@ mod tests {
         };
         let fit_of = |r: &Result<MapperOutput, MapperError>| r.as_ref().unwrap().report.fit_share;
         // The first failed: the held run when it passed, else the first's error.
-        let (kept, held) = pick_run(off_map(), run(0.80));
+        let (kept, held, _) = pick_run(off_map(), run(0.80));
         assert!(held && fit_of(&kept) == Some(0.80));
-        let (kept, held) = pick_run(off_map(), off_map());
+        let (kept, held, _) = pick_run(off_map(), off_map());
         assert!(!held && matches!(kept, Err(MapperError::OffMap { .. })));
         // Both passed: the better fit, the held run on a tie.
-        let (kept, held) = pick_run(run(0.77), run(0.80));
+        let (kept, held, _) = pick_run(run(0.77), run(0.80));
         assert!(held && fit_of(&kept) == Some(0.80));
-        let (kept, held) = pick_run(run(0.90), run(0.62));
+        let (kept, held, note) = pick_run(run(0.90), run(0.62));
         assert!(!held && fit_of(&kept) == Some(0.90));
-        let (_, held) = pick_run(run(0.80), run(0.80));
+        assert!(note.contains("(62.0 % against 90.0 %)"), "{note}");
+        let (_, held, _) = pick_run(run(0.80), run(0.80));
         assert!(held);
         // The held run failed: the first as it was.
-        let (kept, held) = pick_run(run(0.77), off_map());
+        let (kept, held, _) = pick_run(run(0.77), off_map());
         assert!(!held && fit_of(&kept) == Some(0.77));
         // The map fixes the held model in every direction: the given pose
         // disagrees with the map, the first outcome stands.
         let fixed = || Ok(finished_run(0.02, 0.0, 0.0, 0.95));
-        let (kept, held) = pick_run(off_map(), fixed());
+        let (kept, held, note) = pick_run(off_map(), fixed());
         assert!(!held && kept.is_err());
-        let (kept, held) = pick_run(run(0.77), fixed());
+        assert!(note.contains("constraint ratio 2.0e-2"), "{note}");
+        let (kept, held, _) = pick_run(run(0.77), fixed());
         assert!(!held && fit_of(&kept) == Some(0.77));
     }
 

@@ -102,10 +102,10 @@ pub struct MapReport {
     /// How far the initial image ended from its given pose (with LiDAR
     /// constraints; a warning beyond half the accepted change).
     pub initial_pose_change: Option<PoseChangeRecord>,
-    /// Why the run was mapped again with the initial image held at its given
-    /// pose, when it was and this model is that run's
-    /// (`bundle.retry_holding_initial`).
-    pub initial_image_held: Option<String>,
+    /// When the run was mapped again with the initial image held at its
+    /// given pose (`bundle.retry_holding_initial`): why, and which run this
+    /// model is. The stages and solves are those of the kept run.
+    pub retry: Option<RetryRecord>,
     /// The alignment of the initial pair's model to the map, when run.
     pub initial_alignment: Option<AlignmentRecord>,
     /// The whole-model alignment to the map before the final rounds, when run.
@@ -149,6 +149,18 @@ pub struct MapReport {
 pub struct PoseChangeRecord {
     pub moved_m: f64,
     pub turned_deg: f64,
+}
+
+/// A second run with the initial image held at its given pose.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct RetryRecord {
+    /// What the first run showed (its error, or a nearly free direction with
+    /// the initial image moved).
+    pub reason: String,
+    /// True when this model is the held run's.
+    pub held_kept: bool,
+    /// What was decided, and why.
+    pub outcome: String,
 }
 
 /// One camera's intrinsics (COLMAP's parameter order for its model).

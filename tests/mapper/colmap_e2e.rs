@@ -271,8 +271,9 @@ fn changed_yard_is_held_at_its_given_pose() {
         c.median < 0.01 && c.p90 < 0.02 && rot.median < 0.05,
         "{c:?} {rot:?}"
     );
-    let held = exact.report["initial_image_held"].as_str();
-    assert!(held.is_some_and(|r| !r.is_empty()), "{held:?}");
+    let retry = &exact.report["retry"];
+    assert_eq!(retry["held_kept"].as_bool(), Some(true), "{retry}");
+    assert!(!retry["reason"].as_str().unwrap().is_empty(), "{retry}");
     let moved = exact.report["initial_pose_change"]["moved_m"].as_f64();
     assert!(moved.is_some_and(|m| m < 1e-6), "{moved:?}");
     assert!(exact.report["fit_share"].as_f64().unwrap() > 0.6);
