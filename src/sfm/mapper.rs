@@ -93,6 +93,13 @@ pub enum MapperError {
         max_m: f64,
         max_deg: f64,
     },
+    /// The first run failed, and so did the run with the initial image held
+    /// at its given pose (`bundle.retry_holding_initial`).
+    #[error("{first}\nMapped again with the initial image held at its given pose; that run failed too: {held}")]
+    RetryFailed {
+        first: Box<MapperError>,
+        held: Box<MapperError>,
+    },
 }
 
 /// "at most 1 m and 10 deg"; a limit of 0 is off and left out.
@@ -310,7 +317,7 @@ pub fn run_mapper_with_priors(
 /// direction nearly free (else the map fixes the whole model and disagrees
 /// with the given pose: the seed-7 yard from a pose 1.1 m and 8 deg off
 /// must fail) and the first failed or fits the map less (a smaller
-/// `fit_share`); the first otherwise (with its error when both failed).
+/// `fit_share`); the first otherwise (both errors when both failed).
 fn pick_run(
     first: Result<MapperOutput, MapperError>,
     held: Result<MapperOutput, MapperError>,
@@ -345,9 +352,17 @@ fn pick_run(
             );
             (Ok(held), true, note)
         }
-        (first, Err(e)) => {
+        (Ok(first), Err(e)) => {
             let note = format!("holding the initial image at its given pose did not help: {e}");
-            (first, false, note)
+            (Ok(first), false, note)
+        }
+        (Err(first), Err(held)) => {
+            let note = "holding the initial image at its given pose did not help".to_owned();
+            let error = MapperError::RetryFailed {
+                first: Box::new(first),
+                held: Box::new(held),
+            };
+            (Err(error), false, note)
         }
     }
 }
@@ -1633,7 +1648,24 @@ mod tests {
         let (kept, held, _) = pick_run(off_map(), run(0.80));
         assert!(held && fit_of(&kept) == Some(0.80));
         let (kept, held, _) = pick_run(off_map(), off_map());
-        assert!(!held && matches!(kept, Err(MapperError::OffMap { .. })));
+        assert!(!held);
+        let Err(MapperError::RetryFailed { first, held }) = kept else {
+            panic!("not both failures: {:?}", kept.err())
+        };
+        assert!(matches!(*first, MapperError::OffMap { .. }));
+        assert!(matches!(*held, MapperError::OffMap { .. }));
+        // Both failures are in the message, the first's first.
+        let both = MapperError::RetryFailed { first, held }.to_string();
+        assert_eq!(
+            both.matches("does not fit the map: 45 %").count(),
+            2,
+            "{both}"
+        );
+        assert!(both.starts_with("the model does not fit the map"), "{both}");
+        assert!(
+            both.contains("?\nMapped again with the initial image held at its given pose; that run failed too: the model"),
+            "{both}"
+        );
         // Both passed: the better fit, the held run on a tie.
         let (kept, held, _) = pick_run(run(0.77), run(0.80));
         assert!(held && fit_of(&kept) == Some(0.80));

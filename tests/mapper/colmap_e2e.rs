@@ -286,6 +286,14 @@ fn changed_yard_is_held_at_its_given_pose() {
         message.contains("does not fit the map") || message.contains("from its given pose"),
         "{message}"
     );
+    // The first run failed, so it was mapped again held at the perturbed
+    // pose, and the message says that this failed as well.
+    assert!(
+        message.contains(
+            "Mapped again with the initial image held at its given pose; that run failed too"
+        ),
+        "{message}"
+    );
     assert!(!out.exists());
 }
 
