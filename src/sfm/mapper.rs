@@ -630,7 +630,12 @@ fn map_once(
     // is off, they are a moved copy of the map, and moving them back onto it
     // corrects the pose before anything is built on it (see `align`).
     if lidar_gauge && options.bundle.align_to_map {
-        report.initial_alignment = align_whole_model(&mut state, &nearest, "initial pair");
+        report.initial_alignment = align_whole_model(
+            &mut state,
+            &nearest,
+            &AlignOptions::default(),
+            "initial pair",
+        );
     }
     progress(state.num_registered(), state.images.len());
     stages.done("initialisation");
@@ -801,7 +806,11 @@ fn map_once(
     // The whole model onto the map first (shape held): undoes a placement
     // that is wrong as a whole, which the solves below cannot (see `align`).
     if lidar_gauge && options.bundle.align_to_map {
-        report.alignment = align_whole_model(&mut state, &nearest, "whole model");
+        let whole = AlignOptions {
+            start_scales: WHOLE_MODEL_START_SCALES.to_vec(),
+            ..AlignOptions::default()
+        };
+        report.alignment = align_whole_model(&mut state, &nearest, &whole, "whole model");
         stages.done("retriangulation, alignment to the map");
     } else {
         stages.done("retriangulation");
@@ -1059,15 +1068,20 @@ fn local_ba(
     Ok(())
 }
 
+/// Scales the whole-model alignment before the final rounds starts from
+/// (see [`AlignOptions::start_scales`]).
+const WHOLE_MODEL_START_SCALES: [f64; 5] = [1.0, 0.93, 1.08, 0.86, 1.16];
+
 /// Moves the whole model onto the map when that puts more points on it
 /// (see [`align_to_map`]); what was found, for the report.
 fn align_whole_model(
     state: &mut MapState,
     nearest: &NearestNeighbourAssociator,
+    options: &AlignOptions,
     what: &str,
 ) -> Option<AlignmentRecord> {
     let t = Instant::now();
-    let a = align_to_map(state, nearest, &AlignOptions::default())?;
+    let a = align_to_map(state, nearest, options)?;
     let gain = a.inliers_after as f64 / a.inliers_before.max(1) as f64;
     let within_bounds = within_bounds(&a.sim3, a.centroid_shift_m, gain);
     let applied = a.inliers_after > a.inliers_before && within_bounds;
