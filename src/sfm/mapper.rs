@@ -285,7 +285,9 @@ pub fn run_mapper_with_priors(
             &mut *progress,
         )
     };
+    let started = Instant::now();
     let first = run(options);
+    let first_run_s = started.elapsed().as_secs_f64();
     let holds_already = options.bundle.fix_initial_for >= db.images.len();
     let Some(reason) = retry_reason(&first, options).filter(|_| !holds_already) else {
         return first;
@@ -293,7 +295,10 @@ pub fn run_mapper_with_priors(
     log::warn!("{reason}: mapping again with the initial image held at its given pose");
     let mut held = options.clone();
     held.bundle.fix_initial_for = db.images.len();
-    let (mut outcome, held_kept, note) = pick_run(first, run(&held));
+    let started = Instant::now();
+    let held_run = run(&held);
+    let held_run_s = started.elapsed().as_secs_f64();
+    let (mut outcome, held_kept, note) = pick_run(first, held_run);
     if held_kept {
         log::warn!(
             "{note}: along the directions the map leaves free the model is only as right as the given pose"
@@ -306,6 +311,8 @@ pub fn run_mapper_with_priors(
             reason,
             held_kept,
             outcome: note,
+            first_run_s,
+            held_run_s,
         });
     }
     outcome

@@ -161,6 +161,10 @@ pub struct RetryRecord {
     pub held_kept: bool,
     /// What was decided, and why.
     pub outcome: String,
+    /// Wall time of the first run and of the held run, seconds (`stages`
+    /// and `solves` are the kept run's; the whole call took both).
+    pub first_run_s: f64,
+    pub held_run_s: f64,
 }
 
 /// One camera's intrinsics (COLMAP's parameter order for its model).

@@ -274,6 +274,19 @@ fn changed_yard_is_held_at_its_given_pose() {
     let retry = &exact.report["retry"];
     assert_eq!(retry["held_kept"].as_bool(), Some(true), "{retry}");
     assert!(!retry["reason"].as_str().unwrap().is_empty(), "{retry}");
+    // Both runs' times; the stages are the held run's, within its time.
+    let first_s = retry["first_run_s"].as_f64().unwrap();
+    let held_s = retry["held_run_s"].as_f64().unwrap();
+    let stages_s: f64 = exact.report["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["time_s"].as_f64().unwrap())
+        .sum();
+    assert!(
+        first_s > 0.0 && stages_s > 0.0 && stages_s <= held_s,
+        "{retry}"
+    );
     let moved = exact.report["initial_pose_change"]["moved_m"].as_f64();
     assert!(moved.is_some_and(|m| m < 1e-6), "{moved:?}");
     assert!(exact.report["fit_share"].as_f64().unwrap() > 0.6);
