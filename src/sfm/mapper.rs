@@ -15,7 +15,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::align::{
     align_to_map, apply_sim3, count_points_on_map, similarity_constraint, within_bounds,
-    AlignOptions, INLIER_M, MIN_SIMILARITY_CONSTRAINT,
+    AlignOptions, INLIER_M, MIN_SIMILARITY_CONSTRAINT, WEAK_SIMILARITY_CONSTRAINT,
 };
 use super::associate::{
     NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
@@ -1013,6 +1013,12 @@ fn map_once(
             if c.ratio < MIN_SIMILARITY_CONSTRAINT {
                 log::warn!(
                     "the map's surfaces the model is tied to leave its placement or scale nearly free in one direction (constraint ratio {:.1e}, weakest [rotation, translation, scale] {:?}): e.g. only the ground and walls meeting at one corner; the map cannot vouch for the result along it",
+                    c.ratio,
+                    c.weakest.map(|v| (v * 100.0).round() / 100.0)
+                );
+            } else if c.ratio < WEAK_SIMILARITY_CONSTRAINT {
+                log::warn!(
+                    "the map's surfaces the model is tied to hold its placement or scale only weakly in one direction (constraint ratio {:.1e}, below {WEAK_SIMILARITY_CONSTRAINT:.0e}; weakest [rotation, translation, scale] {:?}): a model that started off along it, e.g. from an initial pose more than about 0.5 m or 5 deg off, can stay there; check the result, e.g. with `colmap-lidar depth`",
                     c.ratio,
                     c.weakest.map(|v| (v * 100.0).round() / 100.0)
                 );
