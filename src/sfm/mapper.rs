@@ -274,8 +274,10 @@ pub fn run_mapper_with_priors(
     options: &MapperOptions,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
+    // One run and its wall time, seconds.
     let mut run = |options: &MapperOptions| {
-        map_once(
+        let started = Instant::now();
+        let outcome = map_once(
             db,
             cloud,
             init_image,
@@ -283,11 +285,10 @@ pub fn run_mapper_with_priors(
             known_poses,
             options,
             &mut *progress,
-        )
+        );
+        (outcome, started.elapsed().as_secs_f64())
     };
-    let started = Instant::now();
-    let first = run(options);
-    let first_run_s = started.elapsed().as_secs_f64();
+    let (first, first_run_s) = run(options);
     let holds_already = options.bundle.fix_initial_for >= db.images.len();
     let Some(reason) = retry_reason(&first, options).filter(|_| !holds_already) else {
         return first;
@@ -295,9 +296,7 @@ pub fn run_mapper_with_priors(
     log::warn!("{reason}: mapping again with the initial image held at its given pose");
     let mut held = options.clone();
     held.bundle.fix_initial_for = db.images.len();
-    let started = Instant::now();
-    let held_run = run(&held);
-    let held_run_s = started.elapsed().as_secs_f64();
+    let (held_run, held_run_s) = run(&held);
     let (mut outcome, held_kept, note) = pick_run(first, held_run);
     if held_kept {
         log::warn!(
@@ -1010,17 +1009,14 @@ fn map_once(
             check_initial_pose(&state, init_image, init_cam_from_world, &options.bundle)?;
         report.similarity_constraint = similarity_constraint(&state);
         if let Some(c) = &report.similarity_constraint {
-            if c.ratio < MIN_SIMILARITY_CONSTRAINT {
+            let (ratio, weakest) = (c.ratio, c.weakest.map(|v| (v * 100.0).round() / 100.0));
+            if ratio < MIN_SIMILARITY_CONSTRAINT {
                 log::warn!(
-                    "the map's surfaces the model is tied to leave its placement or scale nearly free in one direction (constraint ratio {:.1e}, weakest [rotation, translation, scale] {:?}): e.g. only the ground and walls meeting at one corner; the map cannot vouch for the result along it",
-                    c.ratio,
-                    c.weakest.map(|v| (v * 100.0).round() / 100.0)
+                    "the map's surfaces the model is tied to leave its placement or scale nearly free in one direction (constraint ratio {ratio:.1e}, weakest [rotation, translation, scale] {weakest:?}): e.g. only the ground and walls meeting at one corner; the map cannot vouch for the result along it"
                 );
-            } else if c.ratio < WEAK_SIMILARITY_CONSTRAINT {
+            } else if ratio < WEAK_SIMILARITY_CONSTRAINT {
                 log::warn!(
-                    "the map's surfaces the model is tied to hold its placement or scale only weakly in one direction (constraint ratio {:.1e}, below {WEAK_SIMILARITY_CONSTRAINT:.0e}; weakest [rotation, translation, scale] {:?}): a model that started off along it, e.g. from an initial pose more than about 0.5 m or 5 deg off, can stay there; check the result, e.g. with `colmap-lidar depth`",
-                    c.ratio,
-                    c.weakest.map(|v| (v * 100.0).round() / 100.0)
+                    "the map's surfaces the model is tied to hold its placement or scale only weakly in one direction (constraint ratio {ratio:.1e}, below {WEAK_SIMILARITY_CONSTRAINT:.0e}; weakest [rotation, translation, scale] {weakest:?}): a model that started off along it, e.g. from an initial pose more than about 0.5 m or 5 deg off, can stay there; check the result, e.g. with `colmap-lidar depth`"
                 );
             }
         }
