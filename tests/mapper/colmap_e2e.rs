@@ -609,6 +609,15 @@ fn yard_with_colmap_database() {
         msg.contains("from its given pose") || msg.contains("does not fit the map"),
         "{msg}"
     );
+    // A moved initial image's error says how well the model fits the map.
+    if msg.contains("from its given pose (") {
+        assert!(
+            msg.contains(
+                "of its points on the surfaces their images see, similarity-constraint ratio"
+            ),
+            "{msg}"
+        );
+    }
     assert!(!far_out.exists());
     // The check itself: a share no real model reaches fails the run, names
     // the inputs, and nothing is written.
