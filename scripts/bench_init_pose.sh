@@ -56,8 +56,11 @@ for step in "$@"; do
       --init-image "${INIT_IMAGE:-frame_0000.jpg}" --init-pose "$pose" --output "$run" \
       ${MAP_ARGS:-} >/dev/null 2>"$run.log"; then
     median=$("$tool" evaluate --model "$run" --reference "$scene/gt" --align none 2>&1 |
-      awk '/centre error/ {print $4}')
-    if awk -v e="$median" -v t="${RIGHT_M:-0.01}" 'BEGIN {exit !(e < t)}'; then
+      awk '/centre error/ {print $4}' || true)
+    if [ -z "$median" ]; then
+      echo "error: evaluate failed on $run" >&2
+      exit 1
+    elif awk -v e="$median" -v t="${RIGHT_M:-0.01}" 'BEGIN {exit !(e < t)}'; then
       outcome="right, $(awk -v e="$median" 'BEGIN {printf "%.1f mm", e * 1000}') median"
       right=$((right + 1))
     else

@@ -116,8 +116,8 @@ pub struct FitSummary {
 /// At and above this `fit_share`, with the similarity well constrained, a
 /// model that moved its initial image beyond the accepted change is likely
 /// right and the given pose wrong: right models of the synthetic scenes fit
-/// 0.78-0.97 (the seed-7 yard from poses 1.1-1.6 m off: 0.92-0.96), the
-/// wrong ones measured 0.12-0.79.
+/// 0.78-0.97 (the seed-7 yard from poses 1.1-1.8 m off: 0.92-0.96), the
+/// wrong ones measured 0.01-0.79 (see `docs/results.md`, session 25).
 const GOOD_FIT_SHARE: f64 = 0.9;
 
 /// The end of [`MapperError::InitialPoseFarOff`]'s message: what the fit
