@@ -30,13 +30,15 @@ mkdir -p "$out"
 # Pose k of n: the exact pose moved by m metres along the k-th point of a
 # Fibonacci sphere and turned by d degrees (roll, pitch, yaw) along another.
 perturb() {
-  awk -v p="$exact" -v m="$1" -v d="$2" -v k="$3" -v n="$4" 'BEGIN {
+  awk -v p="$exact" -v m="$1" -v d="$2" -v k="$3" -v n="$4" '
+  # Adds s times the i-th of n Fibonacci-sphere directions (turned by t) to v[o+1..o+3].
+  function add(o, i, t, s,   z, r, a) {
+    z = 1 - (2 * i + 1) / n; r = sqrt(1 - z * z); a = atan2(0, -1) * (3 - sqrt(5)) * i + t;
+    v[o + 1] += s * r * cos(a); v[o + 2] += s * r * sin(a); v[o + 3] += s * z;
+  }
+  BEGIN {
     split(p, v, ",");
-    pi = atan2(0, -1); ga = pi * (3 - sqrt(5));
-    z = 1 - (2 * k + 1) / n; r = sqrt(1 - z * z); a = ga * k;
-    v[1] += m * r * cos(a); v[2] += m * r * sin(a); v[3] += m * z;
-    j = n - 1 - k; z = 1 - (2 * j + 1) / n; r = sqrt(1 - z * z); a = ga * j + 1;
-    v[4] += d * r * cos(a); v[5] += d * r * sin(a); v[6] += d * z;
+    add(0, k, 0, m); add(3, n - 1 - k, 1, d);
     printf "%.9f,%.9f,%.9f,%.9f,%.9f,%.9f", v[1], v[2], v[3], v[4], v[5], v[6]
   }'
 }

@@ -123,25 +123,26 @@ const GOOD_FIT_SHARE: f64 = 0.9;
 /// The end of [`MapperError::InitialPoseFarOff`]'s message: what the fit
 /// says about whether the model or the given pose is wrong.
 fn far_off_advice(fit: &Option<FitSummary>) -> String {
+    const BETTER_POSE: &str = "give the initial pose to within a few decimetres and degrees";
     let Some(fit) = fit else {
-        return "; give the initial pose to within a few decimetres and degrees".to_string();
+        return format!("; {BETTER_POSE}");
     };
-    let held = fit
-        .constraint_ratio
-        .is_some_and(|r| r >= WEAK_SIMILARITY_CONSTRAINT);
     let ratio = fit
         .constraint_ratio
         .map_or_else(|| "not measured".to_string(), |r| format!("{r:.1e}"));
+    let measured = format!(
+        "{:.0} % of its points on the surfaces their images see, similarity-constraint ratio {ratio}",
+        fit.share * 100.0
+    );
+    let held = fit
+        .constraint_ratio
+        .is_some_and(|r| r >= WEAK_SIMILARITY_CONSTRAINT);
     if fit.share >= GOOD_FIT_SHARE && held {
         format!(
-            ". The model itself fits the map well ({:.0} % of its points on the surfaces their images see, similarity-constraint ratio {ratio}): if the given pose may really be that far off, raise those limits and check the result (e.g. with `colmap-lidar depth`); where the place repeats itself (rooms, shelves, windows) a model can fit a copy of its part of the map",
-            fit.share * 100.0
+            ". The model itself fits the map well ({measured}): if the given pose may really be that far off, raise those limits and check the result (e.g. with `colmap-lidar depth`); where the place repeats itself (rooms, shelves, windows) a model can fit a copy of its part of the map"
         )
     } else {
-        format!(
-            ". The model fits the map only partly or loosely ({:.0} % of its points on the surfaces their images see, similarity-constraint ratio {ratio}): give the initial pose to within a few decimetres and degrees",
-            fit.share * 100.0
-        )
+        format!(". The model fits the map only partly or loosely ({measured}): {BETTER_POSE}")
     }
 }
 
