@@ -31,8 +31,10 @@ now() { date +%s.%N; }
 
 echo "== colmap-lidar map ($scene)"
 t0=$(now)
+# Both tools read the images to colour the points (colmap mapper always does).
 # shellcheck disable=SC2086
 "$tool" map --database "$db" --lidar "$scene/lidar.ply" --output "$out/map" \
+  --image-path "$scene/images" \
   --init-image "${INIT_IMAGE:-frame_0000.jpg}" --init-pose "$pose" ${MAP_ARGS:-} 2>"$out/map.log"
 t1=$(now)
 ours=$(echo "$t1 - $t0" | bc -l)

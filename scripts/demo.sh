@@ -39,7 +39,8 @@ step "inspect the database"
 step "map: structure-from-motion inside the LiDAR map"
 init_pose=$(awk '$1 == "perturbed:" {print $2}' "$out/scene/init_pose.txt")
 "$bin" map --database "$db" --lidar "$out/scene/lidar.ply" \
-  --init-image frame_0000.jpg --init-pose "$init_pose" --output "$out/sparse/0"
+  --init-image frame_0000.jpg --init-pose "$init_pose" --output "$out/sparse/0" \
+  --image-path "$out/scene/images"
 
 step "evaluate against ground truth (no alignment: poses must already be in the map frame)"
 "$bin" evaluate --model "$out/sparse/0" --reference "$out/scene/gt" --align none

@@ -3,8 +3,8 @@
 //! `report.json`, atomically (a failed run leaves nothing behind).
 //!
 //! Every option can also come from a TOML file (`--options FILE`): top-level
-//! keys `database`, `lidar`, `output`, `init_image`, `init_pose`,
-//! `output_type`, `no_lidar_constraints`, and a `[mapper]` table with the
+//! keys `database`, `lidar`, `output`, `image_path`, `init_image`, `init_pose`,
+//! `pose_priors`, `output_type`, `no_lidar_constraints`, and a `[mapper]` table with the
 //! stage options of [`MapperOptions`] (`seed`, `[mapper.register]`, ...).
 //! Command-line values win over the file.
 use std::collections::BTreeMap;
@@ -15,6 +15,7 @@ use anyhow::{bail, Context, Result};
 use serde::Deserialize;
 
 use crate::io::database::{read_database, DatabaseSnapshot};
+use crate::io::images::{check_image_folder, colour_points, ExpectedImage};
 use crate::io::model::{write_model, ModelFormat};
 use crate::io::pose_ply::{format_pose_ply, read_pose_ply};
 use crate::map::io::read_point_cloud;
@@ -22,6 +23,7 @@ use crate::map::prepare::{estimate_normals, widen_normal_radius, NormalOptions};
 use crate::map::PointCloud;
 use crate::scene::{BodyPose, ImageId, Rigid3};
 use crate::sfm::options::{AssociationKind, IntrinsicsRefinement};
+use crate::sfm::report::StageRecord;
 use crate::sfm::{run_mapper_with_priors, KnownPose, MapperOptions};
 
 /// Known poses: the database's pose priors, overridden by the pose file.
@@ -88,6 +90,12 @@ pub struct MapArgs {
     /// Output folder of the COLMAP model and report.json (replaced atomically).
     #[arg(long, visible_alias = "output_path", value_name = "DIR")]
     pub output: Option<PathBuf>,
+    /// Folder of the images (as given to COLMAP's feature extractor): every
+    /// 3D point gets the mean colour of its keypoints, as COLMAP's mapper
+    /// gives it. Checked before the run (each image there, of its camera's
+    /// size). Without it the points are grey (128, 128, 128).
+    #[arg(long, visible_alias = "image_path", value_name = "DIR")]
+    pub image_path: Option<PathBuf>,
     /// Initial image, by name or id. Default: the smallest image id.
     #[arg(long, visible_alias = "init_image", value_name = "NAME|ID")]
     pub init_image: Option<String>,
@@ -145,6 +153,7 @@ struct OptionsFile {
     database: Option<PathBuf>,
     lidar: Option<PathBuf>,
     output: Option<PathBuf>,
+    image_path: Option<PathBuf>,
     init_image: Option<toml::Value>,
     init_pose: Option<String>,
     pose_priors: Option<PathBuf>,
@@ -159,6 +168,7 @@ pub struct MapConfig {
     pub database: PathBuf,
     pub lidar: PathBuf,
     pub output: PathBuf,
+    pub image_path: Option<PathBuf>,
     pub init_image: Option<String>,
     pub init_pose: Option<BodyPose>,
     pub pose_priors: Option<PathBuf>,
@@ -223,6 +233,7 @@ impl MapArgs {
             database,
             lidar,
             output,
+            image_path: self.image_path.clone().or(file.image_path),
             init_image,
             init_pose,
             pose_priors: self.pose_priors.clone().or(file.pose_priors),
@@ -327,6 +338,24 @@ pub fn run(args: &MapArgs) -> Result<()> {
     check_output(&config.output)?;
     let db = read_database(&config.database)
         .with_context(|| format!("reading the database {}", config.database.display()))?;
+    if let Some(dir) = &config.image_path {
+        let expected = db.images.values().map(|img| {
+            let camera = &db.cameras[&img.camera_id];
+            ExpectedImage {
+                name: &img.name,
+                camera_id: img.camera_id.0,
+                width: camera.width,
+                height: camera.height,
+            }
+        });
+        let n = check_image_folder(dir, expected).with_context(|| {
+            format!(
+                "checking the image folder against the database {}",
+                config.database.display()
+            )
+        })?;
+        log::info!("{n} images found in {}", dir.display());
+    }
     let init_image = resolve_init_image(&db, config.init_image.as_deref())?;
     let init_cam_from_world: Rigid3 = match &config.init_pose {
         Some(p) => p.to_cam_from_world(),
@@ -356,7 +385,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
             bar.set_position(done as u64);
         }
     };
-    let out = run_mapper_with_priors(
+    let mut out = run_mapper_with_priors(
         &db,
         &cloud,
         init_image,
@@ -374,6 +403,22 @@ pub fn run(args: &MapArgs) -> Result<()> {
     })?;
     if let Some(bar) = &bar {
         bar.finish_and_clear();
+    }
+    if let Some(dir) = &config.image_path {
+        let t = std::time::Instant::now();
+        let summary = colour_points(&mut out.reconstruction, dir)
+            .context("colouring the points from the images")?;
+        let time_s = t.elapsed().as_secs_f64();
+        log::info!(
+            "coloured {} points from {} observations in {} images ({time_s:.1} s)",
+            summary.points_coloured,
+            summary.observations_sampled,
+            summary.images_read
+        );
+        out.report.stages.push(StageRecord {
+            name: "point colours".to_string(),
+            time_s,
+        });
     }
     let report_json =
         serde_json::to_string_pretty(&out.report).context("serialising the report")?;

@@ -705,7 +705,7 @@ fn options_file_and_command_line_merge() {
     std::fs::write(
         &file,
         "database = \"a.db\"\nlidar = \"m.ply\"\noutput = \"out\"\ninit_image = 3\n\
-         init_pose = \"1,2,3,0,0,90\"\noutput_type = \"binary\"\n\
+         init_pose = \"1,2,3,0,0,90\"\noutput_type = \"binary\"\nimage_path = \"photos\"\n\
          [mapper]\nseed = 5\n[mapper.register]\nmax_error_px = 3.0\n",
     )
     .unwrap();
@@ -719,6 +719,7 @@ fn options_file_and_command_line_merge() {
     assert_eq!(c.database, PathBuf::from("a.db"));
     assert_eq!(c.output, PathBuf::from("cli-out"));
     assert_eq!(c.init_image.as_deref(), Some("3"));
+    assert_eq!(c.image_path, Some(PathBuf::from("photos")));
     assert_eq!(c.options.seed, 9);
     assert_eq!(c.options.register.max_error_px, 3.0);
     assert_eq!(c.format, colmap_lidar::io::model::ModelFormat::Binary);
