@@ -90,10 +90,11 @@ pub struct MapArgs {
     /// Output folder of the COLMAP model and report.json (replaced atomically).
     #[arg(long, visible_alias = "output_path", value_name = "DIR")]
     pub output: Option<PathBuf>,
-    /// Folder of the images (as given to COLMAP's feature extractor): every
-    /// 3D point gets the mean colour of its keypoints, as COLMAP's mapper
-    /// gives it. Checked before the run (each image there, of its camera's
-    /// size). Without it the points are grey (128, 128, 128).
+    /// Folder of the images (as given to COLMAP's feature extractor; JPEG,
+    /// PNG, TIFF, BMP): every 3D point gets the mean colour of its keypoints,
+    /// as COLMAP's `color_extractor` gives it. Checked before the run (each
+    /// image there, of its camera's size). Without it the points are grey
+    /// (128, 128, 128).
     #[arg(long, visible_alias = "image_path", value_name = "DIR")]
     pub image_path: Option<PathBuf>,
     /// Initial image, by name or id. Default: the smallest image id.
@@ -415,10 +416,18 @@ pub fn run(args: &MapArgs) -> Result<()> {
             summary.observations_sampled,
             summary.images_read
         );
+        if !summary.unread.is_empty() {
+            log::warn!(
+                "{} images could not be read for the colours (report.json: point_colours.unread); \
+                 their points take their colour from the other images",
+                summary.unread.len()
+            );
+        }
         out.report.stages.push(StageRecord {
             name: "point colours".to_string(),
             time_s,
         });
+        out.report.point_colours = Some(summary);
     }
     let report_json =
         serde_json::to_string_pretty(&out.report).context("serialising the report")?;

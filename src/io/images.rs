@@ -4,14 +4,16 @@
 //! A point's colour is the mean over its observations of the image's colour
 //! at the keypoint, interpolated bilinearly between the four nearest pixel
 //! centres (COLMAP's keypoint convention: the upper-left pixel's centre is at
-//! (0.5, 0.5)), rounded to 8 bits, as COLMAP's mapper colours its points.
-//! Gaussian-splatting and NeRF tools start from these colours; without the
-//! images the points stay grey.
+//! (0.5, 0.5)), rounded to 8 bits, as COLMAP's `color_extractor` colours a
+//! model (its mapper keeps each point's first colour instead). Gaussian-
+//! splatting and NeRF tools start from these colours; without the images
+//! the points stay grey.
 //!
 //! Image names come from the database and may hold subfolders
-//! (`cam0/0001.jpg`); they are looked up under the image folder. Images are
-//! not turned by their EXIF orientation, as COLMAP's feature extractor does
-//! not turn them either.
+//! (`cam0/0001.jpg`); they are looked up under the image folder. Formats:
+//! JPEG, PNG, TIFF and BMP, told by their first bytes. Images are not turned
+//! by their EXIF orientation, as COLMAP's feature extractor does not turn
+//! them either.
 use std::path::{Path, PathBuf};
 
 use image::RgbImage;
@@ -26,6 +28,8 @@ pub enum ImageFolderError {
     NoFolder(PathBuf),
     #[error("{path}: image `{name}` of the database is not in the image folder")]
     Missing { path: PathBuf, name: String },
+    #[error("image `{name}` has camera {camera_id}, which the model does not hold")]
+    UnknownCamera { name: String, camera_id: u32 },
     #[error("{path}: cannot read the image: {source}")]
     Unreadable {
         path: PathBuf,
@@ -85,11 +89,14 @@ fn check_size(
 }
 
 /// A reader that tells the format from the file's first bytes (the
-/// extension only where they do not say).
+/// extension only where they do not say), without the crate's default
+/// 512 MiB limit on a decoded image (a 100-megapixel 16-bit photo is more).
 fn reader(
     path: &Path,
 ) -> image::ImageResult<image::ImageReader<std::io::BufReader<std::fs::File>>> {
-    Ok(image::ImageReader::open(path)?.with_guessed_format()?)
+    let mut reader = image::ImageReader::open(path)?.with_guessed_format()?;
+    reader.no_limits();
+    Ok(reader)
 }
 
 /// Checks, before a run, that every image is in `dir`, readable (its header)
@@ -118,9 +125,12 @@ pub fn check_image_folder<'a>(
 
 /// The colour at keypoint `(x, y)` (pixel centres at +0.5), bilinear between
 /// the four nearest pixel centres; positions beyond the outermost centres
-/// take the border's colour.
+/// take the border's colour. Black for an empty image.
 pub fn sample_bilinear(image: &RgbImage, x: f64, y: f64) -> [f64; 3] {
     let (w, h) = image.dimensions();
+    if w == 0 || h == 0 {
+        return [0.0; 3];
+    }
     let axis = |v: f64, n: u32| -> (u32, u32, f64) {
         let v = (v - 0.5).clamp(0.0, f64::from(n - 1));
         let lo = (v.floor() as u32).min(n.saturating_sub(2));
@@ -138,20 +148,63 @@ pub fn sample_bilinear(image: &RgbImage, x: f64, y: f64) -> [f64; 3] {
     })
 }
 
-/// What colouring did.
-#[derive(Clone, Debug, PartialEq)]
+/// An image left out of the colouring, and why.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct UnreadImage {
+    pub name: String,
+    pub error: String,
+}
+
+/// What colouring did (`report.json` → `point_colours`).
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct ColourSummary {
     pub images_read: usize,
     pub points_coloured: usize,
     pub observations_sampled: usize,
+    /// Images that could not be read after the run (each with the error):
+    /// their keypoints gave no colour. The folder was checked before the
+    /// run, so these are files cut short or changed since.
+    pub unread: Vec<UnreadImage>,
 }
 
 /// True when all four pixel centres around keypoint `(x, y)` are in the
-/// image: COLMAP's mapper leaves out the keypoints within half a pixel of
-/// the border.
+/// image (`x - 0.5` in `[0, width - 1)`, the same for y): COLMAP leaves out
+/// the keypoints within half a pixel of the border.
 fn between_centres(width: u32, height: u32, x: f64, y: f64) -> bool {
-    let inside = |v: f64, n: u32| (0.0..=f64::from(n) - 1.0).contains(&(v - 0.5));
+    let inside = |v: f64, n: u32| (0.0..f64::from(n) - 1.0).contains(&(v - 0.5));
     inside(x, width) && inside(y, height)
+}
+
+type Sample = (Point3DId, [f64; 3], bool);
+
+/// Reads one image and samples it at its keypoints that have a 3D point.
+fn sample_image(
+    dir: &Path,
+    img: &crate::scene::Image,
+    expected: &ExpectedImage,
+) -> Result<Vec<Sample>, ImageFolderError> {
+    let path = resolve(dir, expected.name)?;
+    let rgb = reader(&path)
+        .and_then(|r| r.decode())
+        .map_err(|source| ImageFolderError::Unreadable {
+            path: path.clone(),
+            source,
+        })?
+        .into_rgb8();
+    check_size(&path, rgb.dimensions(), expected)?;
+    let (w, h) = rgb.dimensions();
+    Ok(img
+        .points2d
+        .iter()
+        .filter_map(|p| {
+            let (x, y) = (p.xy.x, p.xy.y);
+            if !(x.is_finite() && y.is_finite()) {
+                return None;
+            }
+            let inside = between_centres(w, h, x, y);
+            Some((p.point3d_id?, sample_bilinear(&rgb, x, y), inside))
+        })
+        .collect())
 }
 
 /// Sum of colours and their count.
@@ -180,48 +233,52 @@ impl ColourSum {
 /// count only for points seen nowhere else (they take the border pixels'
 /// colour). Images are read in parallel and summed in image order, so the
 /// result does not depend on the thread count. Points without an
-/// observation in a registered image keep their colour.
+/// observation in a readable registered image keep their colour.
+///
+/// An image that cannot be read (it was checked before the run, so it was
+/// cut short or changed since) is left out with a warning and listed in the
+/// summary, rather than throwing the run away; an image whose camera is not
+/// in the model is an error.
 pub fn colour_points(
     reconstruction: &mut Reconstruction,
     dir: &Path,
 ) -> Result<ColourSummary, ImageFolderError> {
-    let jobs: Vec<_> = reconstruction
+    let jobs = reconstruction
         .registered_images()
         .map(|img| {
-            let camera = &reconstruction.cameras[&img.camera_id];
+            let camera = reconstruction.cameras.get(&img.camera_id).ok_or_else(|| {
+                ImageFolderError::UnknownCamera {
+                    name: img.name.clone(),
+                    camera_id: img.camera_id.0,
+                }
+            })?;
             let expected = ExpectedImage {
                 name: &img.name,
                 camera_id: img.camera_id.0,
                 width: camera.width,
                 height: camera.height,
             };
-            (img, expected)
+            Ok((img, expected))
         })
-        .collect();
-    let samples: Vec<Vec<(Point3DId, [f64; 3], bool)>> = jobs
+        .collect::<Result<Vec<_>, ImageFolderError>>()?;
+    let results: Vec<Result<Vec<Sample>, ImageFolderError>> = jobs
         .par_iter()
-        .map(|(img, expected)| {
-            let path = resolve(dir, expected.name)?;
-            let rgb = reader(&path)
-                .and_then(|r| r.decode())
-                .map_err(|source| ImageFolderError::Unreadable {
-                    path: path.clone(),
-                    source,
-                })?
-                .into_rgb8();
-            check_size(&path, rgb.dimensions(), expected)?;
-            let (w, h) = rgb.dimensions();
-            Ok(img
-                .points2d
-                .iter()
-                .filter_map(|p| {
-                    let (x, y) = (p.xy.x, p.xy.y);
-                    let inside = between_centres(w, h, x, y);
-                    Some((p.point3d_id?, sample_bilinear(&rgb, x, y), inside))
-                })
-                .collect())
-        })
-        .collect::<Result<_, ImageFolderError>>()?;
+        .map(|(img, expected)| sample_image(dir, img, expected))
+        .collect();
+    let mut samples = Vec::with_capacity(results.len());
+    let mut unread = Vec::new();
+    for ((img, _), result) in jobs.iter().zip(results) {
+        match result {
+            Ok(s) => samples.push(s),
+            Err(e) => {
+                log::warn!("no colours from image `{}`: {e}", img.name);
+                unread.push(UnreadImage {
+                    name: img.name.clone(),
+                    error: e.to_string(),
+                });
+            }
+        }
+    }
     let images_read = samples.len();
     // Per point: the keypoints between pixel centres, and all of them.
     let mut sums: std::collections::BTreeMap<Point3DId, (ColourSum, ColourSum)> =
@@ -250,6 +307,7 @@ pub fn colour_points(
         images_read,
         points_coloured,
         observations_sampled,
+        unread,
     })
 }
 
@@ -342,7 +400,8 @@ mod tests {
         // The second image: the ramp plus 1 everywhere.
         let mut plus = ramp();
         plus.pixels_mut().for_each(|p| p.0 = p.0.map(|v| v + 1));
-        plus.save(dir.path().join("sub/b.png")).unwrap();
+        // TIFF, to show the format is read.
+        plus.save(dir.path().join("sub/b.tif")).unwrap();
         let mut rec = Reconstruction::default();
         rec.cameras.insert(CameraId(1), camera(1, 4, 3));
         rec.images.insert(
@@ -364,7 +423,7 @@ mod tests {
             ImageId(2),
             image(
                 2,
-                "sub/b.png",
+                "sub/b.tif",
                 true,
                 &[(2.0, 1.5, Some(10)), (1.5, 0.5, Some(12))],
             ),
@@ -386,7 +445,8 @@ mod tests {
             ColourSummary {
                 images_read: 2,
                 points_coloured: 4,
-                observations_sampled: 6
+                observations_sampled: 6,
+                unread: vec![],
             }
         );
         // Point 10: (0, 200, 7) in a, (116, 171, 8) in b; mean (58, 185.5, 7.5), rounded half away
@@ -448,15 +508,55 @@ mod tests {
     }
 
     #[test]
-    fn a_missing_registered_image_fails_the_colouring() {
+    fn unreadable_images_are_left_out_and_listed() {
         let dir = tempfile::tempdir().unwrap();
+        ramp().save(dir.path().join("b.png")).unwrap();
+        // A PNG cut short after the run's check: its header reads, its pixels do not.
+        let mut png = Vec::new();
+        ramp()
+            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+            .unwrap();
+        std::fs::write(dir.path().join("c.png"), &png[..png.len() - 20]).unwrap();
+        assert!(image::image_dimensions(dir.path().join("c.png")).is_ok());
         let mut rec = Reconstruction::default();
         rec.cameras.insert(CameraId(1), camera(1, 4, 3));
         rec.images
             .insert(ImageId(1), image(1, "a.png", true, &[(0.5, 0.5, Some(10))]));
-        rec.points3d.insert(Point3DId(10), point(&[(1, 0)]));
+        rec.images
+            .insert(ImageId(2), image(2, "b.png", true, &[(1.5, 0.5, Some(10))]));
+        rec.images
+            .insert(ImageId(3), image(3, "c.png", true, &[(0.5, 0.5, Some(11))]));
+        rec.points3d.insert(Point3DId(10), point(&[(1, 0), (2, 0)]));
+        rec.points3d.insert(Point3DId(11), point(&[(3, 0)]));
+        let summary = colour_points(&mut rec, dir.path()).unwrap();
+        assert_eq!(summary.images_read, 1);
+        let names: Vec<&str> = summary.unread.iter().map(|u| u.name.as_str()).collect();
+        assert_eq!(names, ["a.png", "c.png"]);
+        assert!(summary.unread[0].error.contains("not in the image folder"));
+        // Point 10 from b alone (pixel (1, 0)); point 11 only in c: grey.
+        assert_eq!(rec.points3d[&Point3DId(10)].color, [10, 180, 7]);
+        assert_eq!(rec.points3d[&Point3DId(11)].color, [128; 3]);
+
+        // An image whose camera the model lacks is an error naming it.
+        rec.images.get_mut(&ImageId(2)).unwrap().camera_id = CameraId(7);
         let err = colour_points(&mut rec, dir.path()).unwrap_err();
-        assert!(err.to_string().contains("a.png"), "{err}");
-        assert_eq!(rec.points3d[&Point3DId(10)].color, [128; 3]);
+        assert!(
+            matches!(err, ImageFolderError::UnknownCamera { .. }),
+            "{err}"
+        );
+        assert!(err.to_string().contains("b.png"), "{err}");
+    }
+
+    #[test]
+    fn keypoints_on_the_last_pixel_centres_are_left_out() {
+        // COLMAP samples x - 0.5 in [0, width - 1): keypoint x = 3.5 of a
+        // 4-pixel row lies on the last centre and is left out.
+        assert!(between_centres(4, 3, 3.49, 2.49));
+        assert!(!between_centres(4, 3, 3.5, 1.0));
+        assert!(!between_centres(4, 3, 1.0, 2.5));
+        assert!(between_centres(4, 3, 0.5, 0.5));
+        assert!(!between_centres(4, 3, 0.49, 1.0));
+        assert!(!between_centres(4, 3, f64::NAN, 1.0));
+        assert_eq!(sample_bilinear(&RgbImage::new(0, 0), 1.0, 1.0), [0.0; 3]);
     }
 }

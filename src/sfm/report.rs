@@ -139,6 +139,8 @@ pub struct MapReport {
     /// found it off).
     pub final_rounds: Vec<RoundRecord>,
     pub stages: Vec<StageRecord>,
+    /// The points' colours from the images (`--image-path`), when given.
+    pub point_colours: Option<crate::io::images::ColourSummary>,
     /// The options the run used, adapted to the map's spacing (the TOML
     /// file's `[mapper]` sections, as JSON).
     pub options: Option<MapperOptions>,

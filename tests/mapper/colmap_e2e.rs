@@ -765,6 +765,20 @@ fn colour_differences(
 /// (measured: 1 point of 15089 off by 1).
 fn check_colours(scene: &Path, model_dir: &Path, work: &Path) {
     let model = read_model(model_dir).unwrap();
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(model_dir.join("report.json")).unwrap())
+            .unwrap();
+    let summary = &report["point_colours"];
+    assert_eq!(
+        summary["images_read"].as_u64(),
+        Some(model.registered_images().count() as u64),
+        "{summary}"
+    );
+    assert_eq!(
+        summary["points_coloured"].as_u64(),
+        Some(model.points3d.len() as u64)
+    );
+    assert_eq!(summary["unread"].as_array().map(Vec::len), Some(0));
     let grey = model
         .points3d
         .values()
@@ -779,9 +793,11 @@ fn check_colours(scene: &Path, model_dir: &Path, work: &Path) {
     let png = work.join("png_images");
     std::fs::create_dir_all(&png).unwrap();
     for img in model.images.values() {
+        let copy = png.join(&img.name);
+        std::fs::create_dir_all(copy.parent().unwrap()).unwrap();
         image::open(scene.join("images").join(&img.name))
             .unwrap()
-            .save_with_format(png.join(&img.name), image::ImageFormat::Png)
+            .save_with_format(copy, image::ImageFormat::Png)
             .unwrap();
     }
     let mut ours = model.clone();
