@@ -395,3 +395,32 @@ fn synth_colmap_harness_gives_features_and_matches() {
         );
     }
 }
+
+/// The corridor walk stays inside the 40 m corridor however many images it
+/// has (400 images walked through its end wall before), 0.45 m apart up to
+/// 200 images and closer beyond.
+#[test]
+fn corridor_walk_fits_the_corridor() {
+    let (lo, hi) = build_scene(SceneKind::Corridor, 0).bounding_box();
+    for n in [24, 200, 201, 400, 1000] {
+        let poses = trajectory(SceneKind::Corridor, n, 0);
+        assert_eq!(poses.len(), n);
+        for p in &poses {
+            let x = p.position_m;
+            for k in 0..3 {
+                assert!(
+                    x[k] > lo[k] + 0.3 && x[k] < hi[k] - 0.3,
+                    "{n} images: {x:?}"
+                );
+            }
+        }
+        // The forward leg's step (jitter is at most 2 cm a coordinate).
+        let step = poses[1].position_m.x - poses[0].position_m.x;
+        let expected = if n <= 200 {
+            0.45
+        } else {
+            36.0 / ((n - n / 5) / 2) as f64
+        };
+        assert!((step - expected).abs() < 0.041, "{n} images: step {step}");
+    }
+}

@@ -262,12 +262,18 @@ fn circle_outward(
         .collect()
 }
 
+/// Length of the corridor walk's forward leg at most (the corridor is 40 m
+/// long; the walk starts at x = 2 m and turns within 0.35 m of its end).
+const CORRIDOR_WALK_M: f64 = 36.0;
+
 /// Corridor: forward along +x, a turn over a short arc, back along -x.
+/// Images are 0.45 m apart, closer when more than 200 would not fit in
+/// the corridor.
 fn corridor_walk(n: usize) -> Vec<BodyPose> {
     let n_turn = (n / 5).max(6).min(n);
     let n_fwd = (n - n_turn) / 2;
     let n_back = n - n_turn - n_fwd;
-    let step_m = 0.45;
+    let step_m = 0.45f64.min(CORRIDOR_WALK_M / n_fwd.max(1) as f64);
     let look = 22f64.to_radians();
     let start_x = 2.0;
     let mut poses = Vec::with_capacity(n);
