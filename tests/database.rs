@@ -1,6 +1,7 @@
 //! Integration tests: the COLMAP database reader and `inspect`, on databases
 //! created by the real `colmap database_creator` (COLMAP's own schema) and
 //! filled with hand-made rows whose reading is known exactly.
+use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -16,17 +17,11 @@ fn colmap_empty_db(dir: &Path) -> Option<PathBuf> {
         return None;
     }
     let path = dir.join("database.db");
-    let status = Command::new("colmap")
-        .env("QT_QPA_PLATFORM", "offscreen")
-        .args(["database_creator", "--database_path"])
-        .arg(&path)
-        .output()
-        .expect("colmap runs");
-    assert!(
-        status.status.success(),
-        "database_creator failed: {}",
-        String::from_utf8_lossy(&status.stderr)
-    );
+    common::run_colmap([
+        OsStr::new("database_creator"),
+        OsStr::new("--database_path"),
+        path.as_os_str(),
+    ]);
     Some(path)
 }
 

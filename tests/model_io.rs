@@ -3,7 +3,6 @@
 //! what we write, and typed errors (never panics) on malformed or truncated files.
 use std::fs;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use colmap_lidar::io::model::{
     detect_format, read_binary_model, read_model, read_text_model, write_model, ModelError,
@@ -777,22 +776,6 @@ fn binary_errors_name_record_and_offset() {
 
 // ---------------------------------------------------------------- the real COLMAP
 
-/// Runs `colmap` with `args`, asserting success; returns stdout + stderr.
-fn run_colmap(args: &[&str]) -> String {
-    let out = Command::new("colmap")
-        .args(args)
-        .env("QT_QPA_PLATFORM", "offscreen")
-        .output()
-        .expect("colmap runs");
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert!(out.status.success(), "colmap {args:?} failed:\n{text}");
-    text
-}
-
 /// The integer after `label` in `model_analyzer`'s output (`Points: 123`).
 fn analyzer_count(output: &str, label: &str) -> usize {
     output
@@ -819,7 +802,7 @@ fn colmap_reads_every_model_we_write() {
             let ours: PathBuf = root.path().join(format!("ours_{}", format.extension()));
             write_model(&ours, &rec, format).unwrap();
 
-            let out = run_colmap(&["model_analyzer", "--path", path_str(&ours)]);
+            let out = common::run_colmap(["model_analyzer", "--path", path_str(&ours)]);
             assert_eq!(analyzer_count(&out, "Cameras:"), expected.cameras.len());
             assert_eq!(analyzer_count(&out, "Images:"), expected.images.len());
             assert_eq!(
@@ -837,7 +820,7 @@ fn colmap_reads_every_model_we_write() {
                     .path()
                     .join(format!("colmap_{}_{out_type}", format.extension()));
                 fs::create_dir_all(&converted).unwrap();
-                run_colmap(&[
+                common::run_colmap([
                     "model_converter",
                     "--input_path",
                     path_str(&ours),

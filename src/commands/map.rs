@@ -340,15 +340,10 @@ pub fn run(args: &MapArgs) -> Result<()> {
     let db = read_database(&config.database)
         .with_context(|| format!("reading the database {}", config.database.display()))?;
     if let Some(dir) = &config.image_path {
-        let expected = db.images.values().map(|img| {
-            let camera = &db.cameras[&img.camera_id];
-            ExpectedImage {
-                name: &img.name,
-                camera_id: img.camera_id.0,
-                width: camera.width,
-                height: camera.height,
-            }
-        });
+        let expected = db
+            .images
+            .values()
+            .map(|img| ExpectedImage::new(&img.name, &db.cameras[&img.camera_id]));
         let n = check_image_folder(dir, expected).with_context(|| {
             format!(
                 "checking the image folder against the database {}",

@@ -19,7 +19,7 @@ use std::path::{Path, PathBuf};
 use image::RgbImage;
 use rayon::prelude::*;
 
-use crate::scene::{Point3DId, Reconstruction};
+use crate::scene::{Camera, Point3DId, Reconstruction};
 
 /// Why the images could not be used. Every message names the file.
 #[derive(Debug, thiserror::Error)]
@@ -58,6 +58,18 @@ pub struct ExpectedImage<'a> {
     pub height: u32,
 }
 
+impl<'a> ExpectedImage<'a> {
+    /// The image `name` taken with `camera`.
+    pub fn new(name: &'a str, camera: &Camera) -> Self {
+        ExpectedImage {
+            name,
+            camera_id: camera.id.0,
+            width: camera.width,
+            height: camera.height,
+        }
+    }
+}
+
 fn resolve(dir: &Path, name: &str) -> Result<PathBuf, ImageFolderError> {
     let path = dir.join(name);
     if path.is_file() {
@@ -88,15 +100,25 @@ fn check_size(
     })
 }
 
-/// A reader that tells the format from the file's first bytes (the
-/// extension only where they do not say), without the crate's default
-/// 512 MiB limit on a decoded image (a 100-megapixel 16-bit photo is more).
-fn reader(
+type Reader = image::ImageReader<std::io::BufReader<std::fs::File>>;
+
+/// Opens `path` with a reader that tells the format from the file's first
+/// bytes (the extension only where they do not say), without the crate's
+/// default 512 MiB limit on a decoded image (a 100-megapixel 16-bit photo is
+/// more), and reads it with `read`; errors name the file.
+fn read_image<T>(
     path: &Path,
-) -> image::ImageResult<image::ImageReader<std::io::BufReader<std::fs::File>>> {
-    let mut reader = image::ImageReader::open(path)?.with_guessed_format()?;
-    reader.no_limits();
-    Ok(reader)
+    read: impl FnOnce(Reader) -> image::ImageResult<T>,
+) -> Result<T, ImageFolderError> {
+    let open = || -> image::ImageResult<T> {
+        let mut reader = image::ImageReader::open(path)?.with_guessed_format()?;
+        reader.no_limits();
+        read(reader)
+    };
+    open().map_err(|source| ImageFolderError::Unreadable {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 /// Checks, before a run, that every image is in `dir`, readable (its header)
@@ -111,12 +133,7 @@ pub fn check_image_folder<'a>(
     let mut count = 0;
     for expected in images {
         let path = resolve(dir, expected.name)?;
-        let size = reader(&path)
-            .and_then(|r| r.into_dimensions())
-            .map_err(|source| ImageFolderError::Unreadable {
-                path: path.clone(),
-                source,
-            })?;
+        let size = read_image(&path, |r| r.into_dimensions())?;
         check_size(&path, size, &expected)?;
         count += 1;
     }
@@ -184,13 +201,7 @@ fn sample_image(
     expected: &ExpectedImage,
 ) -> Result<Vec<Sample>, ImageFolderError> {
     let path = resolve(dir, expected.name)?;
-    let rgb = reader(&path)
-        .and_then(|r| r.decode())
-        .map_err(|source| ImageFolderError::Unreadable {
-            path: path.clone(),
-            source,
-        })?
-        .into_rgb8();
+    let rgb = read_image(&path, |r| r.decode())?.into_rgb8();
     check_size(&path, rgb.dimensions(), expected)?;
     let (w, h) = rgb.dimensions();
     Ok(img
@@ -252,13 +263,7 @@ pub fn colour_points(
                     camera_id: img.camera_id.0,
                 }
             })?;
-            let expected = ExpectedImage {
-                name: &img.name,
-                camera_id: img.camera_id.0,
-                width: camera.width,
-                height: camera.height,
-            };
-            Ok((img, expected))
+            Ok((img, ExpectedImage::new(&img.name, camera)))
         })
         .collect::<Result<Vec<_>, ImageFolderError>>()?;
     let results: Vec<Result<Vec<Sample>, ImageFolderError>> = jobs
@@ -315,7 +320,7 @@ pub fn colour_points(
 mod tests {
     use super::*;
     use crate::scene::{
-        Camera, CameraId, CameraModel, Image, ImageId, Point2D, Point3D, Rigid3, TrackElement,
+        CameraId, CameraModel, Image, ImageId, Point2D, Point3D, Rigid3, TrackElement,
     };
     use nalgebra::{Vector2, Vector3};
 

@@ -1,10 +1,33 @@
 //! Shared helpers for the integration tests.
 #![allow(dead_code)]
+use std::ffi::OsStr;
 use std::path::PathBuf;
 
 /// Path of the built `colmap-lidar` binary.
 pub fn bin() -> PathBuf {
     PathBuf::from(env!("CARGO_BIN_EXE_colmap-lidar"))
+}
+
+/// Runs `colmap` (headless) with `args`, asserting success; returns stdout + stderr.
+pub fn run_colmap<I, S>(args: I) -> String
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    let args: Vec<S> = args.into_iter().collect();
+    let out = std::process::Command::new("colmap")
+        .args(&args)
+        .env("QT_QPA_PLATFORM", "offscreen")
+        .output()
+        .expect("colmap runs");
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let shown: Vec<_> = args.iter().map(|a| a.as_ref().to_string_lossy()).collect();
+    assert!(out.status.success(), "colmap {shown:?} failed:\n{text}");
+    text
 }
 
 /// True when Debian's `colmap` binary is on PATH. Tests that need it print a
