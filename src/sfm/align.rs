@@ -400,7 +400,7 @@ pub fn apply_sim3(state: &mut MapState, new_from_old: &Sim3) {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::map::{index::MapIndex, PointCloud};
     use crate::sfm::associate::tests::two_view_state;
@@ -468,11 +468,9 @@ mod tests {
         }
     }
 
-    /// The six faces of a 6 x 4 x 3 m room (2 cm spacing, exact normals) and
-    /// points on them moved by 8 % scale, 2 deg and 0.3 m: the alignment
-    /// finds the inverse motion.
-    #[test]
-    fn align_to_map_undoes_a_similarity_of_the_whole_model() {
+    /// The six faces of a 6 x 4 x 3 m room (2 cm spacing, exact normals)
+    /// and a sparse set of points on them.
+    pub(crate) fn room_map() -> (PointCloud, Vec<Vector3<f64>>) {
         let size = [6.0f64, 4.0, 3.0];
         let mut points = Vec::new();
         let mut normals = Vec::new();
@@ -500,7 +498,14 @@ mod tests {
                 }
             }
         }
-        let cloud = map_of(points, normals);
+        (map_of(points, normals), on_map)
+    }
+
+    /// Points on the room's faces moved by 8 % scale, 2 deg and 0.3 m: the
+    /// alignment finds the inverse motion.
+    #[test]
+    fn align_to_map_undoes_a_similarity_of_the_whole_model() {
+        let (cloud, on_map) = room_map();
         let index = MapIndex::build(&cloud).unwrap();
         let nearest =
             NearestNeighbourAssociator::new(&cloud, &index, AssociationOptions::default());
@@ -541,7 +546,7 @@ mod tests {
     }
 
     /// A model with two registered images and no points.
-    fn empty_model() -> MapState {
+    pub(crate) fn empty_model() -> MapState {
         let (mut state, _) = two_view_state();
         state.points.clear();
         state

@@ -329,7 +329,9 @@ pub struct BundleOptions {
     /// free and the initial image moved farther than its prior's standard
     /// deviation), map again with the initial image held at its given pose
     /// throughout, and keep that run if it passes the checks (and, when the
-    /// first passed too, fits the map at least as well). On the seed-0 yard
+    /// first passed too, fits the map at least as well; where its planes
+    /// fix the whole model, only if its alignment trial finds nothing to
+    /// move: see `mapper::pick_run`). On the seed-0 yard
     /// changed since the scan (`synth --changes 3`; the map shows only the
     /// ground and two facades through one corner) the model slid 0.98 m and
     /// failed the fit check; held, it ended 1.4 mm off (fit 80 %); from the
@@ -339,7 +341,8 @@ pub struct BundleOptions {
     /// After the initial pair and again before the final rounds, move the
     /// whole model (shape held) onto the map: point-to-plane ICP over a
     /// similarity, coarse to fine (1 m to 0.1 m), kept only when more points
-    /// end within 2 cm of the map. It undoes a placement that is wrong as a
+    /// end within 2 cm of the map (before the final rounds, never while the
+    /// initial image is held: a trial only). It undoes a placement that is wrong as a
     /// whole, which the solves do not (measured with the initial pose 0.3 m /
     /// 3 deg off: seed-2 corridor 0.36 m -> 1.7 mm, yard 0.58 m -> 12 mm
     /// before the final rounds; on the re-rendered seed-2 yard the model

@@ -71,7 +71,8 @@ pub struct AlignmentRecord {
     /// Whether the move is within `sfm::align`'s bounds (scale, rotation,
     /// centroid shift).
     pub within_bounds: bool,
-    /// Applied only when more points end on the map and within bounds.
+    /// Applied only when more points end on the map, within bounds, and
+    /// the initial image is not held at its given pose (then a trial only).
     pub applied: bool,
     pub time_s: f64,
 }

@@ -266,12 +266,16 @@ fn changed_yard_is_held_at_its_given_pose() {
     print_run("yard changed since the scan, exact initial pose", &exact);
     let c = exact.none.centre_error_m.as_ref().unwrap();
     let rot = exact.none.rotation_error_deg.as_ref().unwrap();
+    let retry = &exact.report["retry"];
+    let alignment = &exact.report["alignment"];
     assert!(exact.none.registered_share >= 0.95);
     assert!(
         c.median < 0.01 && c.p90 < 0.02 && rot.median < 0.05,
-        "{c:?} {rot:?}"
+        "{c:?} {rot:?}\nretry: {retry}\nalignment: {alignment}"
     );
-    let retry = &exact.report["retry"];
+    // The held run's whole-model alignment is a trial only (applied, such
+    // a trial most likely left one CI database's run 25 mm off in scale).
+    assert_eq!(alignment["applied"].as_bool(), Some(false), "{alignment}");
     assert_eq!(retry["held_kept"].as_bool(), Some(true), "{retry}");
     assert!(!retry["reason"].as_str().unwrap().is_empty(), "{retry}");
     // Both runs' times; the stages are the held run's, within its time.
