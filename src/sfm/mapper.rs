@@ -335,13 +335,15 @@ pub fn run_mapper_with_priors(
         (outcome, started.elapsed().as_secs_f64())
     };
     let (first, first_run_s) = run(options);
-    let holds_already = options.bundle.fix_initial_for >= db.images.len();
+    let holds_already = options.bundle.fix_initial_for >= db.images.len()
+        && options.bundle.hold_initial_in_final_rounds;
     let Some(reason) = retry_reason(&first, options).filter(|_| !holds_already) else {
         return first;
     };
     log::warn!("{reason}: mapping again with the initial image held at its given pose");
     let mut held = options.clone();
     held.bundle.fix_initial_for = db.images.len();
+    held.bundle.hold_initial_in_final_rounds = true;
     let (held_run, held_run_s) = run(&held);
     let (mut outcome, held_kept, note) = pick_run(first, held_run);
     log::warn!("{note}");
@@ -668,6 +670,16 @@ fn map_once(
             BTreeSet::new()
         }
     };
+    // The final stage (whole-model alignment, final rounds, intrinsics probe,
+    // uncertainty): the initial image stays held only if
+    // `bundle.hold_initial_in_final_rounds`.
+    let fixed_final = |state: &MapState| -> BTreeSet<ImageId> {
+        if lidar_gauge && !options.bundle.hold_initial_in_final_rounds {
+            BTreeSet::new()
+        } else {
+            fixed_for(state)
+        }
+    };
     let b = &options.bundle;
     let mut pose_priors: Vec<SoftPosePrior> =
         if lidar_gauge && b.initial_prior_position_m > 0.0 && b.initial_prior_rotation_deg > 0.0 {
@@ -900,7 +912,7 @@ fn map_once(
         // measured trials of scale 0.9986-1.0023 winning or losing by 2-3 of
         // 14700 points; one CI database's run ended 25 mm off at scale
         // 0.9974, most likely such a trial applied).
-        let held = fixed_for(&state).contains(&init_image);
+        let held = fixed_final(&state).contains(&init_image);
         report.alignment = align_whole_model(&mut state, &nearest, &whole, "whole model", !held);
         stages.done("retriangulation, alignment to the map");
     } else {
@@ -932,7 +944,7 @@ fn map_once(
      -> Result<(), MapperError> {
         for round in 0..options.bundle.final_rounds {
             let before = camera_centres(state);
-            let fixed = fixed_for(state);
+            let fixed = fixed_final(state);
             // The model arrives from registration (or, in the second pass,
             // from the intrinsics probe, already near the final optimum). A
             // Huber first round is always followed by a `final_loss` one.
@@ -989,7 +1001,7 @@ fn map_once(
     if !refine.probe.is_empty() {
         let before = state.clone();
         let probed: BTreeSet<CameraId> = refine.last.union(&refine.probe).copied().collect();
-        let fixed = fixed_for(&state);
+        let fixed = fixed_final(&state);
         // Capped: it only has to show whether the focal length moves (when
         // it does, the rounds run again); without rounds to follow
         // (`final_rounds = 0`) its result may be the output, uncapped.
@@ -1118,7 +1130,7 @@ fn map_once(
     }
     report.finish(&state);
     if lidar_gauge {
-        let fixed = fixed_for(&state);
+        let fixed = fixed_final(&state);
         estimate_uncertainty(
             &state,
             &refine,

@@ -228,6 +228,47 @@ fn map_toy(scene: &Toy, options: &MapperOptions) -> (colmap_lidar::sfm::MapperOu
     (out, err)
 }
 
+/// The initial image given 10 cm off and held through registration
+/// (`fix_initial_for`, no alignment to the map): held through the final
+/// rounds too it stays exactly where it was given; freed there
+/// (`hold_initial_in_final_rounds = false`) the map moves it back, and the
+/// whole model with it.
+#[test]
+fn initial_image_held_through_registration_can_be_freed_for_the_final_rounds() {
+    let scene = toy(14, 0.3, 0.03, 1);
+    let truth = scene.init_pose.to_cam_from_world();
+    let given = Rigid3::from_rotation_and_center(
+        truth.rotation,
+        &(truth.camera_center() + Vector3::new(0.1, 0.0, 0.0)),
+    );
+    let run = |hold_in_final: bool| {
+        let mut options = MapperOptions::default();
+        options.bundle.fix_initial_for = 1000;
+        options.bundle.hold_initial_in_final_rounds = hold_in_final;
+        options.bundle.align_to_map = false;
+        options.bundle.retry_holding_initial = false;
+        let out = run_mapper(
+            &scene.db,
+            &scene.cloud,
+            ImageId(1),
+            &given,
+            &options,
+            &mut |_, _| {},
+        )
+        .unwrap();
+        let err = max_centre_error(&out.reconstruction, &scene.gt);
+        let moved = out.report.initial_pose_change.as_ref().unwrap().moved_m;
+        (moved, err)
+    };
+    let (held_moved, held_err) = run(true);
+    let (freed_moved, freed_err) = run(false);
+    eprintln!("held: moved {held_moved:.4} m, max error {held_err:.4} m; freed: moved {freed_moved:.4} m, max error {freed_err:.4} m");
+    assert!(held_moved < 1e-9, "{held_moved}");
+    assert!(held_err > 0.05, "{held_err}");
+    assert!(freed_moved > 0.05, "{freed_moved}");
+    assert!(freed_err < 0.5 * held_err, "{freed_err} vs {held_err}");
+}
+
 /// A map sampled every 15 cm (the defaults suit 2-5 cm): the mapper finds
 /// the spacing and widens its splats and plane radii
 /// (`MapperOptions::for_map_spacing`); without that, cameras see through the
