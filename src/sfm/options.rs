@@ -304,8 +304,10 @@ pub struct BundleOptions {
     /// room (24 images) ended 7 % and 11 % off in scale, 0.36 and 0.55 m
     /// off, with the model's shape right to 1 mm.
     pub fix_initial_for: usize,
-    /// Whether an initial image held by `fix_initial_for` stays held through
-    /// the final stage (whole-model alignment, final rounds). False frees it
+    /// Whether an initial image held by `fix_initial_for` (at least the
+    /// number of images registered by then) stays held through the final
+    /// stage (whole-model alignment, final rounds, intrinsics probe, pose
+    /// uncertainty). False frees it
     /// there, under its soft prior: held through registration, the model
     /// cannot drift; freed at the end, the map can correct the given pose.
     /// With `fix_initial_for` at least the image count, for a pose known to
