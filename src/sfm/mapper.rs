@@ -383,8 +383,9 @@ fn held_run_settled(out: &MapperOutput) -> bool {
 /// Of a first run and the run with the initial image held, the one to keep,
 /// whether it is the held one, and what was decided (for the log and the
 /// report): the held run when it passed its checks, its planes leave a
-/// direction nearly free or, where the map fixes the whole model, its
-/// alignment to the map found nothing to move (else the map disagrees with
+/// direction nearly free or, where the map fixes the whole model, it is
+/// settled ([`held_run_settled`]: its alignment trial found nothing to move
+/// and it fits the map well; else the map disagrees with
 /// the given pose: the seed-7 yard from a pose 1.1 m and 8 deg off must
 /// fail; the 400-image corridor, which slid 1.18 m in its first run, is
 /// right held: 1.1 mm), and the first failed or fits the map less (a
