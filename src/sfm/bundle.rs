@@ -9,6 +9,7 @@ use serde::Serialize;
 
 use super::associate::{AssociationQuery, PlaneAssociator, SolveKind};
 use super::options::BundleOptions;
+use super::report::PoseChangeRecord;
 use super::state::{MapState, PointPlane, MAX_IMPLAUSIBLE_REFINEMENTS};
 use crate::scene::{Camera, CameraId, ImageId, Point3DId, Rigid3};
 use crate::solver::{
@@ -126,6 +127,13 @@ pub struct SolveRecord {
     pub time_s: f64,
     /// Time of the association (projection and nearest-neighbour search), seconds.
     pub association_time_s: f64,
+    /// How far the initial image was from its given pose after the solve
+    /// (with LiDAR constraints): how a model slides along a direction the
+    /// map holds only weakly, solve by solve.
+    pub initial_image_change: Option<PoseChangeRecord>,
+    /// [`crate::sfm::align::SimilarityConstraint::ratio`] of the model's
+    /// planes after the solve (with LiDAR constraints).
+    pub similarity_constraint_ratio: Option<f64>,
 }
 
 /// Mean and median of unsigned distances.
@@ -415,6 +423,8 @@ pub fn bundle_adjust(
             intrinsics_held: Vec::new(),
             time_s: 0.0,
             association_time_s: 0.0,
+            initial_image_change: None,
+            similarity_constraint_ratio: None,
         });
     }
     let association_start = std::time::Instant::now();
@@ -548,6 +558,8 @@ pub fn bundle_adjust(
         intrinsics_held: Vec::new(),
         time_s: summary.time_s,
         association_time_s,
+        initial_image_change: None,
+        similarity_constraint_ratio: None,
     })
 }
 

@@ -213,12 +213,7 @@ fn check_initial_pose(
     let Some(pose) = state.pose(init_image) else {
         return Ok(None);
     };
-    let change = PoseChangeRecord {
-        moved_m: (pose.camera_center() - given.camera_center()).norm(),
-        turned_deg: (pose.rotation * given.rotation.inverse())
-            .angle()
-            .to_degrees(),
-    };
+    let change = pose_change(&pose, given);
     let (moved_m, turned_deg) = (change.moved_m, change.turned_deg);
     if pose_change_beyond(&change, options, 1.0) {
         return Err(MapperError::InitialPoseFarOff {
@@ -235,6 +230,24 @@ fn check_initial_pose(
         );
     }
     Ok(Some(change))
+}
+
+/// How far the initial image is from its given pose now (`None` without
+/// LiDAR constraints or before initialisation).
+fn initial_image_change(state: &MapState, report: &MapReport) -> Option<PoseChangeRecord> {
+    let (image, given) = report.initial_given.as_ref()?;
+    let pose = state.pose(*image)?;
+    Some(pose_change(&pose, given))
+}
+
+/// The change from `given` to `pose`.
+fn pose_change(pose: &Rigid3, given: &Rigid3) -> PoseChangeRecord {
+    PoseChangeRecord {
+        moved_m: (pose.camera_center() - given.camera_center()).norm(),
+        turned_deg: (pose.rotation * given.rotation.inverse())
+            .angle()
+            .to_degrees(),
+    }
 }
 
 /// Whether `change` exceeds `fraction` of the accepted change
@@ -678,6 +691,9 @@ fn map_once(
     // Gauge: with map terms the initial image stays fixed for the first
     // registrations; without them the first two images stay fixed for good.
     let lidar_gauge = options.association.kind != AssociationKind::None;
+    if lidar_gauge {
+        report.initial_given = Some((init_image, *init_cam_from_world));
+    }
     let fixed_for = |state: &MapState| -> BTreeSet<ImageId> {
         if !lidar_gauge {
             BTreeSet::from([init_image, second])
@@ -1190,13 +1206,12 @@ fn local_ba(
         } else {
             SolveKind::LocalRefine
         };
-        report.solves.push(bundle_adjust(
-            state,
-            config,
-            kind,
-            associator,
-            &options.bundle,
-        )?);
+        let mut record = bundle_adjust(state, config, kind, associator, &options.bundle)?;
+        record.initial_image_change = initial_image_change(state, report);
+        if record.initial_image_change.is_some() {
+            record.similarity_constraint_ratio = similarity_constraint(state).map(|c| c.ratio);
+        }
+        report.solves.push(record);
     }
     Ok(())
 }
@@ -1622,9 +1637,24 @@ fn global_ba(
         refine_cameras: refine_cameras.clone(),
         pose_priors: priors.to_vec(),
     };
-    let record = bundle_adjust(state, &config, kind, associator, &options.bundle)?;
+    let mut record = bundle_adjust(state, &config, kind, associator, &options.bundle)?;
+    record.initial_image_change = initial_image_change(state, report);
+    if record.initial_image_change.is_some() {
+        record.similarity_constraint_ratio = similarity_constraint(state).map(|c| c.ratio);
+    }
+    let initial = record
+        .initial_image_change
+        .map(|c| {
+            format!(
+                "; initial image {:.3} m, {:.2} deg off; constraint ratio {:.1e}",
+                c.moved_m,
+                c.turned_deg,
+                record.similarity_constraint_ratio.unwrap_or(0.0)
+            )
+        })
+        .unwrap_or_default();
     log::info!(
-        "{kind:?} BA: {} images, {} points, {} planes, cost {:.4e} -> {:.4e} ({:.2} s)",
+        "{kind:?} BA: {} images, {} points, {} planes, cost {:.4e} -> {:.4e} ({:.2} s{initial})",
         record.num_variable_poses,
         record.num_points,
         record.num_planes,

@@ -6,7 +6,7 @@ use super::bundle::{PoseUncertainty, SolveRecord};
 use super::initialize::InitSummary;
 use super::options::MapperOptions;
 use super::state::MapState;
-use crate::scene::{Camera, CameraId, ImageId};
+use crate::scene::{Camera, CameraId, ImageId, Rigid3};
 use crate::solver::PlaneFamily;
 
 /// One image.
@@ -100,6 +100,10 @@ pub struct MapReport {
     pub mean_track_length: f64,
     pub mean_reprojection_error_px: f64,
     pub init: Option<InitSummary>,
+    /// The initial image and its given pose (not written): each solve
+    /// records how far the image is from it.
+    #[serde(skip)]
+    pub initial_given: Option<(ImageId, Rigid3)>,
     /// How far the initial image ended from its given pose (with LiDAR
     /// constraints; a warning beyond half the accepted change).
     pub initial_pose_change: Option<PoseChangeRecord>,

@@ -229,7 +229,8 @@ fn map_toy(scene: &Toy, options: &MapperOptions) -> (colmap_lidar::sfm::MapperOu
 }
 
 /// The initial image given 10 cm off and held through registration
-/// (`fix_initial_for`, no alignment to the map): held through the final
+/// (`fix_initial_for`, no alignment to the map; every registration solve's
+/// record shows it at its given pose): held through the final
 /// rounds too it stays exactly where it was given; freed there
 /// (`hold_initial_in_final_rounds = false`) the map moves it back, and the
 /// whole model with it.
@@ -258,6 +259,28 @@ fn initial_image_held_through_registration_can_be_freed_for_the_final_rounds() {
         .unwrap();
         let err = max_centre_error(&out.reconstruction, &scene.gt);
         let moved = out.report.initial_pose_change.as_ref().unwrap().moved_m;
+        // Each solve records where the initial image was: through
+        // registration exactly at its given pose.
+        let solves = &out.report.solves;
+        let registration: Vec<f64> = solves
+            .iter()
+            .filter(|s| !s.kind.is_final())
+            .map(|s| s.initial_image_change.expect("recorded").moved_m)
+            .collect();
+        assert!(registration.len() > 10, "{}", registration.len());
+        assert!(registration.iter().all(|&m| m < 1e-9), "{registration:?}");
+        // The final rounds' records show where it ended (within the last
+        // round's move; a discarded intrinsics probe is not in the model).
+        let last = solves
+            .iter()
+            .rev()
+            .find(|s| s.kind.is_final() && !s.discarded)
+            .unwrap();
+        let last_moved = last.initial_image_change.unwrap().moved_m;
+        assert!(
+            (last_moved - moved).abs() < 0.002,
+            "{last_moved} vs {moved}"
+        );
         (moved, err)
     };
     let (held_moved, held_err) = run(true);
