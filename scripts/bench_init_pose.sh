@@ -72,6 +72,7 @@ for step in "$@"; do
   else
     error=$(grep -m1 '^error' "$run.log" || echo "error: (none in $run.log)")
     why=$(echo "$error" | grep -o 'the model does not fit the map: [0-9]* %\|the initial image ended [0-9.]* m and [0-9.]* deg' | head -1 || true)
+    if echo "$error" | grep -q 'may have slid along'; then why="$why (slid along a weak direction)"; fi
     outcome="error: ${why:-${error:0:160}}"
     failed=$((failed + 1))
   fi

@@ -235,6 +235,7 @@ fn check_initial_pose(
     given: &Rigid3,
     options: &BundleOptions,
     fit: Option<FitSummary>,
+    held: bool,
 ) -> Result<Option<PoseChangeRecord>, MapperError> {
     let Some(pose) = state.pose(init_image) else {
         return Ok(None);
@@ -251,11 +252,14 @@ fn check_initial_pose(
         });
     }
     if initial_pose_moved_far(&change, options) {
+        // A held image did not slide: the initial pair's alignment moved it.
         if let Some(FitSummary {
             share,
-            constraint_ratio: Some(ratio),
-        }) = fit
+            constraint_ratio,
+        }) = fit.filter(|_| !held)
         {
+            // No ratio: too few points on planes to hold anything.
+            let ratio = constraint_ratio.unwrap_or(0.0);
             if share < GOOD_FIT_SHARE && ratio < WEAK_SIMILARITY_CONSTRAINT {
                 return Err(MapperError::SlidAlongWeakDirection {
                     moved_m,
@@ -395,7 +399,41 @@ pub fn run_mapper_with_priors(
     let Some(reason) = retry_reason(&first, options).filter(|_| !holds_already) else {
         return first;
     };
-    log::warn!("{reason}: mapping again with the initial image held at its given pose");
+    // Held early (`fix_initial_for`) at a pose that is off, the model can be
+    // built around it and stay there: the seed-7 yard from 0.6 m / 4 deg off
+    // ended 0.27 m off (the slid-along-a-weak-direction error), free from the
+    // start 2.4 mm. So a failed early-held run is first mapped again free,
+    // as before session 28; only if that fails too, held throughout.
+    let early_hold =
+        options.bundle.fix_initial_for > 0 && options.bundle.fix_initial_for < db.images.len();
+    let (first, free_run_s, held_reason) = if early_hold {
+        log::warn!("{reason}: mapping again with the initial image free from the start");
+        let mut free = options.clone();
+        free.bundle.fix_initial_for = 0;
+        let (mut free_run, free_run_s) = run(&free);
+        match retry_reason(&free_run, &free) {
+            None => {
+                let note = "kept the run with the initial image free from the start".to_owned();
+                log::warn!("{note}");
+                if let Ok(out) = &mut free_run {
+                    out.report.retry = Some(RetryRecord {
+                        reason,
+                        held_kept: false,
+                        free_kept: true,
+                        outcome: note,
+                        first_run_s,
+                        free_run_s: Some(free_run_s),
+                        held_run_s: None,
+                    });
+                }
+                return free_run;
+            }
+            Some(why) => (free_run, Some(free_run_s), why),
+        }
+    } else {
+        (first, None, reason.clone())
+    };
+    log::warn!("{held_reason}: mapping again with the initial image held at its given pose");
     let mut held = options.clone();
     held.bundle.fix_initial_for = db.images.len();
     held.bundle.hold_initial_in_final_rounds = true;
@@ -403,12 +441,18 @@ pub fn run_mapper_with_priors(
     let (mut outcome, held_kept, note) = pick_run(first, held_run);
     log::warn!("{note}");
     if let Ok(out) = &mut outcome {
+        let note = match free_run_s {
+            Some(_) => format!("the run free from the start: {held_reason}; {note}"),
+            None => note,
+        };
         out.report.retry = Some(RetryRecord {
             reason,
             held_kept,
+            free_kept: free_run_s.is_some() && !held_kept,
             outcome: note,
             first_run_s,
-            held_run_s,
+            free_run_s,
+            held_run_s: Some(held_run_s),
         });
     }
     outcome
@@ -1191,6 +1235,7 @@ fn map_once(
             init_cam_from_world,
             &options.bundle,
             Some(summary),
+            fixed_final(&state).contains(&init_image),
         )?;
         if let Some(c) = &report.similarity_constraint {
             let (ratio, weakest) = (c.ratio, c.weakest.map(|v| (v * 100.0).round() / 100.0));
@@ -1836,6 +1881,17 @@ mod tests {
             fit: None,
         });
         assert!(retry_reason(&far, &options).is_some());
+        let slid = Err(MapperError::SlidAlongWeakDirection {
+            moved_m: 0.75,
+            turned_deg: 6.0,
+            max_m: 1.0,
+            max_deg: 10.0,
+            share: 0.74,
+            ratio: 1.5e-3,
+        });
+        assert!(retry_reason(&slid, &options)
+            .unwrap()
+            .contains("may have slid"));
         // Errors that holding the initial image cannot mend.
         assert!(retry_reason(&Err(MapperError::EmptyMap), &options).is_none());
         // Finished runs: a nearly free direction (ratio below 1e-3) and the
@@ -1997,17 +2053,17 @@ mod tests {
             let centre = nalgebra::Vector3::new(x, 0.0, 0.0);
             Rigid3::from_rotation_and_center(nalgebra::UnitQuaternion::identity(), &centre)
         };
-        let change = check_initial_pose(&state, ImageId(1), &given(0.3), &options, None)
+        let change = check_initial_pose(&state, ImageId(1), &given(0.3), &options, None, false)
             .unwrap()
             .unwrap();
         assert!((change.moved_m - 0.3).abs() < 1e-12 && change.turned_deg < 1e-9);
         assert!(!initial_pose_moved_far(&change, &options));
-        let change = check_initial_pose(&state, ImageId(1), &given(0.6), &options, None)
+        let change = check_initial_pose(&state, ImageId(1), &given(0.6), &options, None, false)
             .unwrap()
             .unwrap();
         assert!(initial_pose_moved_far(&change, &options));
         assert!(matches!(
-            check_initial_pose(&state, ImageId(1), &given(1.2), &options, None),
+            check_initial_pose(&state, ImageId(1), &given(1.2), &options, None, false),
             Err(MapperError::InitialPoseFarOff { .. })
         ));
         // Moved over half the limit: an error only when the map holds the
@@ -2026,6 +2082,7 @@ mod tests {
             &given(0.6),
             &options,
             fit(0.736, 1.5e-3),
+            false,
         )
         .unwrap_err();
         assert!(matches!(slid, MapperError::SlidAlongWeakDirection { .. }));
@@ -2039,16 +2096,23 @@ mod tests {
             assert!(message.contains(part), "{part}: {message}");
         }
         for ok in [fit(0.937, 3.4e-3), fit(0.736, 0.02), None] {
-            assert!(check_initial_pose(&state, ImageId(1), &given(0.6), &options, ok).is_ok());
+            assert!(
+                check_initial_pose(&state, ImageId(1), &given(0.6), &options, ok, false).is_ok()
+            );
         }
-        assert!(check_initial_pose(
-            &state,
-            ImageId(1),
-            &given(0.3),
-            &options,
-            fit(0.736, 1.5e-3)
-        )
-        .is_ok());
+        for (x, held) in [(0.3, false), (0.6, true)] {
+            let fit = fit(0.736, 1.5e-3);
+            assert!(check_initial_pose(&state, ImageId(1), &given(x), &options, fit, held).is_ok());
+        }
+        // Too few points on planes for a ratio: as weak as it gets.
+        let unmeasured = Some(FitSummary {
+            share: 0.736,
+            constraint_ratio: None,
+        });
+        assert!(matches!(
+            check_initial_pose(&state, ImageId(1), &given(0.6), &options, unmeasured, false),
+            Err(MapperError::SlidAlongWeakDirection { .. })
+        ));
         // 6 deg (over half of 10) without a move; limits of 0 are off.
         let turned = PoseChangeRecord {
             moved_m: 0.0,
@@ -2063,7 +2127,7 @@ mod tests {
         assert!(!initial_pose_moved_far(&turned, &off));
         // Image 7 is not registered: nothing to say.
         assert!(
-            check_initial_pose(&state, ImageId(7), &given(0.0), &off, None)
+            check_initial_pose(&state, ImageId(7), &given(0.0), &off, None, false)
                 .unwrap()
                 .is_none()
         );

@@ -166,12 +166,18 @@ pub struct RetryRecord {
     pub reason: String,
     /// True when this model is the held run's.
     pub held_kept: bool,
+    /// True when this model is the run with the initial image free from the
+    /// start (mapped when the first run held it for its first
+    /// `fix_initial_for` registrations and failed).
+    pub free_kept: bool,
     /// What was decided, and why.
     pub outcome: String,
-    /// Wall time of the first run and of the held run, seconds (`stages`
-    /// and `solves` are the kept run's; the whole call took both).
+    /// Wall time of the first run, of the free run and of the held run
+    /// (each when it ran), seconds (`stages` and `solves` are the kept
+    /// run's; the whole call took them all).
     pub first_run_s: f64,
-    pub held_run_s: f64,
+    pub free_run_s: Option<f64>,
+    pub held_run_s: Option<f64>,
 }
 
 /// One camera's intrinsics (COLMAP's parameter order for its model).

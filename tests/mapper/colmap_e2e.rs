@@ -278,7 +278,14 @@ fn changed_yard_is_held_at_its_given_pose() {
     // a trial most likely left one CI database's run 25 mm off in scale).
     assert_eq!(alignment["applied"].as_bool(), Some(false), "{alignment}");
     assert!(!retry["reason"].as_str().unwrap().is_empty(), "{retry}");
-    // Both runs' times; the stages are the held run's, within its time.
+    // Held early, the first run failed; so did the run free from the start
+    // (mapped before the held one).
+    assert_eq!(retry["free_kept"].as_bool(), Some(false), "{retry}");
+    assert!(
+        retry["free_run_s"].as_f64().is_some_and(|s| s > 0.0),
+        "{retry}"
+    );
+    // The runs' times; the stages are the held run's, within its time.
     let first_s = retry["first_run_s"].as_f64().unwrap();
     let held_s = retry["held_run_s"].as_f64().unwrap();
     let stages_s: f64 = exact.report["stages"]

@@ -692,7 +692,10 @@ fn toy_room_option_sweep() {
         ("default", Box::new(|_| {})),
         (
             "initial fixed",
-            Box::new(|o| o.bundle.fix_initial_for = 1000),
+            Box::new(|o| {
+                o.bundle.fix_initial_for = 1000;
+                o.bundle.hold_initial_in_final_rounds = true;
+            }),
         ),
         (
             "gate 5 cm",
