@@ -411,7 +411,10 @@ pub fn run_mapper_with_priors(
         let mut free = options.clone();
         free.bundle.fix_initial_for = 0;
         let (mut free_run, free_run_s) = run(&free);
-        match retry_reason(&free_run, &free) {
+        // An error that holding cannot mend goes on to the held run too.
+        let why = retry_reason(&free_run, &free)
+            .or_else(|| free_run.as_ref().err().map(|e| e.to_string()));
+        match why {
             None => {
                 let note = "kept the run with the initial image free from the start".to_owned();
                 log::warn!("{note}");
