@@ -20,7 +20,7 @@ use super::align::{
 use super::associate::{
     NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
 };
-use super::bundle::{bundle_adjust, pose_uncertainty, BundleConfig, SoftPosePrior};
+use super::bundle::{bundle_adjust, pose_uncertainty, BundleConfig, SoftPosePrior, SolveRecord};
 use super::filter::{
     count_points_on_seen_surface, filter_observations, filter_points_behind_map,
     filter_small_angle_points,
@@ -278,12 +278,18 @@ fn check_initial_pose(
     Ok(Some(change))
 }
 
-/// How far the initial image is from its given pose now (`None` without
+/// Writes into a solve's record how far the initial image is from its given
+/// pose now and the model's similarity-constraint ratio (neither without
 /// LiDAR constraints or before initialisation).
-fn initial_image_change(state: &MapState, report: &MapReport) -> Option<PoseChangeRecord> {
-    let (image, given) = report.initial_given.as_ref()?;
-    let pose = state.pose(*image)?;
-    Some(pose_change(&pose, given))
+fn note_initial_image(state: &MapState, report: &MapReport, record: &mut SolveRecord) {
+    let Some((image, given)) = report.initial_given.as_ref() else {
+        return;
+    };
+    let Some(pose) = state.pose(*image) else {
+        return;
+    };
+    record.initial_image_change = Some(pose_change(&pose, given));
+    record.similarity_constraint_ratio = similarity_constraint(state).map(|c| c.ratio);
 }
 
 /// The change from `given` to `pose`.
@@ -1299,10 +1305,7 @@ fn local_ba(
             SolveKind::LocalRefine
         };
         let mut record = bundle_adjust(state, config, kind, associator, &options.bundle)?;
-        record.initial_image_change = initial_image_change(state, report);
-        if record.initial_image_change.is_some() {
-            record.similarity_constraint_ratio = similarity_constraint(state).map(|c| c.ratio);
-        }
+        note_initial_image(state, report, &mut record);
         report.solves.push(record);
     }
     Ok(())
@@ -1730,10 +1733,7 @@ fn global_ba(
         pose_priors: priors.to_vec(),
     };
     let mut record = bundle_adjust(state, &config, kind, associator, &options.bundle)?;
-    record.initial_image_change = initial_image_change(state, report);
-    if record.initial_image_change.is_some() {
-        record.similarity_constraint_ratio = similarity_constraint(state).map(|c| c.ratio);
-    }
+    note_initial_image(state, report, &mut record);
     let initial = record
         .initial_image_change
         .map(|c| {

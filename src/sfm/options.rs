@@ -324,8 +324,8 @@ pub struct BundleOptions {
     pub hold_initial_in_final_rounds: bool,
     /// The initial image has a soft prior at its given pose with this
     /// standard deviation of the position, metres: after `fix_initial_for`
-    /// it only matters along directions the map does not fix. 0 disables. Default 0.3 (the initial pose is trusted
-    /// to a few decimetres).
+    /// it only matters along directions the map does not fix. 0 disables.
+    /// Default 0.3 (the initial pose is trusted to a few decimetres).
     pub initial_prior_position_m: f64,
     /// Standard deviation of the prior's rotation, degrees. 0 disables.
     /// Default 3.
