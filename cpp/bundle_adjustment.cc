@@ -15,6 +15,7 @@
 #include <ceres/rotation.h>
 #include <glog/logging.h>
 
+#include <chrono>
 #include <cmath>
 #include <memory>
 #include <mutex>
@@ -718,14 +719,26 @@ BaSummaryFfi SolveImpl(BaProblemFfi& p, const BaOptionsFfi& o) {
     Fail("max_iterations must be >= 0 and num_threads >= 1");
   }
   SetLogLevel(o.logging);
-  std::unique_ptr<BuiltProblem> built = BuildProblem(p, o, true);
-
+  using Clock = std::chrono::steady_clock;
+  const auto seconds_since = [](Clock::time_point t) {
+    return std::chrono::duration<double>(Clock::now() - t).count();
+  };
   BaSummaryFfi out;
+  out.preprocessor_time_s = 0.0;
+  out.residual_time_s = 0.0;
+  out.jacobian_time_s = 0.0;
+  out.linear_solver_time_s = 0.0;
+  Clock::time_point t = Clock::now();
+  std::unique_ptr<BuiltProblem> built = BuildProblem(p, o, true);
+  out.build_time_s = seconds_since(t);
+
   std::vector<double> initial_cost;
   std::vector<double> final_cost;
   std::vector<uint32_t> blocks;
   uint32_t failed = 0;
+  t = Clock::now();
   EvaluateRecords(*built, nullptr, &initial_cost, &blocks, &failed);
+  out.family_cost_time_s = seconds_since(t);
   out.family_num_blocks = ToRustVec(blocks);
   out.family_initial_cost = ToRustVec(initial_cost);
 
@@ -750,7 +763,14 @@ BaSummaryFfi SolveImpl(BaProblemFfi& p, const BaOptionsFfi& o) {
   ceres::Solver::Summary summary;
   ceres::Solve(options, built->problem.get(), &summary);
 
+  t = Clock::now();
   EvaluateRecords(*built, nullptr, &final_cost, &blocks, &failed);
+  out.family_cost_time_s += seconds_since(t);
+  out.preprocessor_time_s = summary.preprocessor_time_in_seconds;
+  out.residual_time_s = summary.residual_evaluation_time_in_seconds;
+  out.jacobian_time_s = summary.jacobian_evaluation_time_in_seconds;
+  out.linear_solver_time_s = summary.linear_solver_time_in_seconds;
+  out.schur_structure = summary.schur_structure_used;
   out.family_final_cost = ToRustVec(final_cost);
   out.initial_cost = summary.initial_cost;
   out.final_cost = summary.final_cost;

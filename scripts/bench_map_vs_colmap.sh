@@ -81,12 +81,24 @@ r = json.load(open(sys.argv[1]))
 print("== where the time of colmap-lidar map goes")
 for s in r["stages"]:
     print(f"  stage {s['name']:<28} {s['time_s']:7.2f} s")
+parts = ["build_s", "preprocessor_s", "residual_s", "jacobian_s", "linear_solver_s"]
 kinds = {}
 for s in r["solves"]:
-    k = kinds.setdefault(s["kind"], [0, 0.0, 0.0])
-    k[0] += 1; k[1] += s["time_s"]; k[2] += s.get("association_time_s", 0.0)
-for kind, (n, ceres, assoc) in kinds.items():
-    print(f"  {kind:<13} solves {n:4d}: Ceres {ceres:7.2f} s, association {assoc:6.2f} s")
+    k = kinds.setdefault(s["kind"], {"n": 0, "iterations": 0, "wall": 0.0, "ceres": 0.0, "assoc": 0.0,
+                                     **{p: 0.0 for p in parts}})
+    k["n"] += 1
+    k["iterations"] += s["iterations"]
+    k["wall"] += s.get("wall_s", 0.0)
+    k["ceres"] += s["time_s"]
+    k["assoc"] += s.get("association_time_s", 0.0)
+    for p in parts:
+        k[p] += s.get("solver_times", {}).get(p, 0.0)
+for kind, k in kinds.items():
+    print(f"  {kind:<13} solves {k['n']:4d} ({k['iterations']} iterations): wall {k['wall']:7.2f} s, "
+          f"Ceres {k['ceres']:7.2f} s (preprocessing {k['preprocessor_s']:.2f}, residuals "
+          f"{k['residual_s']:.2f}, Jacobians {k['jacobian_s']:.2f}, linear solver "
+          f"{k['linear_solver_s']:.2f}), building the problem {k['build_s']:.2f} s, "
+          f"association {k['assoc']:6.2f} s")
 PY
 fi
 echo "outputs in $out"

@@ -438,6 +438,49 @@ fn planes_hold_gauge_and_metric_scale() {
     }
 }
 
+/// Plane residuals are padded to two rows, so with the intrinsics held every
+/// row block on a point has 2 rows and every pose block 3 dimensions: Ceres
+/// must pick its compiled 2,3,3 Schur eliminator, not the generic dynamic one
+/// (about a quarter slower). Freeing the intrinsics gives pose and camera
+/// blocks of different sizes, hence a dynamic f-block. Each solve reports
+/// where its time went, Ceres' parts within its total.
+#[test]
+fn schur_structure_and_time_split_are_reported() {
+    let scene = room_scene(12, 20, 20, 3);
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let mut problem = problem_from_scene(&scene, 0.3, Some(100.0), &mut rng);
+    perturb(&mut problem, 0.2, 0.02, &mut rng);
+    assert!(!problem.planes.is_empty());
+    let options = SolverOptions {
+        linear_solver: LinearSolver::DenseSchur,
+        ..Default::default()
+    };
+    let summary = solver::solve(&mut problem.clone(), &options).expect("solve");
+    assert!(summary.usable, "{}", summary.message);
+    assert_eq!(summary.schur_structure, "2,3,3");
+    let t = summary.times;
+    eprintln!("{t:?}, total {:.4} s", summary.time_s);
+    for (name, v) in [
+        ("build", t.build_s),
+        ("family cost", t.family_cost_s),
+        ("preprocessor", t.preprocessor_s),
+        ("residual", t.residual_s),
+        ("jacobian", t.jacobian_s),
+        ("linear solver", t.linear_solver_s),
+    ] {
+        assert!(v > 0.0 && v.is_finite(), "{name}: {v}");
+    }
+    let inside = t.preprocessor_s + t.residual_s + t.jacobian_s + t.linear_solver_s;
+    assert!(inside <= summary.time_s, "{inside} > {}", summary.time_s);
+
+    for camera in &mut problem.cameras {
+        camera.constant = ConstantParams::None;
+    }
+    let summary = solver::solve(&mut problem, &options).expect("solve");
+    assert!(summary.usable, "{}", summary.message);
+    assert_eq!(summary.schur_structure, "2,3,d");
+}
+
 #[test]
 fn three_planes_through_one_point_leave_scale_free() {
     // Floor, back wall and left wall meet in a point; scaling about it keeps all

@@ -11,6 +11,7 @@
 //! normal with the offset of the map's surface around it
 //! ([`NearestNeighbourAssociator::plane_offset_at`]).
 use nalgebra::Vector3;
+use rayon::prelude::*;
 
 use super::options::AssociationOptions;
 use super::state::MapState;
@@ -191,7 +192,7 @@ impl NearestNeighbourAssociator<'_> {
         kind: SolveKind,
         state: &MapState,
         queries: &[AssociationQuery],
-        mut planes: Vec<PlaneConstraint>,
+        planes: Vec<PlaneConstraint>,
     ) -> Vec<PlaneConstraint> {
         let max_px = self.options.final_max_on_plane_error_px;
         if !kind.is_final() || max_px <= 0.0 {
@@ -199,13 +200,15 @@ impl NearestNeighbourAssociator<'_> {
         }
         let ids: BTreeMap<u32, Point3DId> =
             queries.iter().map(|q| (q.point_idx, q.point_id)).collect();
-        planes.retain(|p| {
-            ids.get(&p.point_idx).is_some_and(|&id| {
-                let normal = Vector3::from(p.normal);
-                on_plane_error_px(state, id, &normal, p.offset_m).is_some_and(|e| e <= max_px)
-            })
-        });
         planes
+            .into_par_iter()
+            .filter(|p| {
+                ids.get(&p.point_idx).is_some_and(|&id| {
+                    let normal = Vector3::from(p.normal);
+                    on_plane_error_px(state, id, &normal, p.offset_m).is_some_and(|e| e <= max_px)
+                })
+            })
+            .collect()
     }
 
     /// Offset `d` of the map's plane `n . X = d` through map point `i` (`n`
@@ -330,35 +333,36 @@ impl NearestNeighbourAssociator<'_> {
     ) -> Vec<PlaneConstraint> {
         let weights = self.options.weights(kind);
         let cos_ground = self.options.ground_max_tilt_deg.to_radians().cos();
-        let mut planes = Vec::new();
-        for q in queries {
-            let x = q.position_in_world;
-            let Some((normal, offset_m)) =
-                self.plane_near(&x, self.radius_for(kind, q.num_global_ba))
-            else {
-                continue;
-            };
-            if (normal.dot(&x) - offset_m).abs() > self.options.max_plane_distance_m {
-                continue;
-            }
-            let ground = normal.z.abs() >= cos_ground;
-            planes.push(PlaneConstraint {
-                point_idx: q.point_idx,
-                normal: [normal.x, normal.y, normal.z],
-                offset_m,
-                weight: if ground {
-                    weights.ground_weight
-                } else {
-                    weights.weight
-                },
-                family: if ground {
-                    PlaneFamily::Ground
-                } else {
-                    PlaneFamily::Nearest
-                },
-            });
-        }
-        planes
+        // In parallel, in the queries' order (the result does not depend on
+        // the number of threads: each query's plane is its own, and the
+        // cached plane offsets are the same whichever thread computes them).
+        queries
+            .par_iter()
+            .filter_map(|q| {
+                let x = q.position_in_world;
+                let (normal, offset_m) =
+                    self.plane_near(&x, self.radius_for(kind, q.num_global_ba))?;
+                if (normal.dot(&x) - offset_m).abs() > self.options.max_plane_distance_m {
+                    return None;
+                }
+                let ground = normal.z.abs() >= cos_ground;
+                Some(PlaneConstraint {
+                    point_idx: q.point_idx,
+                    normal: [normal.x, normal.y, normal.z],
+                    offset_m,
+                    weight: if ground {
+                        weights.ground_weight
+                    } else {
+                        weights.weight
+                    },
+                    family: if ground {
+                        PlaneFamily::Ground
+                    } else {
+                        PlaneFamily::Nearest
+                    },
+                })
+            })
+            .collect()
     }
 }
 

@@ -5,6 +5,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 
 use nalgebra::Vector3;
+use rayon::prelude::*;
 use serde::Serialize;
 
 use super::associate::{AssociationQuery, PlaneAssociator, SolveKind};
@@ -15,7 +16,7 @@ use crate::scene::{Camera, CameraId, ImageId, Point3DId, Rigid3};
 use crate::solver::{
     pose_covariances, sigma_of_variance, solve, BaCamera, BaObservation, BaPoint, BaPose,
     BundleAdjustmentProblem, ConstantParams, CovarianceError, LossFunction, PlaneFamily, PosePrior,
-    SolverError, SolverOptions,
+    SolveTimes, SolverError, SolverOptions,
 };
 
 /// What varies in one solve.
@@ -127,6 +128,13 @@ pub struct SolveRecord {
     pub time_s: f64,
     /// Time of the association (projection and nearest-neighbour search), seconds.
     pub association_time_s: f64,
+    /// The bridge's and Ceres' split of the solve's time.
+    pub solver_times: SolveTimes,
+    /// Ceres' Schur eliminator block sizes, "row,e,f" ("d": dynamic).
+    pub schur_structure: String,
+    /// The whole call: building the problem, association, the solve, the
+    /// statistics before and after, writing the result back; seconds.
+    pub wall_s: f64,
     /// How far the initial image was from its given pose after the solve
     /// (with LiDAR constraints): how a model slides along a direction the
     /// map holds only weakly, solve by solve.
@@ -181,26 +189,29 @@ impl ErrorStats {
 
 /// Reprojection errors (pixels) of every observation of `points` by a registered image.
 fn reprojection_errors(state: &MapState, points: &[Point3DId]) -> Vec<f64> {
-    let mut errors = Vec::new();
-    for pid in points {
-        let Some(p) = state.points.get(pid) else {
-            continue;
-        };
-        for e in &p.track {
-            let Some(pose) = state.pose(e.image_id) else {
-                continue;
+    // In parallel, in the points' order.
+    points
+        .par_iter()
+        .map(|pid| {
+            let Some(p) = state.points.get(pid) else {
+                return Vec::new();
             };
-            if let Some(e2) = super::geometry::reprojection_error_sq(
-                state.camera_of(e.image_id),
-                &pose,
-                &p.xyz,
-                &state.keypoint(*e),
-            ) {
-                errors.push(e2.sqrt());
-            }
-        }
-    }
-    errors
+            p.track
+                .iter()
+                .filter_map(|e| {
+                    let pose = state.pose(e.image_id)?;
+                    super::geometry::reprojection_error_sq(
+                        state.camera_of(e.image_id),
+                        &pose,
+                        &p.xyz,
+                        &state.keypoint(*e),
+                    )
+                    .map(f64::sqrt)
+                })
+                .collect::<Vec<f64>>()
+        })
+        .collect::<Vec<_>>()
+        .concat()
 }
 
 /// A solve's problem with what maps it back onto the state.
@@ -395,6 +406,7 @@ pub fn bundle_adjust(
     associator: &dyn PlaneAssociator,
     options: &BundleOptions,
 ) -> Result<SolveRecord, SolverError> {
+    let started = std::time::Instant::now();
     let mut built = build_bundle(state, config);
     let num_variable_poses = built.problem.poses.iter().filter(|p| !p.constant).count();
     if built.problem.observations.is_empty()
@@ -423,6 +435,9 @@ pub fn bundle_adjust(
             intrinsics_held: Vec::new(),
             time_s: 0.0,
             association_time_s: 0.0,
+            solver_times: SolveTimes::default(),
+            schur_structure: String::new(),
+            wall_s: started.elapsed().as_secs_f64(),
             initial_image_change: None,
             similarity_constraint_ratio: None,
         });
@@ -494,6 +509,8 @@ pub fn bundle_adjust(
             let mut record = bundle_adjust(state, &held, kind, associator, options)?;
             record.time_s += summary.time_s;
             record.association_time_s += association_time_s;
+            record.solver_times += summary.times;
+            record.wall_s = started.elapsed().as_secs_f64();
             record
                 .intrinsics_held
                 .extend(implausible.iter().map(|id| id.0));
@@ -558,6 +575,9 @@ pub fn bundle_adjust(
         intrinsics_held: Vec::new(),
         time_s: summary.time_s,
         association_time_s,
+        solver_times: summary.times,
+        schur_structure: summary.schur_structure.clone(),
+        wall_s: started.elapsed().as_secs_f64(),
         initial_image_change: None,
         similarity_constraint_ratio: None,
     })

@@ -3,7 +3,9 @@
 use super::ffi::ffi;
 use super::options::{LinearSolver, SolverOptions};
 use super::problem::{BundleAdjustmentProblem, ConstantParams, PlaneFamily};
-use super::summary::{Evaluation, FamilyCost, ResidualFamily, SolveSummary, TerminationType};
+use super::summary::{
+    Evaluation, FamilyCost, ResidualFamily, SolveSummary, SolveTimes, TerminationType,
+};
 use super::SolverError;
 
 /// Quaternion or normal scaled to exact unit length (validated as near-unit).
@@ -235,6 +237,15 @@ pub(crate) fn solve(
             &s.family_initial_cost,
             &s.family_final_cost,
         ),
+        times: SolveTimes {
+            build_s: s.build_time_s,
+            family_cost_s: s.family_cost_time_s,
+            preprocessor_s: s.preprocessor_time_s,
+            residual_s: s.residual_time_s,
+            jacobian_s: s.jacobian_time_s,
+            linear_solver_s: s.linear_solver_time_s,
+        },
+        schur_structure: s.schur_structure,
     })
 }
 

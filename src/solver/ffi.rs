@@ -82,6 +82,18 @@ pub(crate) mod ffi {
         family_num_blocks: Vec<u32>,
         family_initial_cost: Vec<f64>,
         family_final_cost: Vec<f64>,
+        /// Where the time went, seconds: building the Ceres problem, the two
+        /// evaluations of every family's cost (before and after), and Ceres'
+        /// own split of `time_s`.
+        build_time_s: f64,
+        family_cost_time_s: f64,
+        preprocessor_time_s: f64,
+        residual_time_s: f64,
+        jacobian_time_s: f64,
+        linear_solver_time_s: f64,
+        /// Ceres' Schur structure used, "row,e,f" block sizes ("d" dynamic);
+        /// empty for other linear solvers.
+        schur_structure: String,
     }
 
     /// Residuals at the current parameters, without solving.

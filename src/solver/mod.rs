@@ -39,7 +39,9 @@ pub use problem::{
     BaCamera, BaObservation, BaPoint, BaPose, BundleAdjustmentProblem, ConstantParams,
     PlaneConstraint, PlaneFamily, PosePrior,
 };
-pub use summary::{Evaluation, FamilyCost, ResidualFamily, SolveSummary, TerminationType};
+pub use summary::{
+    Evaluation, FamilyCost, ResidualFamily, SolveSummary, SolveTimes, TerminationType,
+};
 
 /// Errors of the solver bridge.
 #[derive(Debug, thiserror::Error)]

@@ -84,6 +84,40 @@ pub struct SolveSummary {
     pub linear_solver: Option<LinearSolver>,
     /// Per family present in the problem, in family order.
     pub families: Vec<FamilyCost>,
+    /// Where the time went.
+    pub times: SolveTimes,
+    /// The Schur eliminator's block sizes, "row,e,f" ("d": dynamic, the
+    /// slow general code); empty for other linear solvers.
+    pub schur_structure: String,
+}
+
+/// Where a solve's time went, seconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct SolveTimes {
+    /// Building the Ceres problem from the bridge's arrays (outside `time_s`).
+    pub build_s: f64,
+    /// Evaluating each residual family's cost before and after the solve
+    /// (outside `time_s`).
+    pub family_cost_s: f64,
+    /// Ceres' preprocessing: ordering, structure detection (inside `time_s`).
+    pub preprocessor_s: f64,
+    /// Residuals alone, for the cost of trial steps (inside `time_s`).
+    pub residual_s: f64,
+    /// Residuals with Jacobians (inside `time_s`).
+    pub jacobian_s: f64,
+    /// Schur elimination and the linear solve (inside `time_s`).
+    pub linear_solver_s: f64,
+}
+
+impl std::ops::AddAssign for SolveTimes {
+    fn add_assign(&mut self, o: Self) {
+        self.build_s += o.build_s;
+        self.family_cost_s += o.family_cost_s;
+        self.preprocessor_s += o.preprocessor_s;
+        self.residual_s += o.residual_s;
+        self.jacobian_s += o.jacobian_s;
+        self.linear_solver_s += o.linear_solver_s;
+    }
 }
 
 impl std::fmt::Display for SolveSummary {
