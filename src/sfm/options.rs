@@ -262,7 +262,13 @@ pub struct BundleOptions {
     /// in by then, and frequent global BAs of a large model cost the most
     /// time. Default 30.
     pub global_growth_until_images: usize,
-    /// Stop a solve when the relative cost decrease falls below this. Default 1e-6.
+    /// Stop a solve when the relative cost decrease falls below this.
+    /// Default 1e-5: on the 100-image corridor, 1e-6 (Ceres' default) took
+    /// 45 % more iterations (1152 against 794 over the run's solves) and
+    /// 164 s against 103 s for the same model (camera centres 1.1 against
+    /// 1.0 mm median): the final rounds re-associate and solve again until
+    /// the cameras stop moving, so a solve that stops a little earlier only
+    /// hands its last small steps on.
     pub function_tolerance: f64,
     /// Soft-L1 scale on reprojection residuals, pixels. Default 1.
     pub reprojection_loss_px: f64,
@@ -427,7 +433,7 @@ impl Default for BundleOptions {
             global_every_images: 20,
             global_growth_ratio: 0.1,
             global_growth_until_images: 30,
-            function_tolerance: 1e-6,
+            function_tolerance: 1e-5,
             reprojection_loss_px: 1.0,
             refine_intrinsics: IntrinsicsRefinement::Auto,
             refine_intrinsics_min_change: 0.001,
