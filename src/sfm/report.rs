@@ -1,5 +1,6 @@
 //! `report.json`: what the mapper did, per image and per solve. Everything in
-//! it is deterministic except the `time_s` fields.
+//! it is deterministic except the times (`time_s`, `*_time_s`, `wall_s`,
+//! `solver_times`).
 use serde::Serialize;
 
 use super::bundle::{PoseUncertainty, SolveRecord};
