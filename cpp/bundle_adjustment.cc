@@ -640,12 +640,14 @@ ceres::Solver::Options MakeSolverOptions(const BaOptionsFfi& o,
   options.gradient_tolerance = o.gradient_tolerance;
   options.parameter_tolerance = o.parameter_tolerance;
   if (o.max_time_s > 0.0) options.max_solver_time_in_seconds = o.max_time_s;
-  // A step that puts a point behind a camera is invalid (the cost functions
-  // return false) and shrinks the trust region, faster at each invalid step
-  // in a row. Ceres' default of 5 in a row ends the solve in FAILURE and
-  // throws away every step it had accepted; 20 lets the region shrink until a
-  // step is valid or it reaches its minimum radius, which ends the solve as
-  // converged at the last accepted state.
+  // An invalid step is one whose linear solve failed numerically or whose
+  // model predicts no decrease (round-off near a minimum); each shrinks the
+  // trust region, faster at each in a row. Ceres' default of 5 in a row ends
+  // the solve in FAILURE, which throws away every step it had accepted; 20
+  // lets the region shrink until a step is valid or it reaches its minimum
+  // radius, which ends the solve as converged at the last accepted state.
+  // (A trial step that puts a point behind a camera is not invalid: the cost
+  // functions return false, and Ceres rejects it as a step of infinite cost.)
   options.max_num_consecutive_invalid_steps = 20;
   options.num_threads = o.num_threads;
   options.minimizer_progress_to_stdout = o.logging;

@@ -1348,3 +1348,39 @@ fn pose_covariance_predicts_the_scatter_of_solutions() {
     let v = variance_sum / trials as f64;
     assert!((0.2..0.3).contains(&v), "residual variance {v}");
 }
+
+/// A trial step that would put a point behind its camera cannot be evaluated
+/// (the cost functions return false): Ceres counts it as a step of infinite
+/// cost, rejects it and shrinks the trust region, more at each rejection in a
+/// row. A point 5 cm in front of a held camera, observed 40x as far off-axis
+/// as it is (a wildly wrong depth), has trial steps that cross the camera
+/// plane until the region has shrunk six times in a row (see it with
+/// `SolverOptions::logging`); the solve must still converge to the
+/// observation with the point in front, not end in FAILURE (which would
+/// discard every accepted step) nor cross to the mirrored solution behind.
+/// These are not Ceres' "invalid steps" (a failed linear solve or a model
+/// decrease <= 0), which `max_num_consecutive_invalid_steps` counts.
+#[test]
+fn steps_that_put_a_point_behind_its_camera_are_rejected() {
+    let camera = test_cameras()[0].clone();
+    let (f, cx, cy) = (camera.params[0], camera.params[2], camera.params[3]);
+    let mut problem = BundleAdjustmentProblem {
+        poses: vec![BaPose::new(&Rigid3::identity(), true)],
+        cameras: vec![BaCamera::new(&camera, ConstantParams::All)],
+        points: vec![BaPoint::new(&Vector3::new(0.05, 0.0, 0.05), false)],
+        observations: vec![BaObservation::new(0, 0, 0, [cx + f * 40.0, cy])],
+        ..Default::default()
+    };
+    let summary = solver::solve(&mut problem, &SolverOptions::default()).expect("no error");
+    eprintln!("{} iterations: {}", summary.num_iterations, summary.message);
+    assert!(
+        summary.usable,
+        "{:?}: {}",
+        summary.termination, summary.message
+    );
+    assert_ne!(summary.termination, TerminationType::Failure);
+    let [x, y, z] = problem.points[0].position_in_world;
+    assert!(z > 0.0, "point behind the camera: {x} {y} {z}");
+    assert!((x / z - 40.0).abs() < 1e-6 && y.abs() < 1e-9, "{x} {y} {z}");
+    assert!(summary.final_cost < 1e-9 * summary.initial_cost);
+}

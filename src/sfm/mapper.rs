@@ -386,7 +386,7 @@ pub fn run_mapper_with_priors(
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
     // One run and its wall time, seconds.
-    let mut run = |options: &MapperOptions| {
+    let run = |options: &MapperOptions| {
         let started = Instant::now();
         let outcome = map_once(
             db,
@@ -399,9 +399,23 @@ pub fn run_mapper_with_priors(
         );
         (outcome, started.elapsed().as_secs_f64())
     };
+    run_with_retries(options, db.images.len(), run)
+}
+
+/// The retry schedule of [`run_mapper_with_priors`] around `run` (one mapper
+/// run with the given options and its wall time, seconds) for a database of
+/// `num_images` images: the run as configured; when [`retry_reason`] calls
+/// for it and the initial image was held only early, the run free from the
+/// start; when that fails too, or when there was no early hold, the run with
+/// the initial image held throughout, and [`pick_run`] between the two.
+fn run_with_retries(
+    options: &MapperOptions,
+    num_images: usize,
+    mut run: impl FnMut(&MapperOptions) -> (Result<MapperOutput, MapperError>, f64),
+) -> Result<MapperOutput, MapperError> {
     let (first, first_run_s) = run(options);
-    let holds_already = options.bundle.fix_initial_for >= db.images.len()
-        && options.bundle.hold_initial_in_final_rounds;
+    let holds_already =
+        options.bundle.fix_initial_for >= num_images && options.bundle.hold_initial_in_final_rounds;
     let Some(reason) = retry_reason(&first, options).filter(|_| !holds_already) else {
         return first;
     };
@@ -411,7 +425,7 @@ pub fn run_mapper_with_priors(
     // start 2.4 mm. So a failed early-held run is first mapped again free,
     // as before session 28; only if that fails too, held throughout.
     let early_hold =
-        options.bundle.fix_initial_for > 0 && options.bundle.fix_initial_for < db.images.len();
+        options.bundle.fix_initial_for > 0 && options.bundle.fix_initial_for < num_images;
     let (first, free_run_s, held_reason) = if early_hold {
         log::warn!("{reason}: mapping again with the initial image free from the start");
         let mut free = options.clone();
@@ -444,7 +458,7 @@ pub fn run_mapper_with_priors(
     };
     log::warn!("{held_reason}: mapping again with the initial image held at its given pose");
     let mut held = options.clone();
-    held.bundle.fix_initial_for = db.images.len();
+    held.bundle.fix_initial_for = num_images;
     held.bundle.hold_initial_in_final_rounds = true;
     let (held_run, held_run_s) = run(&held);
     let (mut outcome, held_kept, note) = pick_run(first, held_run);
@@ -1843,6 +1857,16 @@ mod tests {
         );
     }
 
+    /// The off-map error of the yard that slid (45 % of its points on the map).
+    fn off_map() -> Result<MapperOutput, MapperError> {
+        Err(MapperError::OffMap {
+            share: 0.45,
+            points: 10494,
+            removed: 4791,
+            min_share: 0.6,
+        })
+    }
+
     /// A finished run with these checks' results.
     fn finished_run(ratio: f64, moved_m: f64, turned_deg: f64, fit: f64) -> MapperOutput {
         MapperOutput {
@@ -1866,14 +1890,6 @@ mod tests {
     #[test]
     fn a_run_the_map_did_not_hold_is_retried_with_the_initial_image_held() {
         let options = MapperOptions::default();
-        let off_map = || {
-            Err(MapperError::OffMap {
-                share: 0.45,
-                points: 10494,
-                removed: 4791,
-                min_share: 0.6,
-            })
-        };
         let reason = retry_reason(&off_map(), &options).unwrap();
         assert!(reason.contains("does not fit the map"), "{reason}");
         let far = Err(MapperError::InitialPoseFarOff {
@@ -1919,14 +1935,6 @@ mod tests {
     #[test]
     fn the_held_run_is_kept_when_it_passes_and_fits_at_least_as_well() {
         let run = |fit: f64| Ok(finished_run(1e-4, 0.45, 0.1, fit));
-        let off_map = || {
-            Err(MapperError::OffMap {
-                share: 0.45,
-                points: 10494,
-                removed: 4791,
-                min_share: 0.6,
-            })
-        };
         let fit_of = |r: &Result<MapperOutput, MapperError>| r.as_ref().unwrap().report.fit_share;
         // The first failed: the held run when it passed, else the first's error.
         let (kept, held, _) = pick_run(off_map(), run(0.80));
@@ -2003,6 +2011,144 @@ mod tests {
             assert!(!held && kept.is_err(), "{note}");
             assert!(note.contains("its alignment trial moved it"), "{note}");
         }
+    }
+
+    /// The retry schedule, each run's outcome given by the options it was
+    /// called with (which of the three runs it is): the run as configured
+    /// (initial image held for its first 8 registrations), free from the
+    /// start, held throughout.
+    #[test]
+    fn a_failed_early_held_run_is_mapped_free_then_held() {
+        const N: usize = 24;
+        let options = MapperOptions::default();
+        assert!(options.bundle.fix_initial_for > 0 && options.bundle.fix_initial_for < N);
+        // A held run the map agrees with (see `pick_run`).
+        let settled = || {
+            let mut out = finished_run(0.02, 0.0, 0.0, 0.94);
+            out.report.alignment = Some(AlignmentRecord {
+                scale: 1.00001,
+                rotation_deg: 0.001,
+                translation_m: 0.001,
+                ..Default::default()
+            });
+            Ok(out)
+        };
+        #[derive(Clone, Copy, Debug, PartialEq)]
+        enum Which {
+            First,
+            Free,
+            Held,
+        }
+        let which = |o: &MapperOptions| match (
+            o.bundle.fix_initial_for,
+            o.bundle.hold_initial_in_final_rounds,
+        ) {
+            (0, false) => Which::Free,
+            (n, true) if n == N => Which::Held,
+            (n, false) if n == options.bundle.fix_initial_for => Which::First,
+            other => panic!("unexpected run {other:?}"),
+        };
+        // Runs the schedule; each run takes (its index + 1) seconds.
+        let schedule =
+            |options: &MapperOptions,
+             outcome: &dyn Fn(Which) -> Result<MapperOutput, MapperError>| {
+                let mut calls = Vec::new();
+                let result = run_with_retries(options, N, |o| {
+                    calls.push(which(o));
+                    (outcome(which(o)), calls.len() as f64)
+                });
+                (result, calls)
+            };
+
+        // A good first run is all.
+        let (kept, calls) = schedule(&options, &|_| Ok(finished_run(0.02, 0.0, 0.0, 0.9)));
+        assert_eq!(calls, [Which::First]);
+        assert!(kept.unwrap().report.retry.is_none());
+
+        // The first off the map, the free run right: the free run, and no held run.
+        let (kept, calls) = schedule(&options, &|w| match w {
+            Which::Free => Ok(finished_run(0.02, 0.0, 0.0, 0.88)),
+            _ => off_map(),
+        });
+        assert_eq!(calls, [Which::First, Which::Free]);
+        let report = kept.unwrap().report;
+        assert_eq!(report.fit_share, Some(0.88));
+        let retry = report.retry.unwrap();
+        assert!(retry.free_kept && !retry.held_kept, "{retry:?}");
+        assert!(
+            retry.reason.contains("does not fit the map"),
+            "{}",
+            retry.reason
+        );
+        assert_eq!(
+            (retry.first_run_s, retry.free_run_s, retry.held_run_s),
+            (1.0, Some(2.0), None)
+        );
+
+        // The free run fails too, on the map or with an error holding cannot
+        // mend: the held run, which the map agrees with, is kept.
+        let empty_map = || Err(MapperError::EmptyMap);
+        for free_error in [
+            off_map as fn() -> Result<MapperOutput, MapperError>,
+            empty_map,
+        ] {
+            let free_message = free_error().err().unwrap().to_string();
+            let (kept, calls) = schedule(&options, &|w| match w {
+                Which::Held => settled(),
+                Which::Free => free_error(),
+                Which::First => off_map(),
+            });
+            assert_eq!(calls, [Which::First, Which::Free, Which::Held]);
+            let report = kept.unwrap().report;
+            assert_eq!(report.fit_share, Some(0.94));
+            let retry = report.retry.unwrap();
+            assert!(retry.held_kept && !retry.free_kept, "{retry:?}");
+            assert_eq!(
+                (retry.first_run_s, retry.free_run_s, retry.held_run_s),
+                (1.0, Some(2.0), Some(3.0))
+            );
+            assert!(
+                retry.outcome.starts_with(&format!("the run free from the start: {free_message}; kept the run with the initial image held")),
+                "{}",
+                retry.outcome
+            );
+        }
+
+        // The held run fails as well: both errors, the free run's first.
+        let (kept, calls) = schedule(&options, &|w| match w {
+            Which::Free => Err(MapperError::EmptyMap),
+            _ => off_map(),
+        });
+        assert_eq!(calls, [Which::First, Which::Free, Which::Held]);
+        let Err(MapperError::RetryFailed { first, held }) = kept else {
+            panic!("not both failures: {:?}", kept.err())
+        };
+        assert!(matches!(*first, MapperError::EmptyMap), "{first}");
+        assert!(matches!(*held, MapperError::OffMap { .. }), "{held}");
+
+        // Without the early hold there is no free rerun: straight to held.
+        let mut free_from_start = options.clone();
+        free_from_start.bundle.fix_initial_for = 0;
+        let (kept, calls) = schedule(&free_from_start, &|w| match w {
+            Which::Held => settled(),
+            _ => off_map(),
+        });
+        assert_eq!(calls, [Which::Free, Which::Held]);
+        let retry = kept.unwrap().report.retry.unwrap();
+        assert!(retry.held_kept && retry.free_run_s.is_none(), "{retry:?}");
+
+        // Already held throughout, or the retry off: the first outcome stands.
+        let mut no_retry = options.clone();
+        no_retry.bundle.retry_holding_initial = false;
+        let (kept, calls) = schedule(&no_retry, &|_| off_map());
+        assert_eq!(calls, [Which::First]);
+        assert!(matches!(kept, Err(MapperError::OffMap { .. })));
+        let mut held = options.clone();
+        held.bundle.fix_initial_for = N;
+        held.bundle.hold_initial_in_final_rounds = true;
+        let (kept, calls) = schedule(&held, &|_| off_map());
+        assert_eq!(calls, [Which::Held]);
+        assert!(matches!(kept, Err(MapperError::OffMap { .. })));
     }
 
     /// The whole-model alignment of a model 1 % large, 0.5 deg turned and
