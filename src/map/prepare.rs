@@ -377,8 +377,8 @@ impl CellGrid {
     /// The key of the cell offset by `d` (each in -1..=1) from `key`.
     fn neighbour_key(&self, key: u64, d: [i64; 3]) -> u64 {
         let mut k = key;
-        for a in 0..3 {
-            k = k.wrapping_add((d[a] << self.shifts[a]) as u64);
+        for (da, shift) in d.iter().zip(self.shifts) {
+            k = k.wrapping_add((da << shift) as u64);
         }
         k
     }

@@ -1012,8 +1012,10 @@ mod tests {
     #[test]
     fn options_validate() {
         assert!(ProjectionOptions::default().validate().is_ok());
-        let mut o = ProjectionOptions::default();
-        o.min_depth_m = 50.0;
+        let o = ProjectionOptions {
+            min_depth_m: 50.0,
+            ..Default::default()
+        };
         assert!(o.validate().is_err());
         let mut o = ProjectionOptions::default();
         o.splat.max_half_size_px = 0.1;

@@ -1,6 +1,8 @@
 //! The cxx bridge to the C++ side (`cpp/`): camera projection (for cross-checks)
 //! and the Ceres bundle-adjustment solve. Flat arrays in, flat arrays out.
 
+// The bridge module keeps cxx's conventional name inside `solver::ffi`.
+#[allow(clippy::module_inception)]
 #[cxx::bridge(namespace = "colmap_lidar")]
 pub(crate) mod ffi {
     /// A bundle-adjustment problem as flat, index-addressed arrays. Built and

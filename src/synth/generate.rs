@@ -347,7 +347,7 @@ pub fn generate_scene(opts: &SynthOptions, output: &Path) -> Result<SceneSummary
         );
 
         let mut lidar_opts = opts.lidar.clone();
-        lidar_opts.seed = opts.seed ^ lidar_opts.seed;
+        lidar_opts.seed ^= opts.seed;
         let map = sample_lidar(&scene, &lidar_opts);
         for (name, normals) in [("lidar.ply", true), ("lidar_raw.ply", false)] {
             let path = dir.join(name);

@@ -603,8 +603,8 @@ fn pcd_ascii_binary_and_compressed_read_back() {
         records.extend_from_slice(&(p[1] as f32).to_le_bytes());
         records.extend_from_slice(&p[2].to_le_bytes());
         records.extend_from_slice(&7u32.to_le_bytes());
-        for k in 3..6 {
-            records.extend_from_slice(&(p[k] as f32).to_le_bytes());
+        for v in &p[3..6] {
+            records.extend_from_slice(&(*v as f32).to_le_bytes());
         }
         for v in [0.1f32, 0.2, 0.3] {
             records.extend_from_slice(&v.to_le_bytes());

@@ -448,10 +448,9 @@ fn prepare_map_library_entry_point_end_to_end() {
     assert_eq!(map.len(), report.output_points);
     let normals = map.normals.as_ref().unwrap();
     let mut wrong = 0;
-    for i in 0..map.len() {
+    for (i, n) in normals.iter().enumerate() {
         let p = map.point_in_map(i);
         let local = [p.x - 512_345.0, p.y - 5_412_345.0, p.z - 230.0];
-        let n = normals[i];
         let n = [f64::from(n[0]), f64::from(n[1]), f64::from(n[2])];
         // Away from the floor/wall edge, the true normal is known: floor up,
         // wall facing the centre of the map (-y).
