@@ -33,6 +33,9 @@ enum Command {
     Evaluate(commands::evaluate::EvaluateArgs),
     /// Render what the map looks like from a registered image: a colour-mapped depth PNG.
     Depth(commands::depth::DepthArgs),
+    /// Colour the LiDAR map with the photos of a model (occlusion-aware): a PLY with red, green, blue.
+    #[command(visible_alias = "colorize-map")]
+    ColourMap(commands::colour_map::ColourMapArgs),
     /// Figures of a `map` run (SVG): plane terms, point-to-plane distances and
     /// reprojection errors per solve, and per image.
     Plot(commands::plot::PlotArgs),
@@ -57,6 +60,7 @@ fn main() -> ExitCode {
         Command::Map(args) => commands::map::run(args),
         Command::PrepareMap(args) => commands::prepare_map::run(args),
         Command::Depth(args) => commands::depth::run(args),
+        Command::ColourMap(args) => commands::colour_map::run(args),
         Command::Plot(args) => commands::plot::run(args),
         Command::Synth(args) => commands::synth::run(args),
         Command::Evaluate(args) => commands::evaluate::run(args),

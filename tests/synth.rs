@@ -38,12 +38,7 @@ fn read_ply(path: &Path) -> (Vec<Vector3<f64>>, Option<Vec<Vector3<f32>>>) {
         .unwrap()
         .read_to_end(&mut bytes)
         .unwrap();
-    let end = bytes
-        .windows(11)
-        .position(|w| w == b"end_header\n")
-        .unwrap()
-        + 11;
-    let header = std::str::from_utf8(&bytes[..end]).unwrap();
+    let (header, end) = crate::common::ply_header(&bytes);
     assert!(header.contains("format binary_little_endian 1.0"));
     let n: usize = header
         .lines()

@@ -1,5 +1,6 @@
 //! One module per command of the `colmap-lidar` binary.
 pub mod bench_map;
+pub mod colour_map;
 pub mod depth;
 pub mod evaluate;
 pub mod inspect;

@@ -140,6 +140,15 @@ pub fn check_image_folder<'a>(
     Ok(count)
 }
 
+/// Reads image `expected` from `dir` as 8-bit RGB, checked against its
+/// camera's size; errors name the file.
+pub fn read_rgb(dir: &Path, expected: &ExpectedImage) -> Result<RgbImage, ImageFolderError> {
+    let path = resolve(dir, expected.name)?;
+    let rgb = read_image(&path, |r| r.decode())?.into_rgb8();
+    check_size(&path, rgb.dimensions(), expected)?;
+    Ok(rgb)
+}
+
 /// The colour at keypoint `(x, y)` (pixel centres at +0.5), bilinear between
 /// the four nearest pixel centres; positions beyond the outermost centres
 /// take the border's colour. Black for an empty image.
@@ -200,9 +209,7 @@ fn sample_image(
     img: &crate::scene::Image,
     expected: &ExpectedImage,
 ) -> Result<Vec<Sample>, ImageFolderError> {
-    let path = resolve(dir, expected.name)?;
-    let rgb = read_image(&path, |r| r.decode())?.into_rgb8();
-    check_size(&path, rgb.dimensions(), expected)?;
+    let rgb = read_rgb(dir, expected)?;
     let (w, h) = rgb.dimensions();
     Ok(img
         .points2d

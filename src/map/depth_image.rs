@@ -15,7 +15,9 @@ use rayon::prelude::*;
 
 use super::cloud::PointCloud;
 use super::grid::FrustumGrid;
-use super::projection::{project_visible_points, ProjectionError, ProjectionOptions};
+use super::projection::{
+    project_visible_points, ProjectedPoint, ProjectionError, ProjectionOptions,
+};
 use crate::io::atomic::write_file_atomically;
 use crate::scene::camera::Camera;
 use crate::scene::pose::Rigid3;
@@ -73,7 +75,18 @@ pub fn render_depth_image(
     options: &ProjectionOptions,
 ) -> Result<DepthImage, ProjectionError> {
     let splats = project_visible_points(cloud, grid, camera, cam_from_world, options)?;
-    let (w, h) = (camera.width as usize, camera.height as usize);
+    Ok(depth_image_from_splats(
+        &splats,
+        camera.width,
+        camera.height,
+    ))
+}
+
+/// The z-buffer of `splats` (from [`project_visible_points`]) in a
+/// `width` x `height` image: at each pixel the smallest range of the splats
+/// covering its centre.
+pub fn depth_image_from_splats(splats: &[ProjectedPoint], width: u32, height: u32) -> DepthImage {
+    let (w, h) = (width as usize, height as usize);
     let mut range_m = vec![f32::INFINITY; w * h];
     if w > 0 && h > 0 {
         // Splats bucketed by the bands their rows reach (CSR, splat order
@@ -89,7 +102,7 @@ pub fn render_depth_image(
             Some((b0, b1))
         };
         let mut band_starts = vec![0usize; bands + 1];
-        for sp in &splats {
+        for sp in splats {
             if let Some((b0, b1)) = band_range(sp.pixel.y, sp.half_size_px) {
                 for b in b0..=b1 {
                     band_starts[b + 1] += 1;
@@ -148,11 +161,11 @@ pub fn render_depth_image(
                 }
             });
     }
-    Ok(DepthImage {
-        width: camera.width,
-        height: camera.height,
+    DepthImage {
+        width,
+        height,
         range_m,
-    })
+    }
 }
 
 /// Colour of a normalised range `t` in [0, 1]: near = dark violet, through

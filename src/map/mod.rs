@@ -1,6 +1,7 @@
 //! The LiDAR map: readers, preparation (downsampling, normals), spatial index,
 //! projection into cameras.
 pub mod cloud;
+pub mod colour;
 pub mod depth_image;
 pub mod grid;
 pub mod index;

@@ -93,3 +93,14 @@ pub fn yard_db() -> Option<&'static SceneDb> {
     })
     .as_ref()
 }
+
+/// The header of a PLY file's bytes (through `end_header`) and where the
+/// body starts.
+pub fn ply_header(bytes: &[u8]) -> (&str, usize) {
+    let end = bytes
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .expect("a PLY header")
+        + 11;
+    (std::str::from_utf8(&bytes[..end]).unwrap(), end)
+}

@@ -1,5 +1,6 @@
 //! Integration tests: the LiDAR map (readers, preparation, index, projection),
 //! plus hand-written encoders used to build test files byte by byte.
+mod colour;
 mod index;
 mod io;
 mod prepare;

@@ -544,6 +544,38 @@ fn read_ascii_body(
 /// `float`; `nx ny nz` as `float` when the cloud has normals; `planarity` as
 /// `float` when present. Written atomically (temporary file, then rename).
 pub fn write_ply(path: &Path, cloud: &PointCloud) -> Result<(), MapIoError> {
+    write_ply_with_colours(path, cloud, None)
+}
+
+/// Per-point colours for [`write_ply_with_colours`].
+#[derive(Clone, Copy, Debug)]
+pub struct PlyColours<'a> {
+    /// `red green blue`, one per point.
+    pub rgb: &'a [[u8; 3]],
+    /// How many images gave the colour, one per point (`views`, `ushort`).
+    pub views: &'a [u16],
+}
+
+/// [`write_ply`], with `red green blue` (`uchar`) and `views` (`ushort`)
+/// after the other properties when `colours` is given.
+pub fn write_ply_with_colours(
+    path: &Path,
+    cloud: &PointCloud,
+    colours: Option<PlyColours>,
+) -> Result<(), MapIoError> {
+    if let Some(c) = &colours {
+        if c.rgb.len() != cloud.len() || c.views.len() != cloud.len() {
+            return Err(MapIoError::unsupported(
+                path,
+                format!(
+                    "cloud has {} points but {} colours and {} view counts",
+                    cloud.len(),
+                    c.rgb.len(),
+                    c.views.len()
+                ),
+            ));
+        }
+    }
     if let Some(n) = &cloud.normals {
         if n.len() != cloud.len() {
             return Err(MapIoError::unsupported(
@@ -580,6 +612,10 @@ pub fn write_ply(path: &Path, cloud: &PointCloud) -> Result<(), MapIoError> {
         if cloud.planarity.is_some() {
             header.push_str("property float planarity\n");
         }
+        if colours.is_some() {
+            header.push_str("property uchar red\nproperty uchar green\nproperty uchar blue\n");
+            header.push_str("property ushort views\n");
+        }
         header.push_str("end_header\n");
         w.write_all(header.as_bytes())?;
         let mut buf: Vec<u8> = Vec::with_capacity(1 << 20);
@@ -601,6 +637,10 @@ pub fn write_ply(path: &Path, cloud: &PointCloud) -> Result<(), MapIoError> {
             }
             if let Some(planarity) = &cloud.planarity {
                 buf.extend_from_slice(&planarity[i].to_le_bytes());
+            }
+            if let Some(c) = &colours {
+                buf.extend_from_slice(&c.rgb[i]);
+                buf.extend_from_slice(&c.views[i].to_le_bytes());
             }
             if buf.len() >= (1 << 20) - 64 {
                 w.write_all(&buf)?;
