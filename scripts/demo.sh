@@ -48,10 +48,15 @@ step "evaluate against ground truth (no alignment: poses must already be in the 
 step "figures of the run (SVG)"
 "$bin" plot "$out/sparse/0" --output "$out/figures"
 
+step "the LiDAR map coloured by the photos (PLY)"
+"$bin" colour-map --lidar "$out/scene/lidar.ply" --model "$out/sparse/0" \
+  --image-path "$out/scene/images" --output "$out/map_rgb.ply"
+
 step "done"
 cat <<MSG
 Model (map frame, metres): $out/sparse/0   (report: $out/sparse/0/report.json)
 Figures (planes, point-to-plane distances, reprojection errors per solve): $out/figures
+Coloured map (any point-cloud viewer): $out/map_rgb.ply
 Open it in COLMAP:
   colmap gui --import_path $out/sparse/0 --database_path $db --image_path $out/scene/images
 MSG

@@ -117,9 +117,8 @@ fn the_points_an_image_sees_are_those_ray_casting_finds() {
         );
         assert!(said_seen > 50_000 && visible > 5_000, "{}", kind.name());
         // Measured: room 0.33 % hidden, 5.5 % missed; yard 0.87 %, 1.6 %
-        // (with the projection's splats, 0.6 x the spacing: the yard 1.4 %
-        // hidden, through gaps in the facades' splats; with a margin that
-        // ignores the view angle, 14 % of the room missed).
+        // (with the mapper's splats, 0.6 x the spacing: the yard 1.4 %
+        // hidden, through gaps in the facades' splats).
         assert!(hidden_share < 0.012, "{}", kind.name());
         assert!(missed_share < 0.08, "{}", kind.name());
     }
