@@ -98,9 +98,7 @@ impl MapColourOptions {
         }
         Ok(())
     }
-}
 
-impl MapColourOptions {
     /// Splats at least `splat_per_spacing` times `spacing_m` wide either
     /// side, near and far (unchanged for a spacing that is not a positive
     /// number).
