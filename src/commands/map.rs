@@ -4,7 +4,8 @@
 //!
 //! Every option can also come from a TOML file (`--options FILE`): top-level
 //! keys `database`, `lidar`, `output`, `image_path`, `init_image`, `init_pose`,
-//! `pose_priors`, `output_type`, `no_lidar_constraints`, and a `[mapper]` table with the
+//! `pose_priors`, `input_model`, `fix_existing_images`, `output_type`,
+//! `no_lidar_constraints`, and a `[mapper]` table with the
 //! stage options of [`MapperOptions`] (`seed`, `[mapper.register]`, ...).
 //! Command-line values win over the file.
 use std::collections::BTreeMap;
@@ -16,15 +17,16 @@ use serde::Deserialize;
 
 use crate::io::database::{read_database, DatabaseSnapshot};
 use crate::io::images::{check_image_folder, colour_points, ExpectedImage};
-use crate::io::model::{write_model, ModelFormat};
+use crate::io::model::{read_model, write_model, ModelFormat};
 use crate::io::pose_ply::{format_pose_ply, read_pose_ply};
 use crate::map::io::read_point_cloud;
 use crate::map::prepare::{estimate_normals, widen_normal_radius, NormalOptions};
 use crate::map::PointCloud;
 use crate::scene::{BodyPose, ImageId, Rigid3};
+use crate::sfm::existing::{match_to_database, ExistingModel};
 use crate::sfm::options::{AssociationKind, IntrinsicsRefinement};
 use crate::sfm::report::StageRecord;
-use crate::sfm::{run_mapper_with_priors, KnownPose, MapperOptions};
+use crate::sfm::{extend_model, run_mapper_with_priors, KnownPose, MapperOptions};
 
 /// Known poses: the database's pose priors, overridden by the pose file.
 fn known_poses(
@@ -116,6 +118,17 @@ pub struct MapArgs {
     /// them. The database's pose priors are used too (the file wins).
     #[arg(long, visible_alias = "pose_priors", value_name = "FILE")]
     pub pose_priors: Option<PathBuf>,
+    /// An earlier model of this database in the map's frame (e.g. an earlier
+    /// `map` output, text or binary) to extend with the database's other
+    /// images, as COLMAP's mapper does with --input_path: its images are
+    /// matched by name and start at their poses, no initial pose is needed.
+    #[arg(long, visible_alias = "input_path", value_name = "DIR")]
+    pub input_model: Option<PathBuf>,
+    /// With --input-model: its images keep their poses and intrinsics in
+    /// every solve (only the new images and the points move); otherwise the
+    /// map holds the model and they are refined with the new ones.
+    #[arg(long, visible_alias = "fix_existing_images")]
+    pub fix_existing_images: bool,
     /// TOML options file; command-line values win.
     #[arg(long, value_name = "FILE")]
     pub options: Option<PathBuf>,
@@ -158,6 +171,8 @@ struct OptionsFile {
     init_image: Option<toml::Value>,
     init_pose: Option<String>,
     pose_priors: Option<PathBuf>,
+    input_model: Option<PathBuf>,
+    fix_existing_images: Option<bool>,
     output_type: Option<String>,
     no_lidar_constraints: Option<bool>,
     mapper: MapperOptions,
@@ -173,6 +188,9 @@ pub struct MapConfig {
     pub init_image: Option<String>,
     pub init_pose: Option<BodyPose>,
     pub pose_priors: Option<PathBuf>,
+    /// The model to extend, and whether its images are held.
+    pub input_model: Option<PathBuf>,
+    pub fix_existing_images: bool,
     pub format: ModelFormat,
     pub options: MapperOptions,
 }
@@ -230,6 +248,17 @@ impl MapArgs {
             options.bundle.num_threads = t;
         }
         options.validate()?;
+        let input_model = self.input_model.clone().or(file.input_model);
+        let fix_existing_images =
+            self.fix_existing_images || file.fix_existing_images == Some(true);
+        if input_model.is_some() && (init_image.is_some() || init_pose.is_some()) {
+            bail!(
+                "--init-image and --init-pose are not used with --input-model: the model's images start at their poses"
+            );
+        }
+        if fix_existing_images && input_model.is_none() {
+            bail!("--fix-existing-images needs --input-model (the model whose images to hold)");
+        }
         Ok(MapConfig {
             database,
             lidar,
@@ -238,6 +267,8 @@ impl MapArgs {
             init_image,
             init_pose,
             pose_priors: self.pose_priors.clone().or(file.pose_priors),
+            input_model,
+            fix_existing_images,
             format,
             options,
         })
@@ -276,6 +307,12 @@ pub fn resolve_init_image(db: &DatabaseSnapshot, spec: Option<&str>) -> Result<I
             )
         }
     }
+}
+
+/// Where a run starts.
+enum RunStart {
+    InitialPose(ImageId, Rigid3),
+    Model(ExistingModel),
 }
 
 /// Files we may replace in an existing output folder.
@@ -352,16 +389,41 @@ pub fn run(args: &MapArgs) -> Result<()> {
         })?;
         log::info!("{n} images found in {}", dir.display());
     }
-    let init_image = resolve_init_image(&db, config.init_image.as_deref())?;
-    let init_cam_from_world: Rigid3 = match &config.init_pose {
-        Some(p) => p.to_cam_from_world(),
-        None => match db.pose_priors.get(&init_image).and_then(|p| p.cam_from_world) {
-            Some(pose) => pose,
-            None => bail!(
-                "no initial pose for image `{}`: pass --init-pose x,y,z,roll,pitch,yaw (map frame, metres, degrees)",
-                db.images[&init_image].name
-            ),
-        },
+    // Where the run starts: the model to extend, or the initial image at its pose.
+    let start = match &config.input_model {
+        Some(dir) => {
+            let model = read_model(dir)
+                .with_context(|| format!("reading the input model {}", dir.display()))?;
+            let existing =
+                match_to_database(&model, &db, config.fix_existing_images).map_err(|e| {
+                    anyhow::anyhow!(
+                        "the input model {} does not match the database {}: {e}",
+                        dir.display(),
+                        config.database.display()
+                    )
+                })?;
+            log::info!(
+                "input model {}: {} images, {} points with two or more observations",
+                dir.display(),
+                existing.poses.len(),
+                existing.points.len()
+            );
+            RunStart::Model(existing)
+        }
+        None => {
+            let init_image = resolve_init_image(&db, config.init_image.as_deref())?;
+            let init_cam_from_world: Rigid3 = match &config.init_pose {
+                Some(p) => p.to_cam_from_world(),
+                None => match db.pose_priors.get(&init_image).and_then(|p| p.cam_from_world) {
+                    Some(pose) => pose,
+                    None => bail!(
+                        "no initial pose for image `{}`: pass --init-pose x,y,z,roll,pitch,yaw (map frame, metres, degrees)",
+                        db.images[&init_image].name
+                    ),
+                },
+            };
+            RunStart::InitialPose(init_image, init_cam_from_world)
+        }
     };
     let known_poses = known_poses(&db, config.pose_priors.as_deref())?;
     let cloud = load_map(&config.lidar)?;
@@ -381,16 +443,26 @@ pub fn run(args: &MapArgs) -> Result<()> {
             bar.set_position(done as u64);
         }
     };
-    let mut out = run_mapper_with_priors(
-        &db,
-        &cloud,
-        init_image,
-        &init_cam_from_world,
-        &known_poses,
-        &config.options,
-        &mut progress,
-    )
-    .with_context(|| {
+    let out = match &start {
+        RunStart::InitialPose(image, pose) => run_mapper_with_priors(
+            &db,
+            &cloud,
+            *image,
+            pose,
+            &known_poses,
+            &config.options,
+            &mut progress,
+        ),
+        RunStart::Model(existing) => extend_model(
+            &db,
+            &cloud,
+            existing,
+            &known_poses,
+            &config.options,
+            &mut progress,
+        ),
+    };
+    let mut out = out.with_context(|| {
         format!(
             "mapping {} into the LiDAR map {}",
             config.database.display(),

@@ -21,6 +21,7 @@ use super::associate::{
     NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
 };
 use super::bundle::{bundle_adjust, pose_uncertainty, BundleConfig, SoftPosePrior, SolveRecord};
+use super::existing::ExistingModel;
 use super::filter::{
     count_points_on_seen_surface, filter_observations, filter_points_behind_map,
     filter_small_angle_points,
@@ -37,8 +38,8 @@ use super::register::{
     RegistrationOutcome,
 };
 use super::report::{
-    AlignmentRecord, ImageRecord, IntrinsicsRecord, MapReport, PoseChangeRecord, RetryRecord,
-    RoundRecord, StageRecord, UncertaintySummary,
+    AlignmentRecord, ImageRecord, InputModelRecord, IntrinsicsRecord, MapReport, PoseChangeRecord,
+    RetryRecord, RoundRecord, StageRecord, UncertaintySummary,
 };
 use super::state::MapState;
 use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulate_image};
@@ -61,6 +62,18 @@ pub enum MapperError {
     UnknownImage(ImageId),
     #[error("the LiDAR map is empty")]
     EmptyMap,
+    #[error(
+        "the input model is not in the map's frame: {:.0} % of its {points} 3D points lie within {:.0} cm of the map surface their images see (at least {:.0} % expected, option association.min_points_on_map_share); it must be a model of these images in this map, e.g. an earlier `colmap-lidar map` output{hint}",
+        share * 100.0, INLIER_M * 100.0, min_share * 100.0
+    )]
+    InputModelOffMap {
+        share: f64,
+        points: usize,
+        min_share: f64,
+        /// What the map's alignment trial found for a held model, if it
+        /// would move it.
+        hint: String,
+    },
     #[error("the LiDAR map has no normals (estimate them first)")]
     NoNormals,
     #[error("building the map index: {0}")]
@@ -386,20 +399,157 @@ pub fn run_mapper_with_priors(
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
     // One run and its wall time, seconds.
+    let start = Start::InitialPose {
+        image: init_image,
+        cam_from_world: *init_cam_from_world,
+    };
     let run = |options: &MapperOptions| {
         let started = Instant::now();
-        let outcome = map_once(
-            db,
-            cloud,
-            init_image,
-            init_cam_from_world,
-            known_poses,
-            options,
-            &mut *progress,
-        );
+        let outcome = map_once(db, cloud, &start, known_poses, options, &mut *progress);
         (outcome, started.elapsed().as_secs_f64())
     };
     run_with_retries(options, db.images.len(), run)
+}
+
+/// Extends `model` (an earlier model of the same database in the map's
+/// frame, see [`ExistingModel`]) with the database's other images: its
+/// images and points are taken as they are, the others registered into it
+/// as in [`run_mapper_with_priors`], then the whole model solved with the
+/// map; with `model.hold` its images keep their poses and intrinsics
+/// throughout. One run: with no initial pose to hold, there is no retry.
+pub fn extend_model(
+    db: &DatabaseSnapshot,
+    cloud: &PointCloud,
+    model: &ExistingModel,
+    known_poses: &BTreeMap<ImageId, KnownPose>,
+    options: &MapperOptions,
+    progress: Progress<'_>,
+) -> Result<MapperOutput, MapperError> {
+    map_once(
+        db,
+        cloud,
+        &Start::Model(model),
+        known_poses,
+        options,
+        progress,
+    )
+}
+
+/// Puts `model`'s images at their poses and its points with their tracks
+/// into the empty `state`, flags its images in `records`, and checks that it
+/// sits in the map's frame: at least `association.min_points_on_map_share`
+/// of its points on the map surface their images see (the check of the
+/// finished model, made before any work).
+fn seed_from_model(
+    state: &mut MapState,
+    model: &ExistingModel,
+    nearest: &NearestNeighbourAssociator,
+    grid: &FrustumGrid,
+    options: &MapperOptions,
+    records: &mut [ImageRecord],
+) -> Result<InputModelRecord, MapperError> {
+    for (&image, pose) in &model.poses {
+        state.register(image, *pose);
+    }
+    for (xyz, track) in &model.points {
+        let id = state.add_point(*xyz, track.clone());
+        if state.points[&id].track.len() < 2 {
+            state.delete_point(id);
+        }
+    }
+    for rec in records.iter_mut() {
+        rec.from_input_model = model.poses.contains_key(&ImageId(rec.image_id));
+    }
+    let lidar_gauge = options.association.kind != AssociationKind::None;
+    // Where the map would put it: applied to a free model (the final stage
+    // would move it anyway, and a model some centimetres off is then
+    // checked where the map puts it), a trial for a held one.
+    let alignment = if lidar_gauge && options.bundle.align_to_map {
+        align_whole_model(
+            state,
+            nearest,
+            &AlignOptions::default(),
+            "input model",
+            !model.hold,
+        )
+    } else {
+        None
+    };
+    let (on_seen, sampled) = count_points_on_seen_surface(
+        state,
+        nearest,
+        grid,
+        &options.init.projection(),
+        INLIER_M,
+        20_000,
+    )?;
+    let share = on_seen as f64 / sampled.max(1) as f64;
+    log::info!(
+        "input model: {} images, {} points, {:.1} % of them on the map surface their images see{}",
+        model.poses.len(),
+        state.points.len(),
+        share * 100.0,
+        if model.hold { "; its images held" } else { "" }
+    );
+    // A held model the map would move: said in the error, or as a warning.
+    let (max_m, max_deg, max_scale) = HELD_MODEL_DISAGREES;
+    let disagreement = alignment
+        .as_ref()
+        .filter(|a| {
+            model.hold
+                && (a.translation_m > max_m
+                    || a.rotation_deg > max_deg
+                    || (a.scale - 1.0).abs() > max_scale)
+        })
+        .map(|a| {
+            format!(
+                "the map would move the held input model by {:.1} mm, {:.3} deg and scale {:.5} (more than {:.0} mm, {} deg or {:.0e}); without --fix-existing-images it is moved there first",
+                a.translation_m * 1e3,
+                a.rotation_deg,
+                a.scale,
+                max_m * 1e3,
+                max_deg,
+                max_scale
+            )
+        });
+    let min_share = options.association.min_points_on_map_share;
+    if lidar_gauge && share < min_share {
+        return Err(MapperError::InputModelOffMap {
+            share,
+            points: state.points.len(),
+            min_share,
+            hint: disagreement.map(|d| format!("; {d}")).unwrap_or_default(),
+        });
+    }
+    if let Some(d) = disagreement {
+        log::warn!(
+            "{d}: its images are held where the map disagrees, and the new images will follow them"
+        );
+    }
+    Ok(InputModelRecord {
+        num_images: model.poses.len(),
+        num_points: state.points.len(),
+        held: model.hold,
+        points_on_seen_surface_share: share,
+        alignment,
+    })
+}
+
+/// How far the map may want to move a held input model before a warning
+/// (centroid shift, metres; rotation, degrees; scale's departure from 1):
+/// about 3-5x what the trial finds on a model where the map put it (half
+/// of the seed-0 room's model: 1 mm, 0.031 deg, 3.4e-4; moved 2 cm: 21 mm).
+const HELD_MODEL_DISAGREES: (f64, f64, f64) = (0.005, 0.1, 1e-3);
+
+/// Where a run starts.
+enum Start<'a> {
+    /// The initial image at its given pose in the map's frame.
+    InitialPose {
+        image: ImageId,
+        cam_from_world: Rigid3,
+    },
+    /// An earlier model in the map's frame.
+    Model(&'a ExistingModel),
 }
 
 /// The retry schedule of [`run_mapper_with_priors`] around `run` (one mapper
@@ -634,16 +784,23 @@ fn retry_reason(
 fn map_once(
     db: &DatabaseSnapshot,
     cloud: &PointCloud,
-    init_image: ImageId,
-    init_cam_from_world: &Rigid3,
+    start: &Start<'_>,
     known_poses: &BTreeMap<ImageId, KnownPose>,
     options: &MapperOptions,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
     options.validate()?;
-    if !db.images.contains_key(&init_image) {
-        return Err(MapperError::UnknownImage(init_image));
+    match start {
+        Start::InitialPose { image, .. } if !db.images.contains_key(image) => {
+            return Err(MapperError::UnknownImage(*image));
+        }
+        _ => {}
     }
+    // The model to extend and the images it holds (none without one).
+    let (existing, existing_images) = match start {
+        Start::Model(m) => (Some(*m), m.image_ids()),
+        Start::InitialPose { .. } => (None, BTreeSet::new()),
+    };
     if db
         .two_view_geometries
         .iter()
@@ -665,6 +822,14 @@ fn map_once(
 
     // 1. Correspondence graph.
     let mut state = MapState::new(db, options.register.pyramid_levels);
+    // A model to extend brings its own (refined) intrinsics.
+    if let Some(m) = existing {
+        for (id, params) in &m.camera_params {
+            if let Some(c) = state.cameras.get_mut(id) {
+                c.params = params.clone();
+            }
+        }
+    }
     log::info!(
         "{} images, {} verified pairs",
         state.images.len(),
@@ -672,6 +837,10 @@ fn map_once(
     );
     stages.done("correspondence graph");
     let mut refine = RefinedCameras::new(db, options.bundle.refine_intrinsics);
+    // The cameras of a model's images held with them keep their intrinsics.
+    if let Some(m) = existing.filter(|m| m.hold) {
+        refine.hold(m.camera_params.keys());
+    }
     if options.bundle.share_identical_intrinsics {
         // Guessed and given focal lengths are refined differently only with
         // `auto`; otherwise identical cameras share whatever the database says.
@@ -688,7 +857,14 @@ fn map_once(
             );
         }
     }
-    let focal_estimates = start_guessed_focal_lengths(&mut state, db, &refine.every);
+    // A model's cameras start from its intrinsics, not from a guess.
+    let guessed_start: BTreeSet<CameraId> = refine
+        .every
+        .iter()
+        .filter(|id| existing.is_none_or(|m| !m.camera_params.contains_key(id)))
+        .copied()
+        .collect();
+    let focal_estimates = start_guessed_focal_lengths(&mut state, db, &guessed_start);
 
     // 2. Map index.
     let index = MapIndex::build(cloud)?;
@@ -722,16 +898,22 @@ fn map_once(
         }
     };
 
-    let map_focal = start_focal_from_map(
-        &mut state,
-        db,
-        &refine.every,
-        init_image,
-        init_cam_from_world,
-        &nearest,
-        &grid,
-        options,
-    );
+    let map_focal = match start {
+        Start::InitialPose {
+            image,
+            cam_from_world,
+        } => start_focal_from_map(
+            &mut state,
+            db,
+            &refine.every,
+            *image,
+            cam_from_world,
+            &nearest,
+            &grid,
+            options,
+        ),
+        Start::Model(_) => BTreeMap::new(),
+    };
 
     let mut report = MapReport {
         seed: options.seed,
@@ -751,94 +933,129 @@ fn map_once(
         ..Default::default()
     };
 
-    // 3. Initialisation.
+    // 3. Initialisation: the initial image at its given pose and a second
+    // one by PnP, or the model to extend as it is.
     // Guessed cameras none of whose images is registered yet: their first
     // image's focal length is found by a sweep of PnP (the initial image's
     // camera has the map's), the second image's against the initial image's
     // map points unless the map's sweep set it.
-    let init_owner = state.intrinsics_of(state.images[&init_image].camera_id);
     let mut uncalibrated: BTreeSet<CameraId> = refine
         .every
         .iter()
         .map(|&id| state.intrinsics_of(id))
-        .filter(|&id| db.cameras_without_focal_prior.contains(&id) && id != init_owner)
+        .filter(|&id| db.cameras_without_focal_prior.contains(&id))
         .collect();
-    let from_map: BTreeSet<CameraId> = map_focal
-        .keys()
-        .map(|&id| state.intrinsics_of(id))
-        .collect();
-    let init_sweep: BTreeSet<CameraId> = uncalibrated.difference(&from_map).copied().collect();
-    let init = initialize(
-        &mut state,
-        init_image,
-        init_cam_from_world,
-        &nearest,
-        &grid,
-        &options.init,
-        &options.register,
-        &init_sweep,
-        options.seed,
-        &mut rng,
-    )?;
-    for (&owner, &f) in &init.focal_from_points_px {
-        report.record_focal_from_points(&state.cameras_sharing(CameraId(owner)), f);
-    }
-    log::info!(
-        "initialised: image {} at the given pose ({} of {} features on the map), image {} by PnP, {} points",
-        init.initial_image,
-        init.num_supported,
-        init.num_features,
-        init.second_image,
-        init.num_points
-    );
-    let second = ImageId(init.second_image);
-    if let Some(rec) = report.record_mut(second) {
-        let a = init.attempts.last();
-        rec.attempts = 1;
-        rec.pnp_inliers = a.map_or(0, |a| a.num_inliers);
-        rec.num_correspondences = a.map_or(0, |a| a.num_lidar_matches);
-    }
-    report.init = Some(init);
-    // Gauge: with map terms the initial image stays fixed for the first
-    // registrations; without them the first two images stay fixed for good.
+    // With map terms the map holds the gauge; the initial image is held for
+    // the first registrations (and a model's images with `hold`). Without
+    // them the first two images (or the model's) stay fixed for good.
     let lidar_gauge = options.association.kind != AssociationKind::None;
-    if lidar_gauge {
-        report.initial_given = Some((init_image, *init_cam_from_world));
-    }
+    // The initial image, its given pose and the second image.
+    let initial: Option<(ImageId, Rigid3, ImageId)> = match start {
+        Start::InitialPose {
+            image: init_image,
+            cam_from_world: init_cam_from_world,
+        } => {
+            let (init_image, init_cam_from_world) = (*init_image, *init_cam_from_world);
+            let init_owner = state.intrinsics_of(state.images[&init_image].camera_id);
+            let from_map: BTreeSet<CameraId> = map_focal
+                .keys()
+                .map(|&id| state.intrinsics_of(id))
+                .collect();
+            let init_sweep: BTreeSet<CameraId> = uncalibrated
+                .iter()
+                .filter(|&&id| id != init_owner && !from_map.contains(&id))
+                .copied()
+                .collect();
+            let init = initialize(
+                &mut state,
+                init_image,
+                &init_cam_from_world,
+                &nearest,
+                &grid,
+                &options.init,
+                &options.register,
+                &init_sweep,
+                options.seed,
+                &mut rng,
+            )?;
+            for (&owner, &f) in &init.focal_from_points_px {
+                report.record_focal_from_points(&state.cameras_sharing(CameraId(owner)), f);
+            }
+            log::info!(
+                "initialised: image {} at the given pose ({} of {} features on the map), image {} by PnP, {} points",
+                init.initial_image,
+                init.num_supported,
+                init.num_features,
+                init.second_image,
+                init.num_points
+            );
+            let second = ImageId(init.second_image);
+            if let Some(rec) = report.record_mut(second) {
+                let a = init.attempts.last();
+                rec.attempts = 1;
+                rec.pnp_inliers = a.map_or(0, |a| a.num_inliers);
+                rec.num_correspondences = a.map_or(0, |a| a.num_lidar_matches);
+            }
+            report.init = Some(init);
+            if lidar_gauge {
+                report.initial_given = Some((init_image, init_cam_from_world));
+            }
+            Some((init_image, init_cam_from_world, second))
+        }
+        Start::Model(model) => {
+            report.input_model = Some(seed_from_model(
+                &mut state,
+                model,
+                &nearest,
+                &grid,
+                options,
+                &mut report.images,
+            )?);
+            None
+        }
+    };
     let fixed_for = |state: &MapState| -> BTreeSet<ImageId> {
-        if !lidar_gauge {
-            BTreeSet::from([init_image, second])
-        } else if state.num_registered() <= options.bundle.fix_initial_for {
-            BTreeSet::from([init_image])
-        } else {
-            BTreeSet::new()
+        match initial {
+            None if !lidar_gauge || existing.is_some_and(|m| m.hold) => existing_images.clone(),
+            None => BTreeSet::new(),
+            Some((init_image, _, second)) if !lidar_gauge => BTreeSet::from([init_image, second]),
+            Some((init_image, _, _))
+                if state.num_registered() <= options.bundle.fix_initial_for =>
+            {
+                BTreeSet::from([init_image])
+            }
+            Some(_) => BTreeSet::new(),
         }
     };
     // The final stage (whole-model alignment, final rounds, intrinsics probe,
     // uncertainty): the initial image stays held only if
     // `bundle.hold_initial_in_final_rounds`.
     let fixed_final = |state: &MapState| -> BTreeSet<ImageId> {
-        if lidar_gauge && !options.bundle.hold_initial_in_final_rounds {
+        if lidar_gauge && initial.is_some() && !options.bundle.hold_initial_in_final_rounds {
             BTreeSet::new()
         } else {
             fixed_for(state)
         }
     };
     let b = &options.bundle;
-    let mut pose_priors: Vec<SoftPosePrior> =
-        if lidar_gauge && b.initial_prior_position_m > 0.0 && b.initial_prior_rotation_deg > 0.0 {
+    let mut pose_priors: Vec<SoftPosePrior> = match initial {
+        Some((image, cam_from_world, _))
+            if lidar_gauge
+                && b.initial_prior_position_m > 0.0
+                && b.initial_prior_rotation_deg > 0.0 =>
+        {
             vec![SoftPosePrior {
-                image: init_image,
-                cam_from_world: *init_cam_from_world,
+                image,
+                cam_from_world,
                 position_weight: 1.0 / b.initial_prior_position_m,
                 rotation_weight: 1.0 / b.initial_prior_rotation_deg.to_radians(),
             }]
-        } else {
-            Vec::new()
-        };
+        }
+        _ => Vec::new(),
+    };
     // Known poses of the other images: soft priors in every solve.
     for (&image, known) in known_poses {
-        if image == init_image || !state.images.contains_key(&image) {
+        if initial.is_some_and(|i| i.0 == image) || !state.images.contains_key(&image) {
             continue;
         }
         if b.prior_position_weight > 0.0 || b.prior_rotation_weight > 0.0 {
@@ -854,30 +1071,37 @@ fn map_once(
             });
         }
     }
-    let stats = triangulate_image(&mut state, second, &options.triangulate);
-    log::debug!("second image: {stats:?}");
-    let config = BundleConfig {
-        variable_images: BTreeSet::from([init_image, second]),
-        fixed_images: fixed_for(&state),
-        refine_cameras: refine.every.clone(),
-        pose_priors: pose_priors.clone(),
-    };
-    local_ba(&mut state, &config, associator, options, &mut report)?;
-    filter_observations(&mut state, None, options.filter.max_reprojection_error_px);
-    // The initial points are the map seen from the given pose: when that pose
-    // is off, they are a moved copy of the map, and moving them back onto it
-    // corrects the pose before anything is built on it (see `align`).
-    if lidar_gauge && options.bundle.align_to_map {
-        report.initial_alignment = align_whole_model(
-            &mut state,
-            &nearest,
-            &AlignOptions::default(),
-            "initial pair",
-            true,
-        );
+    if let Some((init_image, _, second)) = initial {
+        let stats = triangulate_image(&mut state, second, &options.triangulate);
+        log::debug!("second image: {stats:?}");
+        let config = BundleConfig {
+            variable_images: BTreeSet::from([init_image, second]),
+            fixed_images: fixed_for(&state),
+            refine_cameras: refine.every.clone(),
+            pose_priors: pose_priors.clone(),
+        };
+        local_ba(&mut state, &config, associator, options, &mut report)?;
+        filter_observations(&mut state, None, options.filter.max_reprojection_error_px);
+        // The initial points are the map seen from the given pose: when that
+        // pose is off, they are a moved copy of the map, and moving them back
+        // onto it corrects the pose before anything is built on it (see
+        // `align`).
+        if lidar_gauge && options.bundle.align_to_map {
+            report.initial_alignment = align_whole_model(
+                &mut state,
+                &nearest,
+                &AlignOptions::default(),
+                "initial pair",
+                true,
+            );
+        }
     }
     progress(state.num_registered(), state.images.len());
-    stages.done("initialisation");
+    stages.done(if initial.is_some() {
+        "initialisation"
+    } else {
+        "input model"
+    });
 
     // 4. Incremental registration.
     uncalibrated.retain(|&id| {
@@ -1056,8 +1280,9 @@ fn map_once(
         // holds weakly, by noise (the changed seed-0 yard's held runs
         // measured trials of scale 0.9986-1.0023 winning or losing by 2-3 of
         // 14700 points; one CI database's run ended 25 mm off at scale
-        // 0.9974, most likely such a trial applied).
-        let held = fixed_final(&state).contains(&init_image);
+        // 0.9974, most likely such a trial applied). So with a model's
+        // images held.
+        let held = !fixed_final(&state).is_empty();
         report.alignment = align_whole_model(&mut state, &nearest, &whole, "whole model", !held);
         stages.done("retriangulation, alignment to the map");
     } else {
@@ -1252,14 +1477,16 @@ fn map_once(
             share: fit,
             constraint_ratio: report.similarity_constraint.as_ref().map(|c| c.ratio),
         };
-        report.initial_pose_change = check_initial_pose(
-            &state,
-            init_image,
-            init_cam_from_world,
-            &options.bundle,
-            Some(summary),
-            fixed_final(&state).contains(&init_image),
-        )?;
+        if let Some((init_image, init_cam_from_world, _)) = initial {
+            report.initial_pose_change = check_initial_pose(
+                &state,
+                init_image,
+                &init_cam_from_world,
+                &options.bundle,
+                Some(summary),
+                fixed_final(&state).contains(&init_image),
+            )?;
+        }
         if let Some(c) = &report.similarity_constraint {
             let (ratio, weakest) = (c.ratio, c.weakest.map(|v| (v * 100.0).round() / 100.0));
             if ratio < MIN_SIMILARITY_CONSTRAINT {
@@ -1366,7 +1593,7 @@ fn align_whole_model(
         if applied {
             "applied"
         } else if !may_move {
-            "a trial only: the initial image is held at its given pose"
+            "a trial only: the model is held where it was given"
         } else if within_bounds {
             "kept the model where it was"
         } else {
@@ -1647,6 +1874,15 @@ struct RefinedCameras {
 }
 
 impl RefinedCameras {
+    /// Holds `cameras` in every solve.
+    fn hold<'a>(&mut self, cameras: impl IntoIterator<Item = &'a CameraId>) {
+        for id in cameras {
+            self.every.remove(id);
+            self.last.remove(id);
+            self.probe.remove(id);
+        }
+    }
+
     fn new(db: &DatabaseSnapshot, mode: IntrinsicsRefinement) -> Self {
         let all: BTreeSet<CameraId> = db.cameras.keys().copied().collect();
         let none = BTreeSet::new;

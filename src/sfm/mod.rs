@@ -12,10 +12,12 @@
 //! * [`bundle`] + [`associate`]: local/global BA through Ceres with LiDAR
 //!   point-to-plane terms from a pluggable associator;
 //! * [`align`]: the whole model moved onto the map (similarity, shape held);
+//! * [`existing`]: an earlier model to extend, matched to the database;
 //! * [`filter`]: outlier filters; [`report`]: `report.json`.
 pub mod align;
 pub mod associate;
 pub mod bundle;
+pub mod existing;
 pub mod filter;
 pub mod focal;
 pub mod geometry;
@@ -27,5 +29,7 @@ pub mod report;
 pub mod state;
 pub mod triangulate;
 
-pub use mapper::{run_mapper, run_mapper_with_priors, KnownPose, MapperError, MapperOutput};
+pub use mapper::{
+    extend_model, run_mapper, run_mapper_with_priors, KnownPose, MapperError, MapperOutput,
+};
 pub use options::MapperOptions;

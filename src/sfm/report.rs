@@ -26,6 +26,8 @@ pub struct ImageRecord {
     pub pnp_inliers: usize,
     /// Registered by being placed at its known pose (too few matches for PnP).
     pub placed_by_prior: bool,
+    /// Came registered with the model the run extended (`--input-model`).
+    pub from_input_model: bool,
     /// Observations of 3D points in the final model.
     pub num_observations: usize,
     /// Mean reprojection error of those observations, pixels.
@@ -39,6 +41,21 @@ pub struct ImageRecord {
     pub mean_plane_distance_m: Option<f64>,
     /// The pose's uncertainty after the final solve (with LiDAR constraints).
     pub pose_uncertainty: Option<PoseUncertainty>,
+}
+
+/// The model a run extended, as it came.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct InputModelRecord {
+    pub num_images: usize,
+    /// Its points with two or more observations, as seeded.
+    pub num_points: usize,
+    /// Whether its images kept their poses and intrinsics (`--fix-existing-images`).
+    pub held: bool,
+    /// Share of (a sample of) its points within 2 cm of the map surface
+    /// their images see: how well it sits in the map's frame.
+    pub points_on_seen_surface_share: f64,
+    /// The whole-model alignment to the map as it came: applied unless held.
+    pub alignment: Option<AlignmentRecord>,
 }
 
 /// The pose uncertainties over all images (see `bundle::PoseUncertainty`).
@@ -101,6 +118,8 @@ pub struct MapReport {
     pub mean_track_length: f64,
     pub mean_reprojection_error_px: f64,
     pub init: Option<InitSummary>,
+    /// The model the run extended (`--input-model`), instead of `init`.
+    pub input_model: Option<InputModelRecord>,
     /// The initial image and its given pose (not written): each solve
     /// records how far the image is from it.
     #[serde(skip)]

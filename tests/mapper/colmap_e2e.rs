@@ -4,15 +4,16 @@
 //! Skipped loudly when `colmap` is not installed.
 use std::path::{Path, PathBuf};
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use colmap_lidar::commands::map::{run as run_map, MapArgs};
 use colmap_lidar::commands::plot::{read_report, PlotArgs, PlotData};
 use colmap_lidar::eval::model_poses::load_poses;
 use colmap_lidar::eval::{evaluate, Alignment, EvaluationReport};
 use colmap_lidar::io::database::read_database;
-use colmap_lidar::io::model::read_model;
+use colmap_lidar::io::model::{read_model, write_model, ModelFormat};
 use colmap_lidar::io::pose_ply::{read_pose_ply, write_pose_ply};
+use colmap_lidar::scene::Reconstruction;
 use colmap_lidar::scene::{BodyPose, ImageId};
 use colmap_lidar::synth::colmap_harness::{make_database, run_matcher, HarnessOptions, Matcher};
 use colmap_lidar::synth::generate::{generate_scene, image_name, read_init_pose, SynthOptions};
@@ -410,6 +411,7 @@ fn yard_with_colmap_database() {
     check_uncertainty(&a);
     check_colours(&scene, &dir.path().join("a"), &a.report, dir.path());
     check_map_colours(&scene, &dir.path().join("a"), dir.path());
+    check_extension(&scene, &dir.path().join("a"), dir.path());
     // `evaluate` compares the errors with the model's own sigmas.
     let eval_json = dir.path().join("evaluation.json");
     colmap_lidar::commands::evaluate::run(&colmap_lidar::commands::evaluate::EvaluateArgs {
@@ -736,6 +738,162 @@ fn yard_with_colmap_database() {
 
 /// Runs the real `colmap color_extractor` on `model` with `images`; returns
 /// its points' colours.
+/// `rec` with only the images `keep` names: their observations, and the
+/// points two or more of them still see.
+fn part_of_model(rec: &Reconstruction, keep: impl Fn(&str) -> bool) -> Reconstruction {
+    let mut part = rec.clone();
+    part.images.retain(|_, img| keep(&img.name));
+    part.points3d.retain(|_, p| {
+        p.track.retain(|e| part.images.contains_key(&e.image_id));
+        p.track.len() >= 2
+    });
+    for img in part.images.values_mut() {
+        for p in &mut img.points2d {
+            if p.point3d_id
+                .is_some_and(|id| !part.points3d.contains_key(&id))
+            {
+                p.point3d_id = None;
+            }
+        }
+    }
+    part
+}
+
+/// `map --input-model`: half the yard's model (its first 12 trajectory
+/// images) extended with the other 12 from the same database, held and free;
+/// a model moved off the map is refused.
+fn check_extension(scene: &Path, model_dir: &Path, work: &Path) {
+    let full = read_model(model_dir).unwrap();
+    let first: BTreeSet<String> = (0..12).map(image_name).collect();
+    let half = part_of_model(&full, |name| first.contains(name));
+    assert_eq!(half.images.len(), 12);
+    let half_dir = work.join("half");
+    write_model(&half_dir, &half, ModelFormat::Text).unwrap();
+    let gt = load_poses(&scene.join("gt")).unwrap();
+    let extend = |out: &str, model: &Path, hold: bool| {
+        let args = MapArgs {
+            database: Some(scene.join("database.db")),
+            lidar: Some(scene.join("lidar.ply")),
+            output: Some(work.join(out)),
+            input_model: Some(model.to_path_buf()),
+            fix_existing_images: hold,
+            ..Default::default()
+        };
+        let t = std::time::Instant::now();
+        run_map(&args).map(|()| {
+            let report: serde_json::Value = serde_json::from_str(
+                &std::fs::read_to_string(work.join(out).join("report.json")).unwrap(),
+            )
+            .unwrap();
+            let model = load_poses(&work.join(out)).unwrap();
+            let none = evaluate(&model, &gt, Alignment::None).unwrap();
+            Run {
+                report,
+                none,
+                seconds: t.elapsed().as_secs_f64(),
+            }
+        })
+    };
+    for hold in [true, false] {
+        let out = if hold {
+            "extended-held"
+        } else {
+            "extended-free"
+        };
+        let r = extend(out, &half_dir, hold).expect("extending the half model");
+        print_run(&format!("yard, half its model extended (held: {hold})"), &r);
+        check_run(&r);
+        assert_eq!(r.none.num_registered, full.num_registered_images());
+        let input = &r.report["input_model"];
+        assert_eq!(input["num_images"].as_u64(), Some(12), "{input}");
+        assert_eq!(input["held"].as_bool(), Some(hold), "{input}");
+        assert!(r.report["init"].is_null());
+        let flagged: BTreeSet<String> = r.report["images"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|i| i["from_input_model"].as_bool() == Some(true))
+            .map(|i| i["name"].as_str().unwrap().to_owned())
+            .collect();
+        assert_eq!(flagged, first);
+        let extended = read_model(&work.join(out)).unwrap();
+        let mut moved_mm: f64 = 0.0;
+        for img in half.images.values() {
+            let given = img.cam_from_world.unwrap();
+            let now = extended
+                .image_by_name(&img.name)
+                .unwrap()
+                .cam_from_world
+                .unwrap();
+            moved_mm = moved_mm.max((now.camera_center() - given.camera_center()).norm() * 1e3);
+            if hold {
+                // Held: the very pose it came with (the text model is exact).
+                assert_eq!(now, given, "{}", img.name);
+            }
+        }
+        if hold {
+            assert_eq!(extended.cameras, half.cameras);
+        } else {
+            // Free: refined with the new images, by about the model's error.
+            assert!(moved_mm > 0.0 && moved_mm < 5.0, "moved {moved_mm} mm");
+        }
+    }
+    // The half model moved by a similarity (scale about its first camera).
+    let moved = |name: &str, shift: [f64; 3], scale: f64| -> PathBuf {
+        let mut m = half.clone();
+        let d = nalgebra::Vector3::from(shift);
+        let o = m
+            .images
+            .values()
+            .next()
+            .unwrap()
+            .cam_from_world
+            .unwrap()
+            .camera_center();
+        let to = |x: nalgebra::Vector3<f64>| o + (x - o) * scale + d;
+        for img in m.images.values_mut() {
+            let pose = img.cam_from_world.as_mut().unwrap();
+            let c = to(pose.camera_center());
+            pose.translation = -(pose.rotation * c);
+        }
+        for p in m.points3d.values_mut() {
+            p.xyz = to(p.xyz);
+        }
+        let dir = work.join(name);
+        write_model(&dir, &m, ModelFormat::Text).unwrap();
+        dir
+    };
+    // 0.3 m off: free, the map moves it back first (measured on the seed-0
+    // yard and room from 0.09-0.73 m off: the same errors as in place);
+    // held, it is refused before any work, with how far the map would move it.
+    let off = moved("half-off", [0.2, 0.2, 0.1], 1.0);
+    let r = extend("extended-off", &off, false).expect("a model 0.3 m off, free");
+    print_run("yard, half its model 0.3 m off, extended free", &r);
+    check_run(&r);
+    let a = &r.report["input_model"]["alignment"];
+    assert_eq!(a["applied"].as_bool(), Some(true), "{a}");
+    let t = a["translation_m"].as_f64().unwrap();
+    assert!((t - 0.3).abs() < 0.01, "{a}");
+    let err = extend("extended-off-held", &off, true)
+        .map(|_| ())
+        .unwrap_err();
+    let msg = format!("{err:#}");
+    assert!(
+        msg.contains("not in the map's frame") && msg.contains("would move the held input model"),
+        "{msg}"
+    );
+    assert!(!work.join("extended-off-held").exists());
+    // In another frame altogether (as plain SfM leaves it: scale 0.7):
+    // refused, free as well.
+    let foreign = moved("half-foreign", [1.0, -2.0, 0.5], 0.7);
+    let err = extend("extended-foreign", &foreign, false)
+        .map(|_| ())
+        .unwrap_err();
+    let msg = format!("{err:#}");
+    assert!(msg.contains("not in the map's frame"), "{msg}");
+    assert!(!work.join("extended-foreign").exists());
+}
+
 fn colmap_colours(model: &Path, images: &Path, out: &Path) -> BTreeMap<u64, [u8; 3]> {
     std::fs::create_dir_all(out).unwrap();
     crate::common::run_colmap([
