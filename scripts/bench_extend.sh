@@ -36,7 +36,7 @@ run() {
   rm -rf "${out:?}/$name"
   /usr/bin/time -f "%e %M" -o "$out/$name.time" \
     "$tool" map --database "$db" --lidar "$scene/lidar.ply" --output "$out/$name" "$@" \
-    2>"$out/$name.log"
+    >"$out/$name.out" 2>"$out/$name.log"
   read -r secs kb <"$out/$name.time"
   printf '%-14s %8.1f s %8.0f MB\n' "$name" "$secs" "$(echo "$kb / 1024" | bc -l)"
 }

@@ -801,6 +801,32 @@ fn options_file_and_command_line_merge() {
     // Missing required paths.
     let err = format!("{:#}", MapArgs::default().config().unwrap_err());
     assert!(err.contains("--database"), "{err}");
+    // A model to extend, from the file; an initial pose beside it, or
+    // holding existing images without one, is an error.
+    std::fs::write(
+        &file,
+        "database = \"a.db\"\nlidar = \"m.ply\"\noutput = \"out\"\n\
+         input_model = \"sparse/0\"\nfix_existing_images = true\n",
+    )
+    .unwrap();
+    let c = args.config().unwrap();
+    assert_eq!(c.input_model, Some(PathBuf::from("sparse/0")));
+    assert!(c.fix_existing_images);
+    let with_pose = MapArgs {
+        init_pose: Some("1,2,3,0,0,90".into()),
+        ..args.clone()
+    };
+    let err = format!("{:#}", with_pose.config().unwrap_err());
+    assert!(err.contains("not used with --input-model"), "{err}");
+    let hold_only = MapArgs {
+        database: Some("a.db".into()),
+        lidar: Some("m.ply".into()),
+        output: Some("out".into()),
+        fix_existing_images: true,
+        ..Default::default()
+    };
+    let err = format!("{:#}", hold_only.config().unwrap_err());
+    assert!(err.contains("needs --input-model"), "{err}");
 }
 
 #[test]
