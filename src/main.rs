@@ -25,7 +25,7 @@ enum Command {
     Inspect(commands::inspect::InspectArgs),
     /// Structure-from-motion inside the LiDAR map: COLMAP database + map -> model in the map frame.
     Map(commands::map::MapArgs),
-    /// Prepare a raw point cloud (PLY, PCD, LAS/LAZ) as a map: downsample, estimate normals.
+    /// Prepare a raw point cloud (PLY, PCD, LAS/LAZ, E57) as a map: downsample, estimate normals.
     PrepareMap(commands::prepare_map::PrepareMapArgs),
     /// Render a synthetic scene with exact ground truth (images, LiDAR map, true cameras).
     Synth(commands::synth::SynthArgs),

@@ -20,7 +20,7 @@ use crate::map::PointCloud;
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct ColourMapArgs {
-    /// LiDAR map: .ply, .pcd, .las or .laz (normals, when it has them, leave
+    /// LiDAR map: .ply, .pcd, .las, .laz or .e57 (normals, when it has them, leave
     /// out grazing views).
     #[arg(long, alias = "lidar_path")]
     pub lidar: PathBuf,

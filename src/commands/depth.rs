@@ -18,7 +18,7 @@ use crate::map::PointCloud;
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct DepthArgs {
-    /// LiDAR map: .ply, .pcd, .las or .laz.
+    /// LiDAR map: .ply, .pcd, .las, .laz or .e57.
     #[arg(long, alias = "lidar_path")]
     pub lidar: PathBuf,
     /// COLMAP model folder (text or binary) holding the image and its pose.

@@ -86,7 +86,7 @@ pub struct MapArgs {
     /// COLMAP database with features and verified matches (opened read-only).
     #[arg(long, visible_alias = "database_path", value_name = "DB")]
     pub database: Option<PathBuf>,
-    /// LiDAR map: .ply, .pcd, .las or .laz (normals estimated when missing).
+    /// LiDAR map: .ply, .pcd, .las, .laz or .e57 (normals estimated when missing).
     #[arg(long, visible_alias = "lidar_path", value_name = "MAP")]
     pub lidar: Option<PathBuf>,
     /// Output folder of the COLMAP model and report.json (replaced atomically).

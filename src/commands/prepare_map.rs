@@ -1,4 +1,4 @@
-//! `colmap-lidar prepare-map`: reads a raw point cloud (PLY, PCD, LAS/LAZ),
+//! `colmap-lidar prepare-map`: reads a raw point cloud (PLY, PCD, LAS/LAZ, E57),
 //! downsamples it, estimates normals where they are missing or invalid, and
 //! writes a binary PLY with normals (and planarity) that the mapper and
 //! CloudCompare both read.
@@ -13,7 +13,7 @@ use crate::map::prepare::{prepare, NormalOrientation, PrepareOptions, PrepareRep
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct PrepareMapArgs {
-    /// Raw point cloud: .ply, .pcd, .las or .laz.
+    /// Raw point cloud: .ply, .pcd, .las, .laz or .e57 (every scan, each at its pose).
     #[arg(long, alias = "input_path")]
     pub input: PathBuf,
     /// Output binary PLY with normals.

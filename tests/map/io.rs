@@ -831,3 +831,130 @@ fn a_far_first_point_is_reported_through_the_largest_offset() {
     assert_eq!(cloud.origin, Vector3::new(512_346.0, 5_412_345.0, 200.0));
     assert_eq!(report.max_offset_m, 999.75);
 }
+
+/// The points of `tests/data/two_scans.e57` in the map frame, in file order
+/// (see `scripts/make_e57_fixture.py`): the ground and the wall x = 5 from
+/// scan 0, the wall y = 8 from scan 1, all 500000, 4400000, 200 off.
+fn two_scans_points() -> Vec<[f64; 3]> {
+    let mut pts = Vec::new();
+    for x in 0..10 {
+        for y in 0..10 {
+            pts.push([f64::from(x), f64::from(y), 0.0]);
+        }
+    }
+    for y in 0..10 {
+        for z in 1..5 {
+            pts.push([5.0, f64::from(y), f64::from(z)]);
+        }
+    }
+    for x in 0..10 {
+        for z in 1..5 {
+            pts.push([f64::from(x), 8.0, f64::from(z)]);
+        }
+    }
+    for p in &mut pts {
+        p[0] += 500000.0;
+        p[1] += 4400000.0;
+        p[2] += 200.0;
+    }
+    pts
+}
+
+#[test]
+fn an_e57_file_libe57format_wrote_is_read_at_its_scans_poses() {
+    // Written by libE57Format (pye57), each scan in its scanner's frame.
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/two_scans.e57");
+    let (cloud, report) = read_point_cloud(&path).unwrap();
+    assert_eq!(report.format, CloudFormat::E57);
+    let truth = two_scans_points();
+    // The invalid record of scan 1 is dropped and counted.
+    assert_eq!(report.points_read, truth.len() as u64 + 1);
+    assert_eq!(report.dropped_non_finite, 1);
+    assert!(!report.had_normals);
+    assert_eq!(cloud.len(), truth.len());
+    assert_eq!(cloud.origin, Vector3::new(500000.0, 4400000.0, 200.0));
+    for (i, p) in truth.iter().enumerate() {
+        let q = cloud.point_in_map(i);
+        for a in 0..3 {
+            assert!((q[a] - p[a]).abs() < 1e-4, "point {i}: {q:?} vs {p:?}");
+        }
+    }
+    // The extension does not matter: the signature tells.
+    let dir = tempfile::tempdir().unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    let renamed = write(dir.path(), "scan.bin", &bytes);
+    assert_eq!(read_point_cloud(&renamed).unwrap().0.len(), truth.len());
+    // Cut short or corrupted: an error naming the file, no panic.
+    for keep in [10, 100, 1024, bytes.len() / 2, bytes.len() - 7] {
+        let cut = write(dir.path(), &format!("cut_{keep}.e57"), &bytes[..keep]);
+        read_err(&cut);
+    }
+    let mut flipped = bytes.clone();
+    flipped[bytes.len() / 3] ^= 0xff;
+    read_err(&write(dir.path(), "flipped.e57", &flipped));
+}
+
+#[test]
+fn e57_spherical_scans_are_converted_and_posed() {
+    use e57::{E57Writer, Quaternion, Record, RecordValue, Transform, Translation};
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("spherical.e57");
+    // Range, azimuth, elevation (the scanner's frame) of a few points.
+    let rae: Vec<[f64; 3]> = (0..40)
+        .map(|i| {
+            let i = f64::from(i);
+            [2.0 + 0.25 * i, -3.0 + 0.15 * i, -0.6 + 0.03 * i]
+        })
+        .collect();
+    let half = 0.5 * 40f64.to_radians();
+    let axis = Vector3::new(1.0, -2.0, 0.5).normalize();
+    let (w, v) = (half.cos(), axis * half.sin());
+    let t = Vector3::new(-12.0, 7.5, 1.25);
+    {
+        let mut writer = E57Writer::from_file(&path, "test-guid").unwrap();
+        let mut pc = writer
+            .add_pointcloud(
+                "scan-guid",
+                vec![
+                    Record::SPHERICAL_RANGE_F64,
+                    Record::SPHERICAL_AZIMUTH_F64,
+                    Record::SPHERICAL_ELEVATION_F64,
+                ],
+            )
+            .unwrap();
+        pc.set_transform(Some(Transform {
+            rotation: Quaternion {
+                w,
+                x: v.x,
+                y: v.y,
+                z: v.z,
+            },
+            translation: Translation {
+                x: t.x,
+                y: t.y,
+                z: t.z,
+            },
+        }));
+        for p in &rae {
+            pc.add_point(p.iter().map(|&x| RecordValue::Double(x)).collect())
+                .unwrap();
+        }
+        pc.finalize().unwrap();
+        writer.finalize().unwrap();
+    }
+    let (cloud, report) = read_point_cloud(&path).unwrap();
+    assert_eq!(report.points_read, rae.len() as u64);
+    let rotation =
+        nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, v.x, v.y, v.z));
+    for (i, [r, az, el]) in rae.iter().enumerate() {
+        // E57: x = r cos(el) cos(az), y = r cos(el) sin(az), z = r sin(el).
+        let local = Vector3::new(
+            r * el.cos() * az.cos(),
+            r * el.cos() * az.sin(),
+            r * el.sin(),
+        );
+        let expect = rotation * local + t;
+        let q = cloud.point_in_map(i);
+        assert!((q - expect).norm() < 1e-5, "point {i}: {q} vs {expect}");
+    }
+}

@@ -1,5 +1,5 @@
 //! Point-cloud readers and writers: PLY (ascii, binary little and big endian),
-//! PCD (ascii, binary, binary_compressed) and LAS/LAZ.
+//! PCD (ascii, binary, binary_compressed), LAS/LAZ and E57 (read only).
 //!
 //! Every reader streams the file once into a [`PointCloud`]. Coordinates are
 //! read as f64; the local origin is chosen once from the first finite point
@@ -23,6 +23,7 @@ use nalgebra::Vector3;
 
 use crate::map::PointCloud;
 
+pub mod e57;
 pub mod las;
 pub mod pcd;
 pub mod ply;
@@ -50,8 +51,8 @@ pub enum MapIoError {
         source: std::io::Error,
     },
     #[error(
-        "{}: unknown point-cloud format (expected a PLY, PCD, LAS or LAZ file: \
-         extension .ply/.pcd/.las/.laz or a ply/PCD/LASF signature)",
+        "{}: unknown point-cloud format (expected a PLY, PCD, LAS, LAZ or E57 file: \
+         extension .ply/.pcd/.las/.laz/.e57 or a ply/PCD/LASF/ASTM-E57 signature)",
         path.display()
     )]
     UnknownFormat { path: PathBuf },
@@ -91,6 +92,12 @@ pub enum MapIoError {
         #[source]
         source: ::las::Error,
     },
+    #[error("{}: E57: {source}", path.display())]
+    E57 {
+        path: PathBuf,
+        #[source]
+        source: ::e57::Error,
+    },
 }
 
 impl MapIoError {
@@ -125,6 +132,7 @@ pub enum CloudFormat {
     PcdBinaryCompressed,
     Las,
     Laz,
+    E57,
 }
 
 impl fmt::Display for CloudFormat {
@@ -138,6 +146,7 @@ impl fmt::Display for CloudFormat {
             CloudFormat::PcdBinaryCompressed => "PCD binary_compressed",
             CloudFormat::Las => "LAS",
             CloudFormat::Laz => "LAZ",
+            CloudFormat::E57 => "E57",
         };
         f.write_str(name)
     }
@@ -149,7 +158,8 @@ pub struct LoadReport {
     pub format: CloudFormat,
     /// Point records in the file (kept + dropped).
     pub points_read: u64,
-    /// Records dropped because a coordinate was NaN or infinite.
+    /// Records dropped because a coordinate was NaN or infinite (E57: also
+    /// records flagged invalid or holding only a direction).
     pub dropped_non_finite: u64,
     /// True when the records carry normals (`nx ny nz` or `normal_x ...`).
     pub had_normals: bool,
@@ -280,7 +290,7 @@ impl CloudSink {
 }
 
 /// Reads a point cloud, choosing the reader from the extension (`.ply`,
-/// `.pcd`, `.las`, `.laz`, any case) or, failing that, from the file's first
+/// `.pcd`, `.las`, `.laz`, `.e57`, any case) or, failing that, from the file's first
 /// bytes.
 pub fn read_point_cloud(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
     let (cloud, report) = read_any(path)?;
@@ -306,6 +316,7 @@ fn read_any(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
         Some("ply") => return ply::read_ply(path),
         Some("pcd") => return pcd::read_pcd(path),
         Some("las") | Some("laz") => return las::read_las(path),
+        Some("e57") => return e57::read_e57(path),
         _ => {}
     }
     let mut magic = [0u8; 16];
@@ -325,6 +336,8 @@ fn read_any(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
         ply::read_ply(path)
     } else if magic.starts_with(b"LASF") {
         las::read_las(path)
+    } else if magic.starts_with(b"ASTM-E57") {
+        e57::read_e57(path)
     } else if magic.starts_with(b"# .PCD") || magic.starts_with(b"VERSION") {
         pcd::read_pcd(path)
     } else {
