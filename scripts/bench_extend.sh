@@ -67,14 +67,15 @@ names=$(grep -v '^#' "$out/full_txt/images.txt" | awk 'NR % 2 == 1 { print $10 }
 total=$(echo "$names" | wc -l)
 kept=$(printf '%.0f' "$(echo "$total * $keep" | bc -l)")
 echo "$names" | tail -n +"$((kept + 1))" >"$out/removed.txt"
-echo "$names" | head -n "$kept" >"$out/kept.txt"
 echo "input model: $kept of $total images (the last $((total - kept)) by name removed with colmap image_deleter)"
 rm -rf "$out/input" "$out/gt_new" && mkdir -p "$out/input" "$out/gt_new"
 "$colmap" image_deleter --input_path "$full" --output_path "$out/input" \
   --image_names_path "$out/removed.txt" >"$out/deleter.log" 2>&1
-# The ground truth of the re-added images only.
+# The ground truth of the re-added images only (every other name deleted).
+grep -v '^#' "$scene/gt/images.txt" | awk 'NR % 2 == 1 { print $10 }' |
+  grep -vxF -f "$out/removed.txt" >"$out/not_removed.txt" || true
 "$colmap" image_deleter --input_path "$scene/gt" --output_path "$out/gt_new" \
-  --image_names_path "$out/kept.txt" >>"$out/deleter.log" 2>&1
+  --image_names_path "$out/not_removed.txt" >>"$out/deleter.log" 2>&1
 
 run held --input-model "$out/input" --fix-existing-images
 run free --input-model "$out/input"

@@ -46,6 +46,8 @@ pub enum ExistingModelError {
     UnknownImage(String),
     #[error("its image {0:?} is in the database twice")]
     DuplicateName(String),
+    #[error("it holds image {0:?} twice")]
+    DuplicateImage(String),
     #[error("its image {name:?} has camera {camera} which it does not define")]
     MissingCamera { name: String, camera: u32 },
     #[error(
@@ -109,6 +111,9 @@ pub fn match_to_database(
         let Some(&db_id) = by_name.get(img.name.as_str()) else {
             return Err(ExistingModelError::UnknownImage(img.name.clone()));
         };
+        if out.poses.contains_key(&db_id) {
+            return Err(ExistingModelError::DuplicateImage(img.name.clone()));
+        }
         let db_image = &db.images[&db_id];
         let camera =
             model
@@ -368,6 +373,13 @@ mod tests {
                 image: 9,
                 index: 4
             })
+        );
+
+        let mut m = model(&db);
+        m.images.get_mut(&ImageId(9)).unwrap().name = "b.jpg".into();
+        assert_eq!(
+            match_to_database(&m, &db, false),
+            Err(ExistingModelError::DuplicateImage("b.jpg".into()))
         );
 
         let mut m = model(&db);

@@ -230,10 +230,16 @@ impl MapState {
     /// otherwise, all with the same guessed or EXIF focal length, and one
     /// image's focal length cannot be refined from its own few hundred
     /// points. A camera in `guessed` (no focal length prior) never shares
-    /// with one outside it (with `auto` the two are refined differently). Returns the
-    /// number of cameras that now share another's.
-    pub fn share_identical_intrinsics(&mut self, guessed: &BTreeSet<CameraId>) -> usize {
-        type Key<'a> = (&'a str, u32, u32, Vec<u64>, bool);
+    /// with one outside it (with `auto` the two are refined differently), nor
+    /// does a camera in `apart` (an input model's, which keep their own
+    /// intrinsics) with one outside it. Returns the number of cameras that now
+    /// share another's.
+    pub fn share_identical_intrinsics(
+        &mut self,
+        guessed: &BTreeSet<CameraId>,
+        apart: &BTreeSet<CameraId>,
+    ) -> usize {
+        type Key<'a> = (&'a str, u32, u32, Vec<u64>, bool, bool);
         let mut first: BTreeMap<Key, CameraId> = BTreeMap::new();
         self.shared_intrinsics.clear();
         for (id, c) in &self.cameras {
@@ -243,6 +249,7 @@ impl MapState {
                 c.height,
                 c.params.iter().map(|p| p.to_bits()).collect(),
                 guessed.contains(id),
+                apart.contains(id),
             );
             let owner = *first.entry(key).or_insert(*id);
             if owner != *id {
@@ -573,12 +580,23 @@ mod tests {
         assert_eq!(state.intrinsics_of(CameraId(2)), CameraId(2));
         // 8 has 1's parameters but no focal length prior (1 has one).
         let guessed = BTreeSet::from([CameraId(8)]);
-        assert_eq!(state.share_identical_intrinsics(&guessed), 3);
+        assert_eq!(
+            state.share_identical_intrinsics(&guessed, &BTreeSet::new()),
+            3
+        );
         let of: Vec<u32> = (1..=8)
             .map(|i| state.intrinsics_of(CameraId(i)).0)
             .collect();
         // 2 and 4 are 1's twins, 6 is 3's; 5 (another width), 7 (another
         // model) and 8 (guessed) are their own.
         assert_eq!(of, [1, 1, 3, 1, 5, 3, 7, 8]);
+        // 4 kept apart (an input model's camera): it shares with none, the
+        // others as before.
+        let apart = BTreeSet::from([CameraId(4)]);
+        assert_eq!(state.share_identical_intrinsics(&guessed, &apart), 2);
+        let of: Vec<u32> = (1..=8)
+            .map(|i| state.intrinsics_of(CameraId(i)).0)
+            .collect();
+        assert_eq!(of, [1, 1, 3, 4, 5, 3, 7, 8]);
     }
 }

@@ -736,8 +736,6 @@ fn yard_with_colmap_database() {
     }
 }
 
-/// Runs the real `colmap color_extractor` on `model` with `images`; returns
-/// its points' colours.
 /// `rec` with only the images `keep` names: their observations, and the
 /// points two or more of them still see.
 fn part_of_model(rec: &Reconstruction, keep: impl Fn(&str) -> bool) -> Reconstruction {
@@ -838,6 +836,14 @@ fn check_extension(scene: &Path, model_dir: &Path, work: &Path) {
             assert!(moved_mm > 0.0 && moved_mm < 5.0, "moved {moved_mm} mm");
         }
     }
+    // Every image already in the model, held: nothing to register or
+    // solve; the poses come out as they went in.
+    let r = extend("extended-none", model_dir, true).expect("a complete held model");
+    assert_eq!(r.none.num_registered, full.num_registered_images());
+    let same = read_model(&work.join("extended-none")).unwrap();
+    for img in full.registered_images() {
+        assert_eq!(same.images[&img.id].cam_from_world, img.cam_from_world);
+    }
     // The half model moved by a similarity (scale about its first camera).
     let moved = |name: &str, shift: [f64; 3], scale: f64| -> PathBuf {
         let mut m = half.clone();
@@ -894,6 +900,8 @@ fn check_extension(scene: &Path, model_dir: &Path, work: &Path) {
     assert!(!work.join("extended-foreign").exists());
 }
 
+/// Runs the real `colmap color_extractor` on `model` with `images`; returns
+/// its points' colours.
 fn colmap_colours(model: &Path, images: &Path, out: &Path) -> BTreeMap<u64, [u8; 3]> {
     std::fs::create_dir_all(out).unwrap();
     crate::common::run_colmap([

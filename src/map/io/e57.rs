@@ -11,8 +11,8 @@ use std::path::Path;
 use super::{CloudFormat, CloudSink, LoadReport, MapIoError};
 use crate::map::PointCloud;
 
-/// The fewest bytes a point record can take (three coordinates packed
-/// tightly): bounds the capacity a header's point counts may ask for.
+/// Bytes per point record assumed to bound the capacity the header's point
+/// counts may reserve (a hint only: a record can be smaller).
 const MIN_RECORD_BYTES: u64 = 3;
 
 /// Reads every scan of an E57 file into one cloud.
@@ -35,7 +35,10 @@ pub fn read_e57(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
             "the file holds no point cloud (data3D is empty)",
         ));
     }
-    let declared: u64 = scans.iter().map(|pc| pc.records).sum();
+    // The counts come from the file: summed without overflow.
+    let declared = scans
+        .iter()
+        .fold(0u64, |sum, pc| sum.saturating_add(pc.records));
     let hint = declared.min(file_len / MIN_RECORD_BYTES + 1) as usize;
     let mut sink = CloudSink::new(CloudFormat::E57, hint, false, false);
     for scan in &scans {
