@@ -9,7 +9,7 @@ use anyhow::Context;
 use nalgebra::Vector3;
 
 use crate::map::io::{read_point_cloud, write_ply, LoadReport};
-use crate::map::prepare::{prepare, NormalOrientation, PrepareOptions, PrepareReport};
+use crate::map::prepare::{prepare, CropBox, NormalOrientation, PrepareOptions, PrepareReport};
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct PrepareMapArgs {
@@ -36,6 +36,11 @@ pub struct PrepareMapArgs {
     /// metres) instead of the default (up, then towards the map's centre).
     #[arg(long)]
     pub sensor: Option<String>,
+    /// Keep only the points inside this box, `xmin,ymin,zmin,xmax,ymax,zmax`
+    /// (map frame, metres, in the input's own coordinates), before
+    /// downsampling: the part of a large survey the photos show.
+    #[arg(long, allow_hyphen_values = true)]
+    pub crop: Option<String>,
     /// Keep points whose normal could not be estimated (written with a zero
     /// normal).
     #[arg(long = "keep-without-normal")]
@@ -73,6 +78,9 @@ impl PrepareMapArgs {
             options.normals.orientation =
                 NormalOrientation::TowardsViewpoint(parse_position(sensor).context("--sensor")?);
         }
+        if let Some(crop) = &self.crop {
+            options.crop = Some(CropBox::parse(crop).context("--crop")?);
+        }
         options.validate()?;
         Ok(options)
     }
@@ -105,10 +113,18 @@ pub fn prepare_map_file(
     let start = Instant::now();
     let (cloud, report) =
         prepare(cloud, options).with_context(|| format!("preparing {}", input.display()))?;
+    if options.crop.is_some() {
+        log::info!(
+            "crop box: {} of {} points inside, {} dropped",
+            report.input_points - report.dropped_by_crop,
+            report.input_points,
+            report.dropped_by_crop
+        );
+    }
     log::info!(
         "prepared: {} -> {} points after the {} m voxel grid; normals kept {}, estimated {}, \
          failed {}; {} points dropped without a normal; {:.2} s",
-        report.input_points,
+        report.input_points - report.dropped_by_crop,
         report.after_voxel,
         options.voxel_size_m,
         report.normals.kept,
@@ -134,8 +150,13 @@ pub fn prepare_map_file(
 pub fn run(args: &PrepareMapArgs) -> anyhow::Result<()> {
     let options = args.options()?;
     let (load, report) = prepare_map_file(&args.input, &args.output, &options)?;
+    let cropped = if options.crop.is_some() {
+        format!("{} outside the crop box, ", report.dropped_by_crop)
+    } else {
+        String::new()
+    };
     println!(
-        "{}: {} points read ({} dropped as NaN/inf), {} after voxel grid, \
+        "{}: {} points read ({} dropped as NaN/inf), {cropped}{} after voxel grid, \
          {} normals estimated ({:.3} m radius), {} kept, {} points written to {}",
         args.input.display(),
         load.points_read,

@@ -41,6 +41,23 @@ impl PointCloud {
         let p = self.points[i];
         self.origin + Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))
     }
+
+    /// Keeps the points whose `keep` flag is set, with their normals and
+    /// planarity, in order.
+    pub fn retain_flagged(&mut self, keep: &[bool]) {
+        assert_eq!(keep.len(), self.points.len(), "one flag per point");
+        fn filter<T: Copy>(values: &mut Vec<T>, keep: &[bool]) {
+            let mut flags = keep.iter();
+            values.retain(|_| *flags.next().unwrap_or(&false));
+        }
+        filter(&mut self.points, keep);
+        if let Some(normals) = &mut self.normals {
+            filter(normals, keep);
+        }
+        if let Some(planarity) = &mut self.planarity {
+            filter(planarity, keep);
+        }
+    }
 }
 
 /// Smallest and largest cell (per axis) of `points` under `cell_of`, in parallel.

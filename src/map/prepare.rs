@@ -174,6 +174,75 @@ pub struct PrepareOptions {
     pub radius_follows_spacing: bool,
     /// Drop points left without a normal. Default true.
     pub drop_without_normal: bool,
+    /// Keep only the points inside this box (map frame), before anything
+    /// else. Default none.
+    pub crop: Option<CropBox>,
+}
+
+/// An axis-aligned box in the map frame (metres, absolute: a
+/// georeferenced map's box is in its own coordinates), bounds included.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CropBox {
+    pub min: Vector3<f64>,
+    pub max: Vector3<f64>,
+}
+
+impl CropBox {
+    /// Parses `xmin,ymin,zmin,xmax,ymax,zmax`.
+    pub fn parse(text: &str) -> Result<CropBox, PrepareError> {
+        let bad = |why: &str| {
+            PrepareError::InvalidOption(format!(
+                "crop box `{text}` is not `xmin,ymin,zmin,xmax,ymax,zmax` ({why})"
+            ))
+        };
+        let values: Vec<f64> = text
+            .split(',')
+            .map(|v| v.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| bad("not numbers"))?;
+        let [x0, y0, z0, x1, y1, z1] = values[..] else {
+            return Err(bad("six numbers needed"));
+        };
+        let crop = CropBox {
+            min: Vector3::new(x0, y0, z0),
+            max: Vector3::new(x1, y1, z1),
+        };
+        crop.validate().map_err(|why| bad(&why))?;
+        Ok(crop)
+    }
+
+    fn validate(&self) -> Result<(), String> {
+        if !self
+            .min
+            .iter()
+            .chain(self.max.iter())
+            .all(|v| v.is_finite())
+        {
+            return Err("a bound is not finite".into());
+        }
+        if (0..3).any(|a| self.min[a] > self.max[a]) {
+            return Err("a minimum above its maximum".into());
+        }
+        Ok(())
+    }
+
+    /// Whether `p` (map frame) lies inside, bounds included.
+    pub fn contains(&self, p: &Vector3<f64>) -> bool {
+        (0..3).all(|a| self.min[a] <= p[a] && p[a] <= self.max[a])
+    }
+
+    /// Keeps the points of `cloud` inside the box; returns how many were
+    /// dropped. Compared in f64 in the map frame, so a bound means the same
+    /// whatever the cloud's local origin.
+    pub fn apply(&self, cloud: &mut PointCloud) -> usize {
+        let keep: Vec<bool> = (0..cloud.len())
+            .into_par_iter()
+            .map(|i| self.contains(&cloud.point_in_map(i)))
+            .collect();
+        let before = cloud.len();
+        cloud.retain_flagged(&keep);
+        before - cloud.len()
+    }
 }
 
 impl Default for PrepareOptions {
@@ -183,6 +252,7 @@ impl Default for PrepareOptions {
             normals: NormalOptions::default(),
             radius_follows_spacing: true,
             drop_without_normal: true,
+            crop: None,
         }
     }
 }
@@ -210,6 +280,10 @@ impl PrepareOptions {
                 self.voxel_size_m
             )));
         }
+        if let Some(crop) = &self.crop {
+            crop.validate()
+                .map_err(|why| PrepareError::InvalidOption(format!("crop box: {why}")))?;
+        }
         self.normals.validate()
     }
 }
@@ -218,6 +292,8 @@ impl PrepareOptions {
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct PrepareReport {
     pub input_points: usize,
+    /// Points outside the crop box, dropped first.
+    pub dropped_by_crop: usize,
     pub after_voxel: usize,
     /// The normal radius used, metres.
     pub normal_radius_m: f64,
@@ -226,7 +302,7 @@ pub struct PrepareReport {
     pub output_points: usize,
 }
 
-/// Downsamples, estimates normals where needed, and drops points left
+/// Crops, downsamples, estimates normals where needed, and drops points left
 /// without a normal (when asked).
 pub fn prepare(
     cloud: PointCloud,
@@ -237,6 +313,10 @@ pub fn prepare(
         input_points: cloud.len(),
         ..Default::default()
     };
+    let mut cloud = cloud;
+    if let Some(crop) = &options.crop {
+        report.dropped_by_crop = crop.apply(&mut cloud);
+    }
     let mut cloud = if options.voxel_size_m > 0.0 {
         voxel_downsample(&cloud, options.voxel_size_m)?
     } else {
@@ -265,23 +345,11 @@ fn normal_is_set(n: &[f32; 3]) -> bool {
 /// Keeps only the points with a non-zero normal (all points when the cloud
 /// has no normals at all: nothing to judge by).
 fn retain_with_normal(cloud: &mut PointCloud) {
-    let Some(normals) = cloud.normals.take() else {
+    let Some(normals) = &cloud.normals else {
         return;
     };
     let keep: Vec<bool> = normals.iter().map(normal_is_set).collect();
-    let mut i = 0;
-    cloud.points.retain(|_| {
-        i += 1;
-        keep[i - 1]
-    });
-    if let Some(planarity) = &mut cloud.planarity {
-        let mut i = 0;
-        planarity.retain(|_| {
-            i += 1;
-            keep[i - 1]
-        });
-    }
-    cloud.normals = Some(normals.into_iter().filter(normal_is_set).collect());
+    cloud.retain_flagged(&keep);
 }
 
 /// Points sorted into cubic cells of side `cell_m`, aligned on the map frame

@@ -25,11 +25,14 @@
 //! can also collapse the model onto a corner: [`within_bounds`]) (re-rendered seed-2 yard, initial pose
 //! 0.3 m / 3 deg off: 7 % of scale and 0.69 m undone, 2014 -> 2036 points on
 //! the map; with the exact pose a 7.9 cm slide gained nothing, not applied).
+use std::collections::BTreeSet;
+
 use nalgebra::{SMatrix, SVector, UnitQuaternion, Vector3};
 
 use super::associate::NearestNeighbourAssociator;
 use super::state::MapState;
 use crate::estimators::similarity::Sim3;
+use crate::scene::Point3DId;
 
 /// Options of [`align_to_map`].
 #[derive(Clone, Debug, PartialEq)]
@@ -140,14 +143,20 @@ pub fn count_points_on_map(
 /// The similarity that best moves the model's 3D points onto the map's
 /// planes (IRLS Gauss-Newton, Cauchy weights at a third of the radius,
 /// the increment taken about the points' centroid; a small damping keeps
-/// directions the map does not constrain where they are). `None` with fewer
-/// than 7 points.
+/// directions the map does not constrain where they are). Over the points
+/// in `only` when given (all otherwise). `None` with fewer than 7 points.
 pub fn align_to_map(
     state: &MapState,
     nearest: &NearestNeighbourAssociator,
     options: &AlignOptions,
+    only: Option<&BTreeSet<Point3DId>>,
 ) -> Option<Alignment> {
-    let model: Vec<Vector3<f64>> = state.points.values().map(|p| p.xyz).collect();
+    let model: Vec<Vector3<f64>> = state
+        .points
+        .iter()
+        .filter(|(id, _)| only.is_none_or(|only| only.contains(id)))
+        .map(|(_, p)| p.xyz)
+        .collect();
     if model.len() < 7 || options.radii_m.is_empty() {
         return None;
     }
@@ -518,7 +527,8 @@ pub(crate) mod tests {
         for x in &on_map {
             state.add_point(truth.transform_point(x), Vec::new());
         }
-        let found = align_to_map(&state, &nearest, &AlignOptions::default()).expect("aligned");
+        let found =
+            align_to_map(&state, &nearest, &AlignOptions::default(), None).expect("aligned");
         assert!(found.inliers_after > found.inliers_before);
         assert_eq!(found.inliers_after, on_map.len());
         let back = found.sim3.compose(&truth);
@@ -598,7 +608,7 @@ pub(crate) mod tests {
                 }
             }
         }
-        let single = align_to_map(&state, &nearest, &AlignOptions::default()).unwrap();
+        let single = align_to_map(&state, &nearest, &AlignOptions::default(), None).unwrap();
         let undone = |a: &Alignment| a.sim3.compose(&moved);
         assert!(
             (undone(&single).scale - 1.0).abs() > 0.05,
@@ -609,7 +619,7 @@ pub(crate) mod tests {
             start_scales: vec![1.0, 0.93, 1.08, 0.86, 1.16],
             ..AlignOptions::default()
         };
-        let found = align_to_map(&state, &nearest, &options).unwrap();
+        let found = align_to_map(&state, &nearest, &options, None).unwrap();
         let back = undone(&found);
         assert!((back.scale - 1.0).abs() < 1e-6, "{back:?}");
         // Along y nothing holds the model (no plane faces y).

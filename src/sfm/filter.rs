@@ -241,9 +241,9 @@ pub fn filter_points_behind_map(
 /// at the feature's pixel ([`project_map_at_pixels`], offset from
 /// [`NearestNeighbourAssociator::plane_offset_at`]) in at least one of their
 /// views. A view where the map shows nothing there is a miss (the map does
-/// not cover what the image shows). Counts over every k-th point (in id
-/// order) so that at most `max_points` are looked up; returns (on the
-/// surface, looked up).
+/// not cover what the image shows); a point whose views all show nothing at
+/// its feature is *uncovered*. Counts over every k-th point (in id order) so
+/// that at most `max_points` are looked up.
 ///
 /// A stricter test of the model's placement than the nearest surface
 /// ([`super::align::count_points_on_map`]): a model in the wrong place or
@@ -259,10 +259,30 @@ pub fn count_points_on_seen_surface(
     projection: &ProjectionOptions,
     tolerance_m: f64,
     max_points: usize,
-) -> Result<(usize, usize), ProjectionError> {
+) -> Result<SurfaceCount, ProjectionError> {
+    let (on_surface, covered, sampled) =
+        classify_points_on_seen_surface(state, nearest, grid, projection, tolerance_m, max_points)?;
+    Ok(SurfaceCount {
+        on_surface: on_surface.len(),
+        covered: covered.len(),
+        sampled,
+    })
+}
+
+/// The points of [`count_points_on_seen_surface`]'s sample that are on the
+/// surface and those the map covers, and the sample's size.
+pub fn classify_points_on_seen_surface(
+    state: &MapState,
+    nearest: &NearestNeighbourAssociator,
+    grid: &FrustumGrid,
+    projection: &ProjectionOptions,
+    tolerance_m: f64,
+    max_points: usize,
+) -> Result<(BTreeSet<Point3DId>, BTreeSet<Point3DId>, usize), ProjectionError> {
     let stride = state.points.len().div_ceil(max_points.max(1)).max(1);
     let sample: BTreeSet<Point3DId> = state.points.keys().step_by(stride).copied().collect();
     let mut on_surface: BTreeSet<Point3DId> = BTreeSet::new();
+    let mut covered: BTreeSet<Point3DId> = BTreeSet::new();
     for &image in &state.registration_order {
         // A point found on its surface in one view needs no other.
         let seen = seen_planes(state, nearest, grid, projection, image, |p| {
@@ -275,12 +295,35 @@ pub fn count_points_on_seen_surface(
             ..
         } in seen
         {
+            covered.insert(point);
             if (normal.dot(&state.points[&point].xyz) - offset).abs() <= tolerance_m {
                 on_surface.insert(point);
             }
         }
     }
-    Ok((on_surface.len(), sample.len()))
+    Ok((on_surface, covered, sample.len()))
+}
+
+/// What [`count_points_on_seen_surface`] found among the points it looked
+/// up (`sampled`): those on the surface one of their views sees at their
+/// feature, and those where at least one view sees a surface at all.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SurfaceCount {
+    pub on_surface: usize,
+    pub covered: usize,
+    pub sampled: usize,
+}
+
+impl SurfaceCount {
+    /// `on_surface / sampled` (0 when nothing was sampled).
+    pub fn on_share(&self) -> f64 {
+        self.on_surface as f64 / self.sampled.max(1) as f64
+    }
+
+    /// `covered / sampled` (0 when nothing was sampled).
+    pub fn covered_share(&self) -> f64 {
+        self.covered as f64 / self.sampled.max(1) as f64
+    }
 }
 
 #[cfg(test)]
@@ -366,7 +409,7 @@ mod tests {
         // `point`.
         let on_seen_surface = |seen: Vector3<f64>, point: Vector3<f64>| {
             let (state, _) = two_view_state_seeing(&seen, &point);
-            let (n, of) = count_points_on_seen_surface(
+            let count = count_points_on_seen_surface(
                 &state,
                 &nearest,
                 &grid,
@@ -375,8 +418,12 @@ mod tests {
                 10,
             )
             .unwrap();
-            assert_eq!(of, 1);
-            n == 1
+            assert_eq!(count.sampled, 1);
+            // Every point here but the hole's is where the map shows a
+            // surface.
+            let hole = (seen - Vector3::new(-0.5, -0.5, 0.0)).norm() < 1e-9;
+            assert_eq!(count.covered, usize::from(!hole));
+            count.on_surface == 1
         };
         let seen = Vector3::new(0.1, 0.2, 0.0);
         // On the floor the views see, within 2 cm: counted.

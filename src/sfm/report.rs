@@ -92,6 +92,10 @@ pub struct AlignmentRecord {
     /// Applied only when more points end on the map, within bounds, and
     /// the initial image is not held at its given pose (then a trial only).
     pub applied: bool,
+    /// When the map covers less than 90 % of the model's points: the number
+    /// of points (of a sample) the map covers, the only ones the alignment
+    /// used and counted.
+    pub covered_points_only: Option<usize>,
     pub time_s: f64,
 }
 
@@ -145,6 +149,17 @@ pub struct MapReport {
     /// That share counting the points removed for lying behind the map as
     /// off it: what `min_points_on_map_share` is checked against.
     pub fit_share: Option<f64>,
+    /// Share of (the same sample of) the final 3D points for which at least
+    /// one of their images sees a map surface at their feature: how much of
+    /// what the photos show the map covers.
+    pub map_coverage_share: Option<f64>,
+    /// `fit_share` over the points the map covers (those removed behind the
+    /// map counted as off it).
+    pub covered_fit_share: Option<f64>,
+    /// The model fit the map below `min_points_on_map_share` over all its
+    /// points but well where the map covers it, and was accepted as partly
+    /// mapped (a warning).
+    pub partial_map: bool,
     /// How well the final planes fix the model's similarity (a warning below
     /// `MIN_SIMILARITY_CONSTRAINT`).
     pub similarity_constraint: Option<super::align::SimilarityConstraint>,

@@ -510,6 +510,106 @@ fn prepare_map_cli_end_to_end() {
     assert!(!status.success());
 }
 
+/// `prepare-map --crop`: exactly the raw points inside the box (bounds in
+/// the map's georeferenced coordinates) are kept, before downsampling; a
+/// malformed or inverted box is an error that says so, with nothing written.
+#[test]
+fn prepare_map_crops_to_a_box_in_map_coordinates() {
+    let dir = tempfile::tempdir().unwrap();
+    let raw = dir.path().join("raw.ply");
+    let rows = write_raw_scan(&raw);
+    let (x0, y0, z0) = (512_345.0, 5_412_345.0, 230.0);
+    let (lo, hi) = (
+        [x0 + 0.5, y0 + 1.0, z0 - 1.0],
+        [x0 + 2.0, y0 + 3.5, z0 + 1.5],
+    );
+    let inside: Vec<&Vec<f64>> = rows
+        .iter()
+        .map(|(p, _)| p)
+        .filter(|p| (0..3).all(|a| lo[a] <= p[a] && p[a] <= hi[a]))
+        .collect();
+    assert!(
+        inside.len() > 5_000 && inside.len() < 30_000,
+        "{}",
+        inside.len()
+    );
+    let out = dir.path().join("map.ply");
+    let crop = format!(
+        "{},{},{},{},{},{}",
+        lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
+    );
+    let output = std::process::Command::new(crate::common::bin())
+        .args(["prepare-map", "--input"])
+        .arg(&raw)
+        .arg("--output")
+        .arg(&out)
+        .args(["--voxel", "0", "--keep-without-normal", "--crop", &crop])
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{output:?}");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let dropped = rows.len() - inside.len();
+    assert!(
+        stdout.contains(&format!("{dropped} outside the crop box")),
+        "{stdout}"
+    );
+    let (map, _) = read_point_cloud(&out).unwrap();
+    assert_eq!(map.len(), inside.len());
+    // The same points, in order (written as double: exact to well under a
+    // micrometre after the f32 local offsets).
+    for (i, p) in inside.iter().enumerate() {
+        let q = map.point_in_map(i);
+        assert!(
+            (0..3).all(|a| (q[a] - p[a]).abs() < 1e-3),
+            "{i}: {q:?} {p:?}"
+        );
+    }
+    // The walls' normals near the crop's faces are estimated from what is
+    // left, and still right away from the floor/wall edge.
+    let normals = map.normals.as_ref().unwrap();
+    let wall_ok = (0..map.len())
+        .filter(|&i| map.point_in_map(i).z > z0 + 0.2)
+        .all(|i| normals[i][1] < -0.95);
+    assert!(wall_ok);
+
+    for (bad, says) in [
+        ("1,2,3", "six numbers needed"),
+        ("0,0,0,1,1,x", "not numbers"),
+        ("512346,0,0,512345,1e7,1000", "a minimum above its maximum"),
+        ("0,0,0,inf,1,1", "not finite"),
+    ] {
+        let target = dir.path().join("bad.ply");
+        let output = std::process::Command::new(crate::common::bin())
+            .args(["prepare-map", "--input"])
+            .arg(&raw)
+            .arg("--output")
+            .arg(&target)
+            .args(["--crop", bad])
+            .output()
+            .unwrap();
+        assert!(!output.status.success(), "{bad}");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(
+            stderr.contains("--crop") && stderr.contains(says),
+            "{bad}: {stderr}"
+        );
+        assert!(!target.exists());
+    }
+    // A box that holds no point: an error, nothing written.
+    let target = dir.path().join("empty.ply");
+    let output = std::process::Command::new(crate::common::bin())
+        .args(["prepare-map", "--input"])
+        .arg(&raw)
+        .arg("--output")
+        .arg(&target)
+        .args(["--crop", "0,0,0,1,1,1"])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("no point left"));
+    assert!(!target.exists());
+}
+
 /// `map` and `prepare-map` estimate the normals of a map that has none
 /// over a radius that follows the map's spacing: on a 20 cm grid the
 /// default 0.15 m radius holds no neighbour at all.
