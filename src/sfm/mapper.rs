@@ -1148,7 +1148,7 @@ fn map_once(
                 "initial pair",
                 true,
                 None,
-                1.0,
+                INITIAL_PAIR_MIN_GAIN,
             );
         }
     }
@@ -1696,6 +1696,17 @@ fn points_the_map_covers(
     );
     Ok(Some(covered))
 }
+
+/// The initial pair's alignment is applied only when it puts at least this
+/// many times as many points on the map. It moved pairs for noise, and the
+/// early hold then kept the moved pose: the seed-7 yard's pair, from its
+/// exact pose, turned 0.41 deg and scaled 0.993 for 1616 -> 1617 points. On
+/// the nine 24-image scenes (session 34) the gains were 0.9307-1.0022 where
+/// nothing real was there to correct, and 1.0114 for the seed-2 yard from a
+/// pose 0.3 m off (a 0.12 m move, kept). Three noise moves fewer: the seed-0
+/// corridor from the perturbed pose 3.2 -> 2.9 mm, the seed-0 room 1.1 ->
+/// 1.0 mm, the other 16 runs the same.
+const INITIAL_PAIR_MIN_GAIN: f64 = 1.01;
 
 /// Moves the whole model onto the map when that puts more points on it,
 /// at least `min_gain` times as many (see [`align_to_map`]; over the points

@@ -364,7 +364,8 @@ pub struct BundleOptions {
     /// After the initial pair and again before the final rounds, move the
     /// whole model (shape held) onto the map: point-to-plane ICP over a
     /// similarity, coarse to fine (1 m to 0.1 m), kept only when more points
-    /// end within 2 cm of the map (before the final rounds, never while the
+    /// end within 2 cm of the map (the initial pair's: at least 1 % more,
+    /// see `mapper::INITIAL_PAIR_MIN_GAIN`; before the final rounds, never while the
     /// initial image is held: a trial only). It undoes a placement that is wrong as a
     /// whole, which the solves do not (measured with the initial pose 0.3 m /
     /// 3 deg off: seed-2 corridor 0.36 m -> 1.7 mm, yard 0.58 m -> 12 mm
