@@ -89,8 +89,9 @@ pub struct AlignmentRecord {
     /// Whether the move is within `sfm::align`'s bounds (scale, rotation,
     /// centroid shift).
     pub within_bounds: bool,
-    /// Applied only when more points end on the map, within bounds, and
-    /// the initial image is not held at its given pose (then a trial only).
+    /// Applied only when more points end on the map (the initial pair's:
+    /// at least 1 % more), within bounds, and the initial image is not held
+    /// at its given pose (then a trial only).
     pub applied: bool,
     /// When the map covers less than 90 % of the model's points: the number
     /// of points (of a sample) the map covers, the only ones the alignment

@@ -463,11 +463,17 @@ fn yard_with_colmap_database() {
         "{fit} {seen}"
     );
     // The map covers the model (measured 0.95-0.996 on the fully mapped
-    // scenes); over the covered points the fit is at least as good.
+    // scenes); the fit over the covered points is the same sample's on-surface
+    // share over the covered share, the removed points counted against it.
     let coverage = report["map_coverage_share"].as_f64().unwrap();
     let covered_fit = report["covered_fit_share"].as_f64().unwrap();
     assert!(coverage > 0.9 && coverage <= 1.0, "{coverage}");
-    assert!(covered_fit >= fit - 1e-9, "{covered_fit} {fit}");
+    let covered_n = (coverage * n).round();
+    let expected = seen / coverage * covered_n / (covered_n + removed);
+    assert!(
+        (covered_fit - expected).abs() < 1e-9 && covered_fit >= fit,
+        "{covered_fit} {expected} {fit}"
+    );
     assert_eq!(report["partial_map"].as_bool(), Some(false));
     assert_eq!(
         report["alignment"]["covered_points_only"],
@@ -560,10 +566,17 @@ fn yard_with_colmap_database() {
             alignment["points_on_map_before"].as_u64().unwrap(),
             alignment["points_on_map_after"].as_u64().unwrap(),
         );
+        // The initial pair's needs at least 1 % more points (noise moves
+        // were locked in by the early hold).
+        let min_gain = if key == "initial_alignment" {
+            colmap_lidar::sfm::mapper::INITIAL_PAIR_MIN_GAIN
+        } else {
+            1.0
+        };
         assert_eq!(
             alignment["applied"].as_bool(),
-            Some(after > before),
-            "{key}"
+            Some(after > before && after as f64 >= min_gain * before as f64),
+            "{key}: {alignment}"
         );
         // The model's centroid moves by at most about the initial pose's error.
         assert!(
@@ -748,8 +761,6 @@ fn yard_with_colmap_database() {
     }
 }
 
-/// `rec` with only the images `keep` names: their observations, and the
-/// points two or more of them still see.
 /// The number before `after` in `text` (`after` names what follows it).
 fn number_before(text: &str, after: &str) -> f64 {
     let end = text
@@ -765,9 +776,9 @@ fn number_before(text: &str, after: &str) -> f64 {
 }
 
 /// The yard's map cut at x = 3 m (`prepare-map --crop`): the photos facing
-/// +x see no map. The points the map does cover fit it (measured 97 %),
+/// +x see no map. Most points the map does cover fit it (measured 86-97 %),
 /// but the surfaces they lie on hold the model's similarity only weakly
-/// (ratio 4.3e-3 to 4.5e-3 measured, under the 1e-2 a partly mapped model
+/// (ratio 2.8e-3 to 4.5e-3 measured, under the 1e-2 a partly mapped model
 /// needs: cut at 2-7 m the yard ended 16-74 mm and 0.2-0.5 deg off), so the
 /// run is refused with both numbers in the error and nothing written.
 fn check_partial_map(scene: &Path, work: &Path) {
@@ -802,12 +813,16 @@ fn check_partial_map(scene: &Path, work: &Path) {
     let covered_fit = number_before(&msg, "% of those are on it");
     let ratio = number_before(&msg, "(a map that covers only part");
     assert!((10.0..50.0).contains(&coverage), "{msg}");
-    assert!(covered_fit >= 90.0, "{msg}");
+    // Most of the covered points fit (86-97 % measured on two databases):
+    // it is the ratio that refuses the model.
+    assert!(covered_fit >= 70.0, "{msg}");
     assert!(ratio < 1e-2, "{msg}");
     assert!(msg.contains("lidar_x3.ply"), "{msg}");
     assert!(!out.exists());
 }
 
+/// `rec` with only the images `keep` names: their observations, and the
+/// points two or more of them still see.
 fn part_of_model(rec: &Reconstruction, keep: impl Fn(&str) -> bool) -> Reconstruction {
     let mut part = rec.clone();
     part.images.retain(|_, img| keep(&img.name));

@@ -418,7 +418,10 @@ fn toy_room_initial_pose_off() {
     eprintln!("toy room, initial pose off: max centre error {err:.4} m; initial alignment {a:?}");
     assert_eq!(
         a.applied,
-        a.points_on_map_after > a.points_on_map_before && a.within_bounds
+        a.points_on_map_after > a.points_on_map_before
+            && a.points_on_map_after as f64
+                >= colmap_lidar::sfm::mapper::INITIAL_PAIR_MIN_GAIN * a.points_on_map_before as f64
+            && a.within_bounds
     );
     assert!(a.translation_m < 0.05 && a.rotation_deg < 0.5, "{a:?}");
     assert_eq!(out.report.num_registered, 14);
