@@ -10,7 +10,6 @@ use nalgebra::Vector3;
 
 use crate::map::io::{read_point_cloud, write_ply, LoadReport};
 use crate::map::prepare::{prepare, CropBox, NormalOrientation, PrepareOptions, PrepareReport};
-use crate::map::PointCloud;
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct PrepareMapArgs {
@@ -111,34 +110,9 @@ pub fn prepare_map_file(
         },
         start.elapsed().as_secs_f64()
     );
-    // Where the map is, for the error of a crop box that holds none of it
-    // (most often one in local coordinates for a georeferenced map).
-    let spans = options.crop.as_ref().map(|_| map_bounds(&cloud));
     let start = Instant::now();
     let (cloud, report) =
         prepare(cloud, options).with_context(|| format!("preparing {}", input.display()))?;
-    if let (Some(crop), Some((lo, hi))) = (&options.crop, spans) {
-        if report.input_points > 0 && report.dropped_by_crop == report.input_points {
-            anyhow::bail!(
-                "{}: the crop box holds none of the {} points (box x {}..{}, y {}..{}, z {}..{}; \
-                 the map spans x {:.2}..{:.2}, y {:.2}..{:.2}, z {:.2}..{:.2}, in its own coordinates)",
-                input.display(),
-                report.input_points,
-                crop.min.x,
-                crop.max.x,
-                crop.min.y,
-                crop.max.y,
-                crop.min.z,
-                crop.max.z,
-                lo.x,
-                hi.x,
-                lo.y,
-                hi.y,
-                lo.z,
-                hi.z
-            );
-        }
-    }
     if options.crop.is_some() {
         log::info!(
             "crop box: {} of {} points inside, {} dropped",
@@ -171,19 +145,6 @@ pub fn prepare_map_file(
         start.elapsed().as_secs_f64()
     );
     Ok((load, report))
-}
-
-/// The smallest and largest coordinate of `cloud`'s points along each axis
-/// (map frame).
-fn map_bounds(cloud: &PointCloud) -> (Vector3<f64>, Vector3<f64>) {
-    let mut lo = Vector3::repeat(f64::INFINITY);
-    let mut hi = Vector3::repeat(f64::NEG_INFINITY);
-    for i in 0..cloud.len() {
-        let p = cloud.point_in_map(i);
-        lo = lo.inf(&p);
-        hi = hi.sup(&p);
-    }
-    (lo, hi)
 }
 
 pub fn run(args: &PrepareMapArgs) -> anyhow::Result<()> {

@@ -42,6 +42,22 @@ impl PointCloud {
         self.origin + Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]))
     }
 
+    /// The smallest and largest coordinate along each axis (map frame);
+    /// `None` for an empty cloud.
+    pub fn bounds(&self) -> Option<(Vector3<f64>, Vector3<f64>)> {
+        if self.is_empty() {
+            return None;
+        }
+        let mut lo = Vector3::repeat(f64::INFINITY);
+        let mut hi = Vector3::repeat(f64::NEG_INFINITY);
+        for i in 0..self.len() {
+            let p = self.point_in_map(i);
+            lo = lo.inf(&p);
+            hi = hi.sup(&p);
+        }
+        Some((lo, hi))
+    }
+
     /// Keeps the points whose `keep` flag is set, with their normals and
     /// planarity, in order.
     pub fn retain_flagged(&mut self, keep: &[bool]) {

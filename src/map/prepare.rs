@@ -39,6 +39,18 @@ pub enum PrepareError {
     GridTooLarge { cell_m: f64, bits: u32 },
     #[error("the map has {0} points; at most 4294967295 are supported")]
     TooManyPoints(usize),
+    #[error(
+        "the crop box holds none of the {points} points (box x {}..{}, y {}..{}, z {}..{}; \
+         the map spans x {:.2}..{:.2}, y {:.2}..{:.2}, z {:.2}..{:.2}, in its own coordinates)",
+        crop.min.x, crop.max.x, crop.min.y, crop.max.y, crop.min.z, crop.max.z,
+        spans.0.x, spans.1.x, spans.0.y, spans.1.y, spans.0.z, spans.1.z
+    )]
+    CropHoldsNothing {
+        points: usize,
+        crop: CropBox,
+        /// The map's smallest and largest coordinates.
+        spans: (Vector3<f64>, Vector3<f64>),
+    },
 }
 
 /// How estimated normals are oriented (their sign).
@@ -233,15 +245,26 @@ impl CropBox {
 
     /// Keeps the points of `cloud` inside the box; returns how many were
     /// dropped. Compared in f64 in the map frame, so a bound means the same
-    /// whatever the cloud's local origin.
-    pub fn apply(&self, cloud: &mut PointCloud) -> usize {
+    /// whatever the cloud's local origin. A box that holds none of a
+    /// non-empty cloud's points is an error that says where the map is
+    /// (most often a box in local coordinates for a georeferenced map).
+    pub fn apply(&self, cloud: &mut PointCloud) -> Result<usize, PrepareError> {
         let keep: Vec<bool> = (0..cloud.len())
             .into_par_iter()
             .map(|i| self.contains(&cloud.point_in_map(i)))
             .collect();
+        if !keep.iter().any(|&k| k) {
+            if let Some(spans) = cloud.bounds() {
+                return Err(PrepareError::CropHoldsNothing {
+                    points: cloud.len(),
+                    crop: *self,
+                    spans,
+                });
+            }
+        }
         let before = cloud.len();
         cloud.retain_flagged(&keep);
-        before - cloud.len()
+        Ok(before - cloud.len())
     }
 }
 
@@ -315,7 +338,7 @@ pub fn prepare(
     };
     let mut cloud = cloud;
     if let Some(crop) = &options.crop {
-        report.dropped_by_crop = crop.apply(&mut cloud);
+        report.dropped_by_crop = crop.apply(&mut cloud)?;
     }
     let mut cloud = if options.voxel_size_m > 0.0 {
         voxel_downsample(&cloud, options.voxel_size_m)?

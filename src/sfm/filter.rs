@@ -243,7 +243,8 @@ pub fn filter_points_behind_map(
 /// views. A view where the map shows nothing there is a miss (the map does
 /// not cover what the image shows); a point whose views all show nothing at
 /// its feature is *uncovered*. Counts over every k-th point (in id order) so
-/// that at most `max_points` are looked up.
+/// that at most `max_points` are looked up. Returns the covered points of
+/// the sample and the counts.
 ///
 /// A stricter test of the model's placement than the nearest surface
 /// ([`super::align::count_points_on_map`]): a model in the wrong place or
@@ -252,33 +253,14 @@ pub fn filter_points_behind_map(
 /// mapped from an initial pose 2.2 m and 12 deg off: 7 images registered
 /// into a model 439 times too small, 99.7 % of its points within 2 cm of a
 /// surface, 32 % on the surface seen (the right model: 97 % and 95 %).
-pub fn count_points_on_seen_surface(
+pub fn points_on_seen_surface(
     state: &MapState,
     nearest: &NearestNeighbourAssociator,
     grid: &FrustumGrid,
     projection: &ProjectionOptions,
     tolerance_m: f64,
     max_points: usize,
-) -> Result<SurfaceCount, ProjectionError> {
-    let (on_surface, covered, sampled) =
-        classify_points_on_seen_surface(state, nearest, grid, projection, tolerance_m, max_points)?;
-    Ok(SurfaceCount {
-        on_surface: on_surface.len(),
-        covered: covered.len(),
-        sampled,
-    })
-}
-
-/// The points of [`count_points_on_seen_surface`]'s sample that are on the
-/// surface and those the map covers, and the sample's size.
-pub fn classify_points_on_seen_surface(
-    state: &MapState,
-    nearest: &NearestNeighbourAssociator,
-    grid: &FrustumGrid,
-    projection: &ProjectionOptions,
-    tolerance_m: f64,
-    max_points: usize,
-) -> Result<(BTreeSet<Point3DId>, BTreeSet<Point3DId>, usize), ProjectionError> {
+) -> Result<(BTreeSet<Point3DId>, SurfaceCount), ProjectionError> {
     let stride = state.points.len().div_ceil(max_points.max(1)).max(1);
     let sample: BTreeSet<Point3DId> = state.points.keys().step_by(stride).copied().collect();
     let mut on_surface: BTreeSet<Point3DId> = BTreeSet::new();
@@ -301,10 +283,15 @@ pub fn classify_points_on_seen_surface(
             }
         }
     }
-    Ok((on_surface, covered, sample.len()))
+    let count = SurfaceCount {
+        on_surface: on_surface.len(),
+        covered: covered.len(),
+        sampled: sample.len(),
+    };
+    Ok((covered, count))
 }
 
-/// What [`count_points_on_seen_surface`] found among the points it looked
+/// What [`points_on_seen_surface`] found among the points it looked
 /// up (`sampled`): those on the surface one of their views sees at their
 /// feature, and those where at least one view sees a surface at all.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -409,7 +396,7 @@ mod tests {
         // `point`.
         let on_seen_surface = |seen: Vector3<f64>, point: Vector3<f64>| {
             let (state, _) = two_view_state_seeing(&seen, &point);
-            let count = count_points_on_seen_surface(
+            let (covered, count) = points_on_seen_surface(
                 &state,
                 &nearest,
                 &grid,
@@ -418,6 +405,7 @@ mod tests {
                 10,
             )
             .unwrap();
+            assert_eq!(covered.len(), count.covered);
             assert_eq!(count.sampled, 1);
             // Every point here but the hole's is where the map shows a
             // surface.

@@ -23,8 +23,8 @@ use super::associate::{
 use super::bundle::{bundle_adjust, pose_uncertainty, BundleConfig, SoftPosePrior, SolveRecord};
 use super::existing::ExistingModel;
 use super::filter::{
-    classify_points_on_seen_surface, count_points_on_seen_surface, filter_observations,
-    filter_points_behind_map, filter_small_angle_points, SurfaceCount,
+    filter_observations, filter_points_behind_map, filter_small_angle_points,
+    points_on_seen_surface, SurfaceCount,
 };
 use super::focal::{self, focal_from_fundamentals, FocalEstimate};
 use super::initialize::{
@@ -257,6 +257,30 @@ fn fit_share(seen_share: f64, points: usize, removed: usize) -> f64 {
         return 0.0;
     }
     seen_share * points as f64 / total as f64
+}
+
+/// Points of a model [`seen_surface`] looks up at most: a sample of 20000
+/// measures its shares to about 0.2 % (one sigma) at a fraction of the
+/// projection's time (all 142000 points of a 200-image corridor took 8.3 s).
+const SEEN_SURFACE_SAMPLE: usize = 20_000;
+
+/// The points of (a sample of) the model the map covers and how many of
+/// them lie on the surface their images see, within [`INLIER_M`] (see
+/// [`points_on_seen_surface`]): the fit checks and the coverage.
+fn seen_surface(
+    state: &MapState,
+    nearest: &NearestNeighbourAssociator,
+    grid: &FrustumGrid,
+    options: &MapperOptions,
+) -> Result<(BTreeSet<Point3DId>, SurfaceCount), ProjectionError> {
+    points_on_seen_surface(
+        state,
+        nearest,
+        grid,
+        &options.init.projection(),
+        INLIER_M,
+        SEEN_SURFACE_SAMPLE,
+    )
 }
 
 /// Whether a model that fits the map below `min_share` over all its points
@@ -523,15 +547,7 @@ fn seed_from_model(
     } else {
         None
     };
-    let share = count_points_on_seen_surface(
-        state,
-        nearest,
-        grid,
-        &options.init.projection(),
-        INLIER_M,
-        20_000,
-    )?
-    .on_share();
+    let share = seen_surface(state, nearest, grid, options)?.1.on_share();
     log::info!(
         "input model: {} images, {} points, {:.1} % of them on the map surface their images see{}",
         model.poses.len(),
@@ -1533,17 +1549,7 @@ fn map_once(
         let on_map = count_points_on_map(&nearest, &points, options.association.min_radius_m);
         let share = on_map as f64 / points.len() as f64;
         report.points_on_map_share = Some(share);
-        // A sample of 20000 points measures the share to about 0.2 % (one
-        // sigma) at a fraction of the projection's time: all 142000 points
-        // of a 200-image corridor took 8.3 s.
-        let count = count_points_on_seen_surface(
-            &state,
-            &nearest,
-            &grid,
-            &options.init.projection(),
-            INLIER_M,
-            20_000,
-        )?;
+        let (_, count) = seen_surface(&state, &nearest, &grid, options)?;
         let seen_share = count.on_share();
         report.points_on_seen_surface_share = Some(seen_share);
         report.map_coverage_share = Some(count.covered_share());
@@ -1698,15 +1704,8 @@ fn points_the_map_covers(
     grid: &FrustumGrid,
     options: &MapperOptions,
 ) -> Result<Option<BTreeSet<Point3DId>>, MapperError> {
-    let (_, covered, sampled) = classify_points_on_seen_surface(
-        state,
-        nearest,
-        grid,
-        &options.init.projection(),
-        INLIER_M,
-        20_000,
-    )?;
-    let share = covered.len() as f64 / sampled.max(1) as f64;
+    let (covered, count) = seen_surface(state, nearest, grid, options)?;
+    let share = count.covered_share();
     if share >= ALIGN_ALL_POINTS_MIN_COVERAGE {
         return Ok(None);
     }

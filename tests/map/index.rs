@@ -162,13 +162,7 @@ const TOL_M: f64 = 1e-4;
 
 pub fn random_queries(cloud: &PointCloud, n: usize, seed: u64) -> Vec<Vector3<f64>> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut lo = Vector3::repeat(f64::INFINITY);
-    let mut hi = Vector3::repeat(f64::NEG_INFINITY);
-    for i in 0..cloud.len() {
-        let p = cloud.point_in_map(i);
-        lo = lo.inf(&p);
-        hi = hi.sup(&p);
-    }
+    let (lo, hi) = cloud.bounds().expect("a non-empty cloud");
     (0..n)
         .map(|k| {
             if k % 2 == 0 {
