@@ -53,10 +53,11 @@ for step in "$@"; do
   pose=$(perturb "$m" "$d" "$k" "$n")
   run="$out/pose_$k"
   k=$((k + 1))
+  echo "init pose: $pose" >"$run.log"
   # shellcheck disable=SC2086
   if "$tool" map -q --database "$scene/database.db" --lidar "$scene/lidar.ply" \
       --init-image "${INIT_IMAGE:-frame_0000.jpg}" --init-pose "$pose" --output "$run" \
-      ${MAP_ARGS:-} >/dev/null 2>"$run.log"; then
+      ${MAP_ARGS:-} >/dev/null 2>>"$run.log"; then
     median=$("$tool" evaluate --model "$run" --reference "$scene/gt" --align none 2>&1 |
       awk '/centre error/ {print $4}' || true)
     if [ -z "$median" ]; then

@@ -4,6 +4,7 @@
 //!
 //! Every option can also come from a TOML file (`--options FILE`): top-level
 //! keys `database`, `lidar`, `output`, `image_path`, `init_image`, `init_pose`,
+//! `init_search`,
 //! `pose_priors`, `input_model`, `fix_existing_images`, `output_type`,
 //! `no_lidar_constraints`, and a `[mapper]` table with the
 //! stage options of [`MapperOptions`] (`seed`, `[mapper.register]`, ...).
@@ -24,9 +25,12 @@ use crate::map::prepare::{estimate_normals, widen_normal_radius, NormalOptions};
 use crate::map::PointCloud;
 use crate::scene::{BodyPose, ImageId, Rigid3};
 use crate::sfm::existing::{match_to_database, ExistingModel};
+use crate::sfm::localise::SearchRegion;
 use crate::sfm::options::{AssociationKind, IntrinsicsRefinement};
 use crate::sfm::report::StageRecord;
-use crate::sfm::{extend_model, run_mapper_with_priors, KnownPose, MapperOptions};
+use crate::sfm::{
+    extend_model, run_mapper_searching, run_mapper_with_priors, KnownPose, MapperOptions,
+};
 
 /// Known poses: the database's pose priors, overridden by the pose file.
 fn known_poses(
@@ -112,6 +116,19 @@ pub struct MapArgs {
         allow_hyphen_values = true
     )]
     pub init_pose: Option<String>,
+    /// The initial pose is known only roughly: within METRES of its camera
+    /// centre (horizontally; vertically at most 1 m) and DEGREES of its
+    /// heading (180: any), roll and pitch within about 10 deg. The database
+    /// is first mapped without the map's planes and that model searched for
+    /// on the map (report.json: init_search); an error when nothing fits or
+    /// two placements fit alike. Up to 10 m.
+    #[arg(
+        long,
+        visible_alias = "init_search",
+        value_name = "METRES,DEGREES",
+        allow_hyphen_values = true
+    )]
+    pub init_search: Option<String>,
     /// Known poses of images in the reference's pose.ply layout (line k =
     /// image id k: x y z roll pitch yaw, metres and radians, `nan` = none):
     /// soft priors in every solve; images PnP cannot register are placed at
@@ -170,6 +187,7 @@ struct OptionsFile {
     image_path: Option<PathBuf>,
     init_image: Option<toml::Value>,
     init_pose: Option<String>,
+    init_search: Option<String>,
     pose_priors: Option<PathBuf>,
     input_model: Option<PathBuf>,
     fix_existing_images: Option<bool>,
@@ -187,6 +205,8 @@ pub struct MapConfig {
     pub image_path: Option<PathBuf>,
     pub init_image: Option<String>,
     pub init_pose: Option<BodyPose>,
+    /// `--init-search`: where to search for the initial pose around it.
+    pub init_search: Option<SearchRegion>,
     pub pose_priors: Option<PathBuf>,
     /// The model to extend, and whether its images are held.
     pub input_model: Option<PathBuf>,
@@ -229,6 +249,12 @@ impl MapArgs {
             .or(file.init_pose)
             .map(|s| BodyPose::parse_degrees(&s).map_err(|e| anyhow::anyhow!("--init-pose {e}")))
             .transpose()?;
+        let init_search = self
+            .init_search
+            .clone()
+            .or(file.init_search)
+            .map(|s| SearchRegion::parse(&s).map_err(|e| anyhow::anyhow!("--init-search: {e}")))
+            .transpose()?;
         let format = match self.output_type.clone().or(file.output_type).as_deref() {
             None | Some("text") | Some("TXT") | Some("txt") => ModelFormat::Text,
             Some("binary") | Some("BIN") | Some("bin") => ModelFormat::Binary,
@@ -256,6 +282,9 @@ impl MapArgs {
                 "--init-image and --init-pose are not used with --input-model: the model's images start at their poses"
             );
         }
+        if input_model.is_some() && init_search.is_some() {
+            bail!("--init-search is not used with --input-model: the model's images start at their poses");
+        }
         if fix_existing_images && input_model.is_none() {
             bail!("--fix-existing-images needs --input-model (the model whose images to hold)");
         }
@@ -266,6 +295,7 @@ impl MapArgs {
             image_path: self.image_path.clone().or(file.image_path),
             init_image,
             init_pose,
+            init_search,
             pose_priors: self.pose_priors.clone().or(file.pose_priors),
             input_model,
             fix_existing_images,
@@ -444,6 +474,16 @@ pub fn run(args: &MapArgs) -> Result<()> {
         }
     };
     let out = match &start {
+        RunStart::InitialPose(image, pose) if config.init_search.is_some() => run_mapper_searching(
+            &db,
+            &cloud,
+            *image,
+            pose,
+            config.init_search.as_ref().expect("checked"),
+            &known_poses,
+            &config.options,
+            &mut progress,
+        ),
         RunStart::InitialPose(image, pose) => run_mapper_with_priors(
             &db,
             &cloud,

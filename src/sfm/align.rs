@@ -218,7 +218,7 @@ fn scale_about(centre: &Vector3<f64>, s: f64) -> Sim3 {
 
 /// [`align_to_map`]'s fit of `model` from `start`: IRLS Gauss-Newton over
 /// the radii, largest first.
-fn fit_similarity(
+pub(crate) fn fit_similarity(
     model: &[Vector3<f64>],
     nearest: &NearestNeighbourAssociator,
     options: &AlignOptions,
@@ -383,7 +383,7 @@ fn similarity_row(r: &Vector3<f64>, n: &Vector3<f64>) -> SVector<f64, 7> {
 /// own association picks among several neighbours the plane closest to the
 /// point, right for a model already in place; from afar that choice finds a
 /// plane near every point and holds the model where it is.)
-fn nearest_tangent_plane(
+pub(crate) fn nearest_tangent_plane(
     nearest: &NearestNeighbourAssociator,
     y: &Vector3<f64>,
     radius_m: f64,
@@ -480,11 +480,19 @@ pub(crate) mod tests {
     /// The six faces of a 6 x 4 x 3 m room (2 cm spacing, exact normals)
     /// and a sparse set of points on them.
     pub(crate) fn room_map() -> (PointCloud, Vec<Vector3<f64>>) {
-        let size = [6.0f64, 4.0, 3.0];
+        box_room([6.0, 4.0, 3.0], 0.02, |i, j| i % 37 == 5 && j % 23 == 7)
+    }
+
+    /// The six faces of a box of `size` sampled every `step` with exact
+    /// normals, and the samples (i, j) on each face for which `keep` holds.
+    pub(crate) fn box_room(
+        size: [f64; 3],
+        step: f64,
+        keep: impl Fn(usize, usize) -> bool,
+    ) -> (PointCloud, Vec<Vector3<f64>>) {
         let mut points = Vec::new();
         let mut normals = Vec::new();
         let mut on_map = Vec::new();
-        let step = 0.02;
         for axis in 0..3 {
             let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
             for side in [0.0, 1.0] {
@@ -500,7 +508,7 @@ pub(crate) mod tests {
                         n[axis] = 1.0;
                         points.push([p[0] as f32, p[1] as f32, p[2] as f32]);
                         normals.push(n);
-                        if i % 37 == 5 && j % 23 == 7 {
+                        if keep(i, j) {
                             on_map.push(Vector3::new(p[0], p[1], p[2]));
                         }
                     }

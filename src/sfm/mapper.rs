@@ -30,6 +30,7 @@ use super::focal::{self, focal_from_fundamentals, FocalEstimate};
 use super::initialize::{
     focal_from_map, initialize, swept_cameras, InitError, InitialPairFocalSweep, MapFocalEstimate,
 };
+use super::localise::{search_placement, Search, SearchError, SearchOptions, SearchRegion};
 use super::options::{
     AssociationKind, BundleOptions, IntrinsicsRefinement, MapperOptions, OptionsError,
 };
@@ -86,6 +87,10 @@ pub enum MapperError {
     Projection(#[from] ProjectionError),
     #[error("bundle adjustment failed: {0}")]
     Solver(#[from] SolverError),
+    #[error("searching the map for the initial pose (--init-search): {0}")]
+    Search(#[from] SearchError),
+    #[error("searching the map for the initial pose (--init-search): the run without the map's planes failed: {0}")]
+    PlainRun(Box<MapperError>),
     #[error(
         "the model does not fit the map: {:.0} % of its {points} 3D points lie within {:.0} cm of the map surface their images see there, counting the {removed} removed for lying behind the map as off it (at least {:.0} % expected, option association.min_points_on_map_share); the map shows a surface at the features of {:.0} % of them, and {:.0} % of those are on it, with a similarity-constraint ratio of {} (a map that covers only part of what the photos show is accepted when it covers at least {:.0} % of the points and {PARTIAL_MAP_MIN_POINTS} of those looked up, at least {:.0} % of those are on it, and the ratio is at least {PARTIAL_MAP_MIN_CONSTRAINT:.0e}: the mapped part must fix the model's position, rotation and scale); is the initial pose right, and is the map of the place the images show (has it changed since the scan)?",
         share * 100.0, INLIER_M * 100.0, min_share * 100.0, coverage * 100.0,
@@ -471,6 +476,7 @@ pub fn run_mapper_with_priors(
     let start = Start::InitialPose {
         image: init_image,
         cam_from_world: *init_cam_from_world,
+        rough: false,
     };
     let run = |options: &MapperOptions| {
         let started = Instant::now();
@@ -478,6 +484,207 @@ pub fn run_mapper_with_priors(
         (outcome, started.elapsed().as_secs_f64())
     };
     run_with_retries(options, db.images.len(), run)
+}
+
+/// Two mapped models from the search's placements count as the same fit
+/// within this share of their points (`fit_share`), and as one place within
+/// this distance of their initial cameras, metres.
+const SEARCH_SAME_FIT: f64 = 0.02;
+const SEARCH_SAME_PLACE_M: f64 = 0.1;
+
+/// Runs the whole mapper from an initial pose known only to within `region`
+/// ([`super::localise`]): the database mapped without the map's planes from
+/// the rough pose (the map only gives the initial image's depths), that
+/// model placed on the map by [`search_placement`], and then
+/// [`run_mapper_with_priors`] from the initial image's pose there. When
+/// other placements come close, the database is mapped from each and the
+/// finished model that fits the map best is kept; an error when two in
+/// different places fit alike. The report's `init_search` says what the
+/// search found.
+#[allow(clippy::too_many_arguments)]
+pub fn run_mapper_searching(
+    db: &DatabaseSnapshot,
+    cloud: &PointCloud,
+    init_image: ImageId,
+    rough_cam_from_world: &Rigid3,
+    region: &SearchRegion,
+    known_poses: &BTreeMap<ImageId, KnownPose>,
+    options: &MapperOptions,
+    progress: Progress<'_>,
+) -> Result<MapperOutput, MapperError> {
+    let started = Instant::now();
+    let mut plain_options = options.clone();
+    plain_options.association.kind = AssociationKind::None;
+    let start = Start::InitialPose {
+        image: init_image,
+        cam_from_world: *rough_cam_from_world,
+        rough: true,
+    };
+    log::info!(
+        "searching within {} m and {} deg of the rough initial pose: mapping without the map's planes first",
+        region.radius_m,
+        region.yaw_deg
+    );
+    let plain = map_once(
+        db,
+        cloud,
+        &start,
+        &BTreeMap::new(),
+        &plain_options,
+        &mut *progress,
+    )
+    .map_err(|e| MapperError::PlainRun(Box::new(e)))?;
+    let plain_run_s = started.elapsed().as_secs_f64();
+    let searched = Instant::now();
+    let index = MapIndex::build(cloud)?;
+    let nearest = NearestNeighbourAssociator::new(cloud, &index, options.association.clone());
+    let points: Vec<nalgebra::Vector3<f64>> = plain
+        .reconstruction
+        .points3d
+        .values()
+        .map(|p| p.xyz)
+        .collect();
+    // Without the map's planes the initial image stays at the rough pose.
+    let rough = plain
+        .reconstruction
+        .images
+        .get(&init_image)
+        .and_then(|img| img.cam_from_world)
+        .unwrap_or(*rough_cam_from_world);
+    // The cameras' right-hand axes, in the plain model's frame.
+    let right_axes: Vec<nalgebra::Vector3<f64>> = plain
+        .reconstruction
+        .registered_images()
+        .filter_map(|img| img.cam_from_world)
+        .map(|pose| pose.rotation.inverse() * nalgebra::Vector3::x())
+        .collect();
+    let Search {
+        contenders,
+        mut record,
+    } = search_placement(
+        &points,
+        &right_axes,
+        &rough.camera_center(),
+        &nearest,
+        region,
+        &SearchOptions::default(),
+    )?;
+    record.plain_run_s = plain_run_s;
+    record.search_s = searched.elapsed().as_secs_f64();
+    log::info!(
+        "the search placed the initial image {:.2} m and {:.1} deg from the rough pose (the plain model's scale {:.3}; {} of {} points on the map, the next placement {}; {} placements, {:.1} s + {:.1} s){}",
+        record.moved_m,
+        record.turned_deg,
+        record.scale,
+        record.on_map,
+        record.num_checked,
+        record
+            .runner_up_on_map
+            .map_or_else(|| "none".to_owned(), |n| n.to_string()),
+        record.placements,
+        record.plain_run_s,
+        record.search_s,
+        if contenders.len() > 1 {
+            format!(
+                "; {} placements come close, each is mapped",
+                contenders.len()
+            )
+        } else {
+            String::new()
+        }
+    );
+    // Each close placement mapped; the map's fit of the finished models decides.
+    let mut runs: Vec<(Rigid3, Result<MapperOutput, MapperError>)> = Vec::new();
+    for (_, map_from_plain) in &contenders {
+        let found = map_from_plain.transform_pose(&rough);
+        let c = found.camera_center();
+        log::info!(
+            "mapping from the initial image at ({:.3}, {:.3}, {:.3})",
+            c.x,
+            c.y,
+            c.z
+        );
+        let out = run_mapper_with_priors(
+            db,
+            cloud,
+            init_image,
+            &found,
+            known_poses,
+            options,
+            &mut *progress,
+        );
+        runs.push((found, out));
+    }
+    record.contender_fits = runs
+        .iter()
+        .map(|(_, r)| {
+            r.as_ref()
+                .ok()
+                .and_then(|o| judged_fit(o, o.report.partial_map))
+        })
+        .collect();
+    let fits = record.contender_fits.clone();
+    let Some(best) = (0..runs.len())
+        .filter(|&i| runs[i].1.is_ok())
+        .max_by(|&a, &b| {
+            let f = |i: usize| fits[i].unwrap_or(0.0);
+            f(a).total_cmp(&f(b)).then(b.cmp(&a))
+        })
+    else {
+        return runs.swap_remove(0).1;
+    };
+    let centre = |i: usize| -> nalgebra::Vector3<f64> {
+        runs[i]
+            .1
+            .as_ref()
+            .ok()
+            .and_then(|o| o.reconstruction.images.get(&init_image))
+            .and_then(|img| img.cam_from_world)
+            .unwrap_or(runs[i].0)
+            .camera_center()
+    };
+    let best_fit = fits[best].unwrap_or(0.0);
+    if let Some(other) = (0..runs.len()).find(|&i| {
+        i != best
+            && runs[i].1.is_ok()
+            && fits[i].unwrap_or(0.0) >= best_fit - SEARCH_SAME_FIT
+            && (centre(i) - centre(best)).norm() > SEARCH_SAME_PLACE_M
+    }) {
+        let (a, b) = (centre(best), centre(other));
+        return Err(MapperError::Search(SearchError::Ambiguous {
+            best_fit,
+            other_fit: fits[other].unwrap_or(0.0),
+            best_centre: [a.x, a.y, a.z],
+            other_centre: [b.x, b.y, b.z],
+        }));
+    }
+    if best != 0 {
+        log::warn!(
+            "kept the model mapped from the search's placement {} of {} (fit {:.1} % against {})",
+            best + 1,
+            runs.len(),
+            best_fit * 100.0,
+            fits.iter()
+                .map(|f| f.map_or_else(|| "failed".to_owned(), |f| format!("{:.1} %", f * 100.0)))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    let (found, out) = runs.swap_remove(best);
+    let mut out = out?;
+    let c = found.camera_center();
+    record.found_centre = [c.x, c.y, c.z];
+    record.moved_m = (c - rough.camera_center()).norm();
+    record.turned_deg = (found.rotation * rough.rotation.inverse())
+        .angle()
+        .to_degrees();
+    record.scale = contenders[best].1.scale;
+    record.on_map = contenders[best].0;
+    // The kept placement first.
+    record.contenders_on_map.swap(0, best);
+    record.contender_fits.swap(0, best);
+    out.report.init_search = Some(record);
+    Ok(out)
 }
 
 /// Extends `model` (an earlier model of the same database in the map's
@@ -611,6 +818,13 @@ enum Start<'a> {
     InitialPose {
         image: ImageId,
         cam_from_world: Rigid3,
+        /// The pose is only rough ([`run_mapper_searching`]'s run without
+        /// the map's planes): the second image is not held with the initial
+        /// one (that would keep the pair's relative pose as PnP found it
+        /// against the map seen from the wrong place, and the whole model
+        /// bent to it), only its distance from the initial image, by a soft
+        /// prior on its centre.
+        rough: bool,
     },
     /// An earlier model in the map's frame.
     Model(&'a ExistingModel),
@@ -992,6 +1206,7 @@ fn map_once(
         Start::InitialPose {
             image,
             cam_from_world,
+            ..
         } => start_focal_from_map(
             &mut state,
             db,
@@ -1039,11 +1254,13 @@ fn map_once(
     // the first registrations (and a model's images with `hold`). Without
     // them the first two images (or the model's) stay fixed for good.
     let lidar_gauge = options.association.kind != AssociationKind::None;
+    let rough = matches!(start, Start::InitialPose { rough: true, .. });
     // The initial image, its given pose and the second image.
     let initial: Option<(ImageId, Rigid3, ImageId)> = match start {
         Start::InitialPose {
             image: init_image,
             cam_from_world: init_cam_from_world,
+            ..
         } => {
             let (init_image, init_cam_from_world) = (*init_image, *init_cam_from_world);
             let init_owner = state.intrinsics_of(state.images[&init_image].camera_id);
@@ -1108,6 +1325,7 @@ fn map_once(
         match initial {
             None if !lidar_gauge || existing.is_some_and(|m| m.hold) => existing_images.clone(),
             None => BTreeSet::new(),
+            Some((init_image, _, _)) if !lidar_gauge && rough => BTreeSet::from([init_image]),
             Some((init_image, _, second)) if !lidar_gauge => BTreeSet::from([init_image, second]),
             Some((init_image, _, _))
                 if state.num_registered() <= options.bundle.fix_initial_for =>
@@ -1143,6 +1361,17 @@ fn map_once(
         }
         _ => Vec::new(),
     };
+    // From a rough pose without map terms the pair's distance holds the scale.
+    if let Some((_, _, second)) = initial.filter(|_| rough && !lidar_gauge) {
+        if let Some(cam_from_world) = state.images[&second].cam_from_world {
+            pose_priors.push(SoftPosePrior {
+                image: second,
+                cam_from_world,
+                position_weight: 1.0,
+                rotation_weight: 0.0,
+            });
+        }
+    }
     // Known poses of the other images: soft priors in every solve.
     for (&image, known) in known_poses {
         if initial.is_some_and(|i| i.0 == image) || !state.images.contains_key(&image) {

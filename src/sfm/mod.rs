@@ -12,6 +12,7 @@
 //! * [`bundle`] + [`associate`]: local/global BA through Ceres with LiDAR
 //!   point-to-plane terms from a pluggable associator;
 //! * [`align`]: the whole model moved onto the map (similarity, shape held);
+//! * [`localise`]: a model placed on the map from a rough initial pose;
 //! * [`existing`]: an earlier model to extend, matched to the database;
 //! * [`filter`]: outlier filters; [`report`]: `report.json`.
 pub mod align;
@@ -22,6 +23,7 @@ pub mod filter;
 pub mod focal;
 pub mod geometry;
 pub mod initialize;
+pub mod localise;
 pub mod mapper;
 pub mod options;
 pub mod register;
@@ -30,6 +32,7 @@ pub mod state;
 pub mod triangulate;
 
 pub use mapper::{
-    extend_model, run_mapper, run_mapper_with_priors, KnownPose, MapperError, MapperOutput,
+    extend_model, run_mapper, run_mapper_searching, run_mapper_with_priors, KnownPose, MapperError,
+    MapperOutput,
 };
 pub use options::MapperOptions;

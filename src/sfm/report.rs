@@ -123,6 +123,9 @@ pub struct MapReport {
     pub mean_track_length: f64,
     pub mean_reprojection_error_px: f64,
     pub init: Option<InitSummary>,
+    /// With `--init-search`: where the search put the initial image, from
+    /// the rough pose (the run's `init` starts there).
+    pub init_search: Option<super::localise::SearchRecord>,
     /// The model the run extended (`--input-model`), instead of `init`.
     pub input_model: Option<InputModelRecord>,
     /// The initial image and its given pose (not written): each solve

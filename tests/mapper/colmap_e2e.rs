@@ -413,6 +413,7 @@ fn yard_with_colmap_database() {
     check_map_colours(&scene, &dir.path().join("a"), dir.path());
     check_extension(&scene, &dir.path().join("a"), dir.path());
     check_partial_map(&scene, dir.path());
+    check_init_search(&scene, dir.path(), &a);
     // `evaluate` compares the errors with the model's own sigmas.
     let eval_json = dir.path().join("evaluation.json");
     colmap_lidar::commands::evaluate::run(&colmap_lidar::commands::evaluate::EvaluateArgs {
@@ -781,6 +782,65 @@ fn number_before(text: &str, after: &str) -> f64 {
 /// (ratio 2.8e-3 to 4.5e-3 measured, under the 1e-2 a partly mapped model
 /// needs: cut at 2-7 m the yard ended 16-74 mm and 0.2-0.5 deg off), so the
 /// run is refused with both numbers in the error and nothing written.
+/// A rough initial pose (1.3 m off, heading 15 deg, roll 4 deg, pitch 3
+/// deg) with `--init-search 2,30`: the search puts the initial image where
+/// it is, and the run ends as right as the one from the exact pose (`exact`).
+fn check_init_search(scene: &Path, work: &Path, exact_run: &Run) {
+    let (exact, _) = read_init_pose(&scene.join("init_pose.txt")).unwrap();
+    let off = [1.0, -0.8, 0.2];
+    let mut rough = exact;
+    for (k, d) in off.iter().chain(&[4.0, -3.0, 15.0]).enumerate() {
+        rough[k] += d;
+    }
+    let out = work.join("searched");
+    let mut args = scene_args(scene, &out, &rough);
+    args.init_search = Some("2,30".to_owned());
+    let t = std::time::Instant::now();
+    run_map(&args).expect("map with --init-search");
+    let seconds = t.elapsed().as_secs_f64();
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let gt = load_poses(&scene.join("gt")).unwrap();
+    let none = evaluate(&load_poses(&out).unwrap(), &gt, Alignment::None).unwrap();
+    let run = Run {
+        report,
+        none,
+        seconds,
+    };
+    print_run("yard from a rough pose, --init-search 2,30", &run);
+    let search = &run.report["init_search"];
+    eprintln!("init_search: {search}");
+    let found: Vec<f64> = search["found_centre"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    let miss = (0..3)
+        .map(|k| (found[k] - exact[k]).powi(2))
+        .sum::<f64>()
+        .sqrt();
+    assert!(
+        miss < 0.05,
+        "the search put the initial camera {miss:.3} m from it"
+    );
+    let moved = search["moved_m"].as_f64().unwrap();
+    let off_m = off.iter().map(|d| d * d).sum::<f64>().sqrt();
+    assert!(
+        (moved - off_m).abs() < 0.05,
+        "moved {moved:.3} m of {off_m:.3}"
+    );
+    assert!(search["on_map"].as_u64().unwrap() > search["runner_up_on_map"].as_u64().unwrap_or(0));
+    assert_eq!(run.none.num_registered, exact_run.none.num_registered);
+    let median = |r: &Run| r.none.centre_error_m.as_ref().unwrap().median;
+    assert!(
+        median(&run) < 0.01 && median(&run) < 1.5 * median(exact_run) + 0.001,
+        "{:.4} m from the rough pose, {:.4} m from the exact one",
+        median(&run),
+        median(exact_run)
+    );
+}
+
 fn check_partial_map(scene: &Path, work: &Path) {
     use colmap_lidar::commands::prepare_map::prepare_map_file;
     use colmap_lidar::map::prepare::{CropBox, PrepareOptions};
