@@ -61,6 +61,24 @@ impl Default for AlignOptions {
     }
 }
 
+impl AlignOptions {
+    /// The smallest of `radii_m`, where points are counted on the map.
+    pub fn finest_radius_m(&self) -> f64 {
+        self.radii_m.iter().copied().fold(f64::INFINITY, f64::min)
+    }
+}
+
+/// The mean of `points` (not empty).
+pub(crate) fn mean(points: &[Vector3<f64>]) -> Vector3<f64> {
+    points.iter().sum::<Vector3<f64>>() / points.len() as f64
+}
+
+/// Every `k`-th of `points`, `k` the smallest that keeps at most `n`.
+pub(crate) fn every_kth(points: &[Vector3<f64>], n: usize) -> Vec<Vector3<f64>> {
+    let k = points.len().div_ceil(n.max(1)).max(1);
+    points.iter().step_by(k).copied().collect()
+}
+
 /// Most points a trial start of [`AlignOptions::start_scales`] is fitted on.
 pub const TRIAL_POINTS: usize = 4000;
 
@@ -160,20 +178,14 @@ pub fn align_to_map(
     if model.len() < 7 || options.radii_m.is_empty() {
         return None;
     }
-    let finest = options
-        .radii_m
-        .iter()
-        .copied()
-        .fold(f64::INFINITY, f64::min);
+    let finest = options.finest_radius_m();
     let inliers_before = count_points_on_map(nearest, &model, finest);
-    let mean = |points: &[Vector3<f64>]| points.iter().sum::<Vector3<f64>>() / points.len() as f64;
     let centroid = mean(&model);
     let start = match options.start_scales.as_slice() {
         [] => Sim3::identity(),
         [s] => scale_about(&centroid, *s),
         scales => {
-            let every = model.len().div_ceil(TRIAL_POINTS).max(1);
-            let sample: Vec<Vector3<f64>> = model.iter().step_by(every).copied().collect();
+            let sample = every_kth(&model, TRIAL_POINTS);
             let sample_before = count_points_on_map(nearest, &sample, finest);
             let mut best: Option<(usize, Sim3)> = None;
             for &s in scales {

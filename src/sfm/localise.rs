@@ -30,7 +30,8 @@ use rayon::prelude::*;
 
 use super::align::TRIAL_POINTS;
 use super::align::{
-    count_points_on_map, fit_similarity, nearest_tangent_plane, within_bounds, AlignOptions,
+    count_points_on_map, every_kth, fit_similarity, mean, nearest_tangent_plane, within_bounds,
+    AlignOptions,
 };
 use super::associate::NearestNeighbourAssociator;
 use crate::estimators::similarity::Sim3;
@@ -305,12 +306,6 @@ fn soft_score(nearest: &NearestNeighbourAssociator, points: &[Vector3<f64>], tol
         .sum()
 }
 
-/// Every `k`-th of `points` so that at most `n` are kept.
-fn every_kth(points: &[Vector3<f64>], n: usize) -> Vec<Vector3<f64>> {
-    let k = points.len().div_ceil(n.max(1)).max(1);
-    points.iter().step_by(k).copied().collect()
-}
-
 /// The similarities (`map_from_model`) that put most of `points` (a model
 /// mapped without the map's planes, its initial camera at `pivot` where the
 /// rough pose put it; `right_axes` its cameras' x axes) on the map, searched
@@ -417,16 +412,11 @@ pub fn search_placement(
         }
     }
     let checked = every_kth(points, TRIAL_POINTS);
-    let finest = AlignOptions::default()
-        .radii_m
-        .iter()
-        .copied()
-        .fold(f64::INFINITY, f64::min);
+    let finest = AlignOptions::default().finest_radius_m();
     // A refinement that moves far from its start has collapsed the model
     // onto a plane or a corner (every point on the ground at a scale near
     // 0, measured on the yard): it is no placement (the alignment's bounds,
     // [`within_bounds`]).
-    let mean = |points: &[Vector3<f64>]| points.iter().sum::<Vector3<f64>>() / points.len() as f64;
     let refined: Vec<(usize, Sim3)> = picked
         .par_iter()
         .filter_map(|p| {
@@ -460,7 +450,7 @@ pub fn search_placement(
         );
     }
 
-    // 3. The best, if it clearly beats the others.
+    // 3. The best, and the others that come close to it.
     let (best_i, &(on_map, best)) = refined
         .iter()
         .enumerate()
@@ -476,13 +466,7 @@ pub fn search_placement(
         });
     }
     let best_centre = best.transform_point(pivot);
-    // Another placement: the initial camera elsewhere, or the model turned
-    // or scaled differently (refined starts that met are one placement).
-    let differs = |s: &Sim3| {
-        (s.transform_point(pivot) - best_centre).norm() > SAME_PLACE_M
-            || (s.rotation.inverse() * best.rotation).angle().to_degrees() > SAME_TURN_DEG
-            || (s.scale / best.scale).ln().abs() > SAME_SCALE
-    };
+    let differs = |s: &Sim3| !same_placement(s, &best, pivot);
     let runner_up = refined
         .iter()
         .enumerate()
@@ -502,12 +486,9 @@ pub fn search_placement(
     others.sort_by_key(|o| std::cmp::Reverse(o.0));
     let mut contenders = vec![(on_map, best)];
     for (n, s) in others {
-        let apart = |c: &(usize, Sim3)| {
-            (s.transform_point(pivot) - c.1.transform_point(pivot)).norm() > SAME_PLACE_M
-                || (s.rotation.inverse() * c.1.rotation).angle().to_degrees() > SAME_TURN_DEG
-                || (s.scale / c.1.scale).ln().abs() > SAME_SCALE
-        };
-        if contenders.len() < options.max_contenders && contenders.iter().all(apart) {
+        if contenders.len() < options.max_contenders
+            && contenders.iter().all(|c| !same_placement(&s, &c.1, pivot))
+        {
             contenders.push((n, s));
         }
     }
@@ -518,7 +499,7 @@ pub fn search_placement(
         num_checked: checked.len(),
         on_map,
         runner_up_on_map: runner_up.map(|r| r.0),
-        contenders_on_map: Vec::new(),
+        contenders_on_map: contenders.iter().map(|c| c.0).collect(),
         contender_fits: Vec::new(),
         levelling_deg: level.map(|q| q.angle().to_degrees()),
         found_centre: [best_centre.x, best_centre.y, best_centre.z],
@@ -527,10 +508,6 @@ pub fn search_placement(
         scale: best.scale,
         plain_run_s: 0.0,
         search_s: 0.0,
-    };
-    let record = SearchRecord {
-        contenders_on_map: contenders.iter().map(|c| c.0).collect(),
-        ..record
     };
     Ok(Search { contenders, record })
 }
@@ -544,9 +521,20 @@ pub struct Search {
     pub record: SearchRecord,
 }
 
+/// Whether two placements (`map_from_model`) are one: the initial camera
+/// (at `pivot` in the model) within [`SAME_PLACE_M`], the turns within
+/// [`SAME_TURN_DEG`] and the scales within [`SAME_SCALE`] (refined starts
+/// that met).
+fn same_placement(a: &Sim3, b: &Sim3, pivot: &Vector3<f64>) -> bool {
+    (a.transform_point(pivot) - b.transform_point(pivot)).norm() <= SAME_PLACE_M
+        && (a.rotation.inverse() * b.rotation).angle().to_degrees() <= SAME_TURN_DEG
+        && (a.scale / b.scale).ln().abs() <= SAME_SCALE
+}
+
 /// Refined placements closer than these are one: initial camera centre,
-/// metres; turn, degrees; log of the scale ratio.
-const SAME_PLACE_M: f64 = 0.1;
+/// metres; turn, degrees; log of the scale ratio. The mapper also counts two
+/// mapped models' initial cameras within `SAME_PLACE_M` as one place.
+pub(crate) const SAME_PLACE_M: f64 = 0.1;
 const SAME_TURN_DEG: f64 = 1.0;
 const SAME_SCALE: f64 = 0.01;
 

@@ -30,7 +30,9 @@ use super::focal::{self, focal_from_fundamentals, FocalEstimate};
 use super::initialize::{
     focal_from_map, initialize, swept_cameras, InitError, InitialPairFocalSweep, MapFocalEstimate,
 };
-use super::localise::{search_placement, Search, SearchError, SearchOptions, SearchRegion};
+use super::localise::{
+    search_placement, Search, SearchError, SearchOptions, SearchRegion, SAME_PLACE_M,
+};
 use super::options::{
     AssociationKind, BundleOptions, IntrinsicsRefinement, MapperOptions, OptionsError,
 };
@@ -487,10 +489,9 @@ pub fn run_mapper_with_priors(
 }
 
 /// Two mapped models from the search's placements count as the same fit
-/// within this share of their points (`fit_share`), and as one place within
-/// this distance of their initial cameras, metres.
+/// within this share of their points (`fit_share`); as one place with
+/// their initial cameras within [`super::localise::SAME_PLACE_M`].
 const SEARCH_SAME_FIT: f64 = 0.02;
-const SEARCH_SAME_PLACE_M: f64 = 0.1;
 
 /// Runs the whole mapper from an initial pose known only to within `region`
 /// ([`super::localise`]): the database mapped without the map's planes from
@@ -648,7 +649,7 @@ pub fn run_mapper_searching(
         i != best
             && runs[i].1.is_ok()
             && fits[i].unwrap_or(0.0) >= best_fit - SEARCH_SAME_FIT
-            && (centre(i) - centre(best)).norm() > SEARCH_SAME_PLACE_M
+            && (centre(i) - centre(best)).norm() > SAME_PLACE_M
     }) {
         let (a, b) = (centre(best), centre(other));
         return Err(MapperError::Search(SearchError::Ambiguous {
