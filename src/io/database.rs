@@ -103,6 +103,11 @@ pub struct TwoViewGeometry {
     /// (`x2^T F x1 = 0`), when the row has one (column `F`, 9 doubles, not
     /// all zero).
     pub fundamental: Option<[f64; 9]>,
+    /// The essential matrix COLMAP estimated for a calibrated pair, row-major,
+    /// in normalised camera coordinates (`x2^T E x1 = 0`, so
+    /// `E = [t]x R` for `cam2_from_cam1 = (R, t)`), when the row has one
+    /// (column `E`, 9 doubles, not all zero).
+    pub essential: Option<[f64; 9]>,
 }
 
 /// What was found in the schema.
@@ -535,15 +540,19 @@ impl Reader<'_> {
         keypoints: &BTreeMap<ImageId, Vec<Vector2<f64>>>,
     ) -> Result<Vec<TwoViewGeometry>, DatabaseError> {
         const T: &str = "two_view_geometries";
-        let f_column = if self.columns(T)?.iter().any(|c| c == "F") {
-            "F"
-        } else {
-            "NULL"
+        let columns = self.columns(T)?;
+        let column = |name: &'static str| {
+            if columns.iter().any(|c| c == name) {
+                name
+            } else {
+                "NULL"
+            }
         };
+        let (f_column, e_column) = (column("F"), column("E"));
         let mut stmt = self
             .conn
             .prepare(&format!(
-                "SELECT pair_id, rows, cols, data, config, {f_column} FROM two_view_geometries ORDER BY pair_id"
+                "SELECT pair_id, rows, cols, data, config, {f_column}, {e_column} FROM two_view_geometries ORDER BY pair_id"
             ))
             .map_err(self.sql(T))?;
         let mut rows = stmt.query([]).map_err(self.sql(T))?;
@@ -560,14 +569,18 @@ impl Reader<'_> {
             let blob = blob.unwrap_or_default();
             // A matrix blob of another size or with non-finite values is not
             // used (it is only a hint for self-calibration).
-            let f_blob: Option<Vec<u8>> = row.get(5).unwrap_or(None);
-            let fundamental = f_blob.filter(|b| b.len() == 72).and_then(|b| {
-                let mut f = [0.0; 9];
-                for (v, c) in f.iter_mut().zip(b.chunks_exact(8)) {
-                    *v = f64::from_le_bytes(c.try_into().expect("chunks of 8"));
-                }
-                (f.iter().all(|v| v.is_finite()) && f.iter().any(|v| *v != 0.0)).then_some(f)
-            });
+            // (the essential matrix only starts a run from a rough pose).
+            let matrix = |column: usize| {
+                let blob: Option<Vec<u8>> = row.get(column).unwrap_or(None);
+                blob.filter(|b| b.len() == 72).and_then(|b| {
+                    let mut f = [0.0; 9];
+                    for (v, c) in f.iter_mut().zip(b.chunks_exact(8)) {
+                        *v = f64::from_le_bytes(c.try_into().expect("chunks of 8"));
+                    }
+                    (f.iter().all(|v| v.is_finite()) && f.iter().any(|v| *v != 0.0)).then_some(f)
+                })
+            };
+            let (fundamental, essential) = (matrix(5), matrix(6));
             if pair_id < 0 {
                 return Err(self.bad_row(T, format!("pair_id {pair_id}"), "negative pair id"));
             }
@@ -626,6 +639,7 @@ impl Reader<'_> {
                 config,
                 inlier_matches: matches,
                 fundamental,
+                essential,
             });
         }
         Ok(out)

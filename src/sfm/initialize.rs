@@ -7,15 +7,16 @@
 //! PnP inliers become the first 3D points.
 use std::collections::{BTreeMap, BTreeSet};
 
-use nalgebra::{Vector2, Vector3};
+use nalgebra::{Matrix3, Vector2, Vector3};
 use rand_chacha::ChaCha8Rng;
 
 use super::associate::NearestNeighbourAssociator;
 use super::focal::{sweep_focal, with_focal};
 use super::geometry::intersect_ray_plane;
-use super::options::{InitOptions, RegisterOptions};
+use super::options::{InitOptions, RegisterOptions, TriangulateOptions};
 use super::register::{estimate_pose, focal_from_correspondences, pnp_score, PoseOutcome};
 use super::state::MapState;
+use crate::estimators::triangulation::{triangulate_point, PointObservation, TriangulationOptions};
 use crate::map::grid::FrustumGrid;
 use crate::map::projection::{project_map_at_pixels, ProjectionError};
 use crate::scene::{Camera, CameraId, ImageId, Rigid3, TrackElement};
@@ -25,9 +26,12 @@ use crate::scene::{Camera, CameraId, ImageId, Rigid3, TrackElement};
 pub struct InitAttempt {
     pub image_id: u32,
     pub image_name: String,
-    /// Verified matches with the initial image whose feature has a LiDAR point.
+    /// Verified matches with the initial image whose feature has a LiDAR
+    /// point (all its verified matches in a start from a pair,
+    /// [`initialize_from_pair`]).
     pub num_lidar_matches: usize,
-    /// PnP inliers (0 when PnP did not run or found nothing).
+    /// PnP inliers (0 when PnP did not run or found nothing); in a start
+    /// from a pair, the points the pair triangulates.
     pub num_inliers: usize,
 }
 
@@ -53,7 +57,7 @@ pub enum InitError {
     #[error(
         "no second image could be registered against the {num_supported} LiDAR-supported \
          features of the initial image `{name}` (id {id}); tried: {}",
-        describe(.attempts)
+        describe(.attempts, "matches with LiDAR points", "PnP inliers")
     )]
     NoSecondImage {
         name: String,
@@ -61,9 +65,22 @@ pub enum InitError {
         num_supported: usize,
         attempts: Vec<InitAttempt>,
     },
+    #[error(
+        "no image makes a pair with the initial image `{name}` (id {id}) that triangulates \
+         {needed} points from their essential matrix; tried: {}",
+        describe(.attempts, "verified matches", "points")
+    )]
+    NoPair {
+        name: String,
+        id: ImageId,
+        needed: usize,
+        attempts: Vec<InitAttempt>,
+    },
 }
 
-fn describe(attempts: &[InitAttempt]) -> String {
+/// The attempts for an error message; `matches` and `inliers` name what
+/// `num_lidar_matches` and `num_inliers` count.
+fn describe(attempts: &[InitAttempt], matches: &str, inliers: &str) -> String {
     if attempts.is_empty() {
         return "no image shares verified matches with it".to_owned();
     }
@@ -71,7 +88,7 @@ fn describe(attempts: &[InitAttempt]) -> String {
         .iter()
         .map(|a| {
             format!(
-                "`{}` (id {}): {} matches with LiDAR points, {} PnP inliers",
+                "`{}` (id {}): {} {matches}, {} {inliers}",
                 a.image_name, a.image_id, a.num_lidar_matches, a.num_inliers
             )
         })
@@ -94,6 +111,11 @@ pub struct InitSummary {
     /// against the initial image's map points, where its self-calibration
     /// started (pixels; see [`focal_from_correspondences`]).
     pub focal_from_points_px: BTreeMap<u32, f64>,
+    /// Started from the pair's essential matrix ([`initialize_from_pair`]):
+    /// the metres per unit of the pair's baseline that the map's depths at
+    /// the rough pose gave (`num_supported` of the pair's points had one).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pair_scale: Option<f64>,
 }
 
 /// 3D points of the initial image's features from the map: keypoint index ->
@@ -487,6 +509,7 @@ pub fn initialize(
                     num_points: state.points.len(),
                     attempts,
                     focal_from_points_px: focal_sweeps,
+                    pair_scale: None,
                 });
             }
             PoseOutcome::TooFewInliers { inliers, .. } => {
@@ -514,6 +537,270 @@ pub fn initialize(
         id: image,
         num_supported: lidar.len(),
         attempts,
+    })
+}
+
+/// Fewest points the initial pair must triangulate (in front of both
+/// cameras, within the reprojection and angle limits) to start a run from
+/// its essential matrix.
+pub const MIN_PAIR_POINTS: usize = 50;
+
+/// Fewest map hits at the initial image's features that set the scale of a
+/// run started from a pair.
+const MIN_SCALE_HITS: usize = 10;
+
+/// Each verified pair's (fundamental, essential) matrix as the database has
+/// them (row-major), keyed by (smaller image id, larger image id).
+pub type PairMatrices = BTreeMap<(ImageId, ImageId), (Option<[f64; 9]>, Option<[f64; 9]>)>;
+
+/// A pair's triangulated points: (keypoint in the initial image, keypoint in
+/// the other, point in the initial camera's frame).
+type PairPoints = Vec<(u32, u32, Vector3<f64>)>;
+
+/// The four relative poses `cam2_from_cam1 = (R, t)` (`|t| = 1`) an
+/// essential matrix `E = [t]x R` (`x2^T E x1 = 0`) allows: two rotations,
+/// each with `t` and `-t`. `None` when `E` is not finite or of rank below 2.
+pub fn poses_from_essential(e: &Matrix3<f64>) -> Option<[Rigid3; 4]> {
+    if !e.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let svd = e.try_svd(true, true, f64::EPSILON, 1000)?;
+    // nalgebra does not sort the singular values: the null direction is the
+    // smallest one's.
+    let order = {
+        let mut o = [0usize, 1, 2];
+        o.sort_by(|&a, &b| svd.singular_values[b].total_cmp(&svd.singular_values[a]));
+        o
+    };
+    let (u0, v0) = (svd.u?, svd.v_t?.transpose());
+    if !(svd.singular_values[order[1]] > 1e-9 * svd.singular_values[order[0]]) {
+        return None;
+    }
+    let pick = |m: &Matrix3<f64>| {
+        Matrix3::from_columns(&[m.column(order[0]), m.column(order[1]), m.column(order[2])])
+    };
+    let (mut u, mut v) = (pick(&u0), pick(&v0));
+    if u.determinant() < 0.0 {
+        u = -u;
+    }
+    if v.determinant() < 0.0 {
+        v = -v;
+    }
+    let w = Matrix3::new(0.0, -1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0);
+    let (r1, r2) = (u * w * v.transpose(), u * w.transpose() * v.transpose());
+    let t: Vector3<f64> = u.column(2).into();
+    Some([
+        Rigid3::from_rotation_matrix(&r1, t),
+        Rigid3::from_rotation_matrix(&r1, -t),
+        Rigid3::from_rotation_matrix(&r2, t),
+        Rigid3::from_rotation_matrix(&r2, -t),
+    ])
+}
+
+/// The essential matrix relating `image` to `other` (`x_other^T E x_image =
+/// 0`, normalised coordinates) from the pair's verified geometry: COLMAP's
+/// `E` for a calibrated pair, else `K_other^T F K_image` with the cameras'
+/// current intrinsics (distortion ignored: the run's solves refine it).
+/// `geometries` holds the database's rows keyed by (smaller id, larger id).
+pub fn essential_of_pair(
+    state: &MapState,
+    geometries: &PairMatrices,
+    image: ImageId,
+    other: ImageId,
+) -> Option<Matrix3<f64>> {
+    let (a, b) = (image.min(other), image.max(other));
+    let &(fundamental, essential) = geometries.get(&(a, b))?;
+    let e_ab = match (essential, fundamental) {
+        (Some(e), _) => Matrix3::from_row_slice(&e),
+        (None, Some(f)) => {
+            let k = |id: ImageId| {
+                let camera = state.camera_of(id);
+                let c = camera.principal_point();
+                let f = camera.mean_focal_length();
+                Matrix3::new(f, 0.0, c.x, 0.0, f, c.y, 0.0, 0.0, 1.0)
+            };
+            k(b).transpose() * Matrix3::from_row_slice(&f) * k(a)
+        }
+        (None, None) => return None,
+    };
+    Some(if image == a { e_ab } else { e_ab.transpose() })
+}
+
+/// The initial pair's points from one relative pose: (keypoint in image,
+/// keypoint in other, point in the initial camera's frame) for each match
+/// that triangulates in front of both cameras within the limits.
+fn triangulate_pair(
+    image_camera: &Camera,
+    other_camera: &Camera,
+    image_keys: &[Vector2<f64>],
+    other_keys: &[Vector2<f64>],
+    pairs: &[(u32, u32)],
+    other_from_image: &Rigid3,
+    options: &TriangulationOptions,
+) -> PairPoints {
+    pairs
+        .iter()
+        .filter_map(|&(k1, k2)| {
+            let o1 =
+                PointObservation::new(image_camera, Rigid3::identity(), image_keys[k1 as usize])?;
+            let o2 =
+                PointObservation::new(other_camera, *other_from_image, other_keys[k2 as usize])?;
+            triangulate_point(&[o1, o2], options)
+                .ok()
+                .map(|p| (k1, k2, p.point_in_world))
+        })
+        .collect()
+}
+
+/// Registers the initial image at its rough `cam_from_world` and a second
+/// image from their essential matrix, for a run that does not use the map's
+/// planes ([`super::mapper::run_mapper_searching`]): the map need not be
+/// seen from a rough pose, which may even lie outside the mapped space. The
+/// candidate with the most triangulated points is taken (of the
+/// `max_candidates` with the most verified matches); the pair's scale is the
+/// median over its points of the map's depth at their features seen from
+/// the rough pose over their triangulated depth (the map's median depth over
+/// the points' median depth where too few features see the map), which the
+/// search's scale range then corrects.
+#[allow(clippy::too_many_arguments)]
+pub fn initialize_from_pair(
+    state: &mut MapState,
+    image: ImageId,
+    cam_from_world: &Rigid3,
+    geometries: &PairMatrices,
+    map: &NearestNeighbourAssociator,
+    grid: &FrustumGrid,
+    options: &InitOptions,
+    triangulate: &TriangulateOptions,
+) -> Result<InitSummary, InitError> {
+    let name = state.images[&image].name.clone();
+    let keypoints = state.images[&image].keypoints.clone();
+    let num_features = keypoints.len();
+    let hits = project_map_at_pixels(
+        map.cloud,
+        grid,
+        state.camera_of(image),
+        cam_from_world,
+        &keypoints,
+        &options.projection(),
+    )?;
+    let depth_at: Vec<Option<f64>> = hits.iter().map(|h| h.as_ref().map(|h| h.depth_m)).collect();
+    let num_hits = depth_at.iter().flatten().count();
+    let tri = TriangulationOptions {
+        max_reprojection_error_px: triangulate.max_error_px,
+        min_angle_deg: triangulate.min_angle_deg,
+        ..Default::default()
+    };
+    let candidates = matches_per_image(state, image, 0..num_features as u32, |_| true);
+    let mut attempts = Vec::new();
+    let mut best: Option<(ImageId, Rigid3, PairPoints)> = None;
+    for (other, pairs) in candidates.into_iter().take(options.max_candidates) {
+        let mut attempt = InitAttempt {
+            image_id: other.0,
+            image_name: state.images[&other].name.clone(),
+            num_lidar_matches: pairs.len(),
+            num_inliers: 0,
+        };
+        if let Some(poses) = essential_of_pair(state, geometries, image, other)
+            .and_then(|e| poses_from_essential(&e))
+        {
+            let (camera1, camera2) = (state.camera_of(image), state.camera_of(other));
+            let other_keys = &state.images[&other].keypoints;
+            let (pose, points) = poses
+                .iter()
+                .map(|p| {
+                    (
+                        *p,
+                        triangulate_pair(camera1, camera2, &keypoints, other_keys, &pairs, p, &tri),
+                    )
+                })
+                .max_by_key(|(_, pts)| pts.len())
+                .expect("four poses");
+            attempt.num_inliers = points.len();
+            if points.len() >= MIN_PAIR_POINTS
+                && best.as_ref().is_none_or(|b| points.len() > b.2.len())
+            {
+                best = Some((other, pose, points));
+            }
+        }
+        log::info!(
+            "initialisation from a pair: `{}`, {} verified matches, {} triangulated",
+            attempt.image_name,
+            attempt.num_lidar_matches,
+            attempt.num_inliers
+        );
+        attempts.push(attempt);
+    }
+    let Some((other, other_from_image, points)) = best else {
+        return Err(InitError::NoPair {
+            name,
+            id: image,
+            needed: MIN_PAIR_POINTS,
+            attempts,
+        });
+    };
+    let median = |mut v: Vec<f64>| -> Option<f64> {
+        (!v.is_empty()).then(|| {
+            v.sort_by(f64::total_cmp);
+            v[v.len() / 2]
+        })
+    };
+    let ratios: Vec<f64> = points
+        .iter()
+        .filter_map(|(k1, _, p)| depth_at[*k1 as usize].map(|d| d / p.z))
+        .collect();
+    let num_supported = ratios.len();
+    let scale = if ratios.len() >= MIN_SCALE_HITS {
+        median(ratios)
+    } else if num_hits >= MIN_SCALE_HITS {
+        let map_depth = median(depth_at.iter().flatten().copied().collect());
+        let own_depth = median(points.iter().map(|(_, _, p)| p.z).collect());
+        map_depth.zip(own_depth).map(|(m, o)| m / o)
+    } else {
+        None
+    };
+    let Some(scale) = scale.filter(|s| s.is_finite() && *s > 0.0) else {
+        return Err(InitError::NoMapSupport {
+            name,
+            id: image,
+            num_features,
+            num_hits,
+            num_supported,
+            needed: MIN_SCALE_HITS,
+        });
+    };
+    let world_from_cam = cam_from_world.inverse();
+    let other_from_image = Rigid3::new(
+        other_from_image.rotation,
+        other_from_image.translation * scale,
+    );
+    state.register(image, *cam_from_world);
+    state.register(other, other_from_image.compose(cam_from_world));
+    for (k1, k2, p) in &points {
+        state.add_point(
+            world_from_cam.transform_point(&(p * scale)),
+            vec![
+                TrackElement {
+                    image_id: image,
+                    point2d_idx: *k1,
+                },
+                TrackElement {
+                    image_id: other,
+                    point2d_idx: *k2,
+                },
+            ],
+        );
+    }
+    Ok(InitSummary {
+        initial_image: image.0,
+        second_image: other.0,
+        num_features,
+        num_map_hits: num_hits,
+        num_supported,
+        num_points: state.points.len(),
+        attempts,
+        focal_from_points_px: BTreeMap::new(),
+        pair_scale: Some(scale),
     })
 }
 
@@ -573,5 +860,104 @@ mod tests {
             mean_z.abs() < 0.001,
             "initial points {mean_z} m off the floor"
         );
+    }
+
+    fn cross(t: &Vector3<f64>) -> Matrix3<f64> {
+        t.cross_matrix()
+    }
+
+    #[test]
+    fn an_essential_matrix_gives_back_its_pose_among_four() {
+        for (k, (axis, angle, t)) in [
+            (
+                Vector3::new(0.1, 1.0, 0.2),
+                0.3,
+                Vector3::new(-1.0, 0.1, 0.05),
+            ),
+            (
+                Vector3::new(1.0, 0.0, 0.0),
+                -0.05,
+                Vector3::new(0.0, 0.0, 2.0),
+            ),
+            (
+                Vector3::new(0.3, -0.2, 1.0),
+                2.5,
+                Vector3::new(0.4, -3.0, 1.0),
+            ),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let r =
+                nalgebra::Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(axis), angle);
+            // Any scale and sign of E.
+            let e = cross(&t) * r.matrix() * (-0.7 * (k as f64 + 1.0));
+            let poses = poses_from_essential(&e).expect("rank 2");
+            let unit = t.normalize();
+            let found = poses.iter().filter(|p| {
+                (p.rotation_matrix() - r.matrix()).norm() < 1e-9
+                    && (p.translation - unit).norm() < 1e-9
+            });
+            assert_eq!(found.count(), 1, "pose {k}: {poses:?}");
+            for p in &poses {
+                // Each of the four satisfies E's epipolar constraint up to scale.
+                let ep = cross(&p.translation) * p.rotation_matrix();
+                let (a, b) = (ep.normalize(), e.normalize());
+                assert!((a - b).norm().min((a + b).norm()) < 1e-9, "pose {k}");
+            }
+        }
+        assert!(poses_from_essential(&Matrix3::zeros()).is_none());
+        assert!(poses_from_essential(&(Vector3::x() * Vector3::y().transpose())).is_none());
+    }
+
+    #[test]
+    fn a_pairs_essential_matrix_comes_from_its_fundamental_either_way_round() {
+        let mut db = DatabaseSnapshot::default();
+        db.cameras.insert(CameraId(1), test_camera());
+        for id in [1, 2] {
+            db.images.insert(
+                ImageId(id),
+                DbImage {
+                    id: ImageId(id),
+                    name: format!("{id}.png"),
+                    camera_id: CameraId(1),
+                },
+            );
+            db.keypoints.insert(ImageId(id), Vec::new());
+        }
+        let state = MapState::new(&db, 1);
+        // cam2_from_cam1 and the pixel-space F of the pair (1, 2).
+        let r = nalgebra::Rotation3::from_euler_angles(0.05, -0.2, 0.1);
+        let t = Vector3::new(0.8, -0.1, 0.3);
+        let e12 = cross(&t) * r.matrix();
+        let k = Matrix3::new(500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0);
+        let k_inv = k.try_inverse().unwrap();
+        let f = k_inv.transpose() * e12 * k_inv * 3.0;
+        let row_major = |m: &Matrix3<f64>| {
+            let mut out = [0.0; 9];
+            for i in 0..3 {
+                for j in 0..3 {
+                    out[3 * i + j] = m[(i, j)];
+                }
+            }
+            out
+        };
+        let same = |a: &Matrix3<f64>, b: &Matrix3<f64>| {
+            let (a, b) = (a.normalize(), b.normalize());
+            (a - b).norm().min((a + b).norm()) < 1e-9
+        };
+        let from_f = BTreeMap::from([((ImageId(1), ImageId(2)), (Some(row_major(&f)), None))]);
+        let e = essential_of_pair(&state, &from_f, ImageId(1), ImageId(2)).unwrap();
+        assert!(same(&e, &e12), "{e}");
+        let e = essential_of_pair(&state, &from_f, ImageId(2), ImageId(1)).unwrap();
+        assert!(same(&e, &e12.transpose()), "{e}");
+        // The database's E wins over F.
+        let both = BTreeMap::from([(
+            (ImageId(1), ImageId(2)),
+            (Some(row_major(&Matrix3::identity())), Some(row_major(&e12))),
+        )]);
+        let e = essential_of_pair(&state, &both, ImageId(2), ImageId(1)).unwrap();
+        assert!(same(&e, &e12.transpose()), "{e}");
+        assert!(essential_of_pair(&state, &BTreeMap::new(), ImageId(1), ImageId(2)).is_none());
     }
 }

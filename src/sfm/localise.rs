@@ -6,9 +6,11 @@
 //! from the map seen at that pose, and the early solves tie the model to the
 //! surfaces near where it starts. Farther off, the model is built around
 //! the wrong surfaces. The search instead takes a model mapped without the
-//! map's planes (plain SfM, started at the rough pose; its shape is right up
-//! to a similarity and some distortion from the wrong start) and finds the
-//! similarity that puts most of its points on the map:
+//! map's planes (plain SfM: the initial image at the rough pose and a second
+//! image from their essential matrix, at the scale the map's depths at the
+//! rough pose suggest, so the rough pose need not see the map; its shape is
+//! right up to a similarity) and finds the similarity that puts most of its
+//! points on the map:
 //!
 //! 1. a grid over the heading (a turn about the map's z axis, which is
 //!    gravity), the scale and the position of the initial camera within the
@@ -160,6 +162,12 @@ pub struct SearchRecord {
     pub moved_m: f64,
     pub turned_deg: f64,
     pub scale: f64,
+    /// The plain run's start: its second image, paired with the initial one
+    /// by their essential matrix, and the metres per unit of their baseline
+    /// that the map's depths at the rough pose gave (`scale` times this is
+    /// the pair's baseline in the map).
+    pub plain_second_image: u32,
+    pub plain_pair_scale: Option<f64>,
     /// Wall time of the plain run and of the search, seconds.
     pub plain_run_s: f64,
     pub search_s: f64,
@@ -506,6 +514,8 @@ pub fn search_placement(
         moved_m: (best_centre - pivot).norm(),
         turned_deg: best.rotation.angle().to_degrees(),
         scale: best.scale,
+        plain_second_image: 0,
+        plain_pair_scale: None,
         plain_run_s: 0.0,
         search_s: 0.0,
     };

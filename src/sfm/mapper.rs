@@ -28,7 +28,8 @@ use super::filter::{
 };
 use super::focal::{self, focal_from_fundamentals, FocalEstimate};
 use super::initialize::{
-    focal_from_map, initialize, swept_cameras, InitError, InitialPairFocalSweep, MapFocalEstimate,
+    focal_from_map, initialize, initialize_from_pair, swept_cameras, InitError,
+    InitialPairFocalSweep, MapFocalEstimate,
 };
 use super::localise::{
     search_placement, Search, SearchError, SearchOptions, SearchRegion, SAME_PLACE_M,
@@ -495,7 +496,8 @@ const SEARCH_SAME_FIT: f64 = 0.02;
 
 /// Runs the whole mapper from an initial pose known only to within `region`
 /// ([`super::localise`]): the database mapped without the map's planes from
-/// the rough pose (the map only gives the initial image's depths), that
+/// the rough pose (the initial pair from its essential matrix, the map's
+/// depths there giving only its scale: [`initialize_from_pair`]), that
 /// model placed on the map by [`search_placement`], and then
 /// [`run_mapper_with_priors`] from the initial image's pose there. When
 /// other placements come close, the database is mapped from each and the
@@ -571,6 +573,10 @@ pub fn run_mapper_searching(
         &SearchOptions::default(),
     )?;
     record.plain_run_s = plain_run_s;
+    if let Some(init) = &plain.report.init {
+        record.plain_second_image = init.second_image;
+        record.plain_pair_scale = init.pair_scale;
+    }
     record.search_s = searched.elapsed().as_secs_f64();
     log::info!(
         "the search placed the initial image {:.2} m and {:.1} deg from the rough pose (the plain model's scale {:.3}; {} of {} points on the map, the next placement {}; {} placements, {:.1} s + {:.1} s){}",
@@ -1274,32 +1280,64 @@ fn map_once(
                 .filter(|&&id| id != init_owner && !from_map.contains(&id))
                 .copied()
                 .collect();
-            let init = initialize(
-                &mut state,
-                init_image,
-                &init_cam_from_world,
-                &nearest,
-                &grid,
-                &options.init,
-                &options.register,
-                &init_sweep,
-                options.seed,
-                &mut rng,
-            )?;
+            // A rough pose need not see the map: the pair's essential
+            // matrix starts the run without the map's planes.
+            let init = if rough {
+                let geometries = db
+                    .two_view_geometries
+                    .iter()
+                    .map(|g| ((g.image_id1, g.image_id2), (g.fundamental, g.essential)))
+                    .collect();
+                initialize_from_pair(
+                    &mut state,
+                    init_image,
+                    &init_cam_from_world,
+                    &geometries,
+                    &nearest,
+                    &grid,
+                    &options.init,
+                    &options.triangulate,
+                )?
+            } else {
+                initialize(
+                    &mut state,
+                    init_image,
+                    &init_cam_from_world,
+                    &nearest,
+                    &grid,
+                    &options.init,
+                    &options.register,
+                    &init_sweep,
+                    options.seed,
+                    &mut rng,
+                )?
+            };
             for (&owner, &f) in &init.focal_from_points_px {
                 report.record_focal_from_points(&state.cameras_sharing(CameraId(owner)), f);
             }
-            log::info!(
-                "initialised: image {} at the given pose ({} of {} features on the map), image {} by PnP, {} points",
-                init.initial_image,
-                init.num_supported,
-                init.num_features,
-                init.second_image,
-                init.num_points
-            );
+            match init.pair_scale {
+                Some(scale) => log::info!(
+                    "initialised: image {} at the rough pose, image {} from their essential matrix, {} points (scale {scale:.3} m per baseline unit from the map's depths at {} of them)",
+                    init.initial_image,
+                    init.second_image,
+                    init.num_points,
+                    init.num_supported,
+                ),
+                None => log::info!(
+                    "initialised: image {} at the given pose ({} of {} features on the map), image {} by PnP, {} points",
+                    init.initial_image,
+                    init.num_supported,
+                    init.num_features,
+                    init.second_image,
+                    init.num_points
+                ),
+            }
             let second = ImageId(init.second_image);
             if let Some(rec) = report.record_mut(second) {
-                let a = init.attempts.last();
+                let a = init
+                    .attempts
+                    .iter()
+                    .find(|a| a.image_id == init.second_image);
                 rec.attempts = 1;
                 rec.pnp_inliers = a.map_or(0, |a| a.num_inliers);
                 rec.num_correspondences = a.map_or(0, |a| a.num_lidar_matches);

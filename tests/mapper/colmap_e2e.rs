@@ -831,6 +831,22 @@ fn check_init_search(scene: &Path, work: &Path, exact_run: &Run) {
         "moved {moved:.3} m of {off_m:.3}"
     );
     assert!(search["on_map"].as_u64().unwrap() > search["runner_up_on_map"].as_u64().unwrap_or(0));
+    // The run without the map's planes started from the initial image and
+    // a second one by their essential matrix, at a scale from the map's
+    // depths that the search then corrected: the pair's baseline in the map.
+    let model = read_model(&out).unwrap();
+    let name_of = |id: u64| model.images[&ImageId(id as u32)].name.clone();
+    let second = name_of(search["plain_second_image"].as_u64().unwrap());
+    let first = name_of(run.report["init"]["initial_image"].as_u64().unwrap());
+    let baseline = (gt[&second].camera_center() - gt[&first].camera_center()).norm();
+    let found = search["scale"].as_f64().unwrap()
+        * search["plain_pair_scale"]
+            .as_f64()
+            .expect("the plain run started from a pair");
+    assert!(
+        (found / baseline - 1.0).abs() < 0.02,
+        "the pair's baseline {found:.4} m in the search's placement, {baseline:.4} m in truth"
+    );
     assert_eq!(run.none.num_registered, exact_run.none.num_registered);
     let median = |r: &Run| r.none.centre_error_m.as_ref().unwrap().median;
     assert!(

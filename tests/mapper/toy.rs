@@ -187,6 +187,7 @@ pub fn toy(num_images: usize, noise_px: f64, wrong: f64, seed: u64) -> Toy {
                 config: 2,
                 inlier_matches: matches,
                 fundamental: None,
+                essential: None,
             });
         }
     }
