@@ -66,6 +66,19 @@ pub enum InitError {
         attempts: Vec<InitAttempt>,
     },
     #[error(
+        "the initial image `{name}` (id {id}) sees almost none of the map from the rough pose: \
+         {num_hits} of its {num_features} features hit the map (need {needed} to set the scale \
+         of the run without the map's planes). Is the rough pose in the map frame, in metres \
+         and degrees (x,y,z,roll,pitch,yaw), and does the map cover the view?"
+    )]
+    NoScale {
+        name: String,
+        id: ImageId,
+        num_features: usize,
+        num_hits: usize,
+        needed: usize,
+    },
+    #[error(
         "no image makes a pair with the initial image `{name}` (id {id}) that triangulates \
          {needed} points from their essential matrix; tried: {}",
         describe(.attempts, "verified matches", "points")
@@ -760,12 +773,11 @@ pub fn initialize_from_pair(
         None
     };
     let Some(scale) = scale.filter(|s| s.is_finite() && *s > 0.0) else {
-        return Err(InitError::NoMapSupport {
+        return Err(InitError::NoScale {
             name,
             id: image,
             num_features,
             num_hits,
-            num_supported,
             needed: MIN_SCALE_HITS,
         });
     };
