@@ -117,15 +117,16 @@ pub struct MapArgs {
     )]
     pub init_pose: Option<String>,
     /// The initial pose is known only roughly: within METRES of its camera
-    /// centre (horizontally; vertically at most 1 m) and DEGREES of its
-    /// heading (180: any), roll and pitch within about 10 deg. The database
+    /// centre horizontally, VERTICAL_METRES vertically (default: METRES, at
+    /// most 1 m) and DEGREES of its heading (180: any), roll and pitch
+    /// within about 10 deg. The database
     /// is first mapped without the map's planes and that model searched for
     /// on the map (report.json: init_search); an error when nothing fits or
     /// two placements fit alike. Up to 10 m.
     #[arg(
         long,
         visible_alias = "init_search",
-        value_name = "METRES,DEGREES",
+        value_name = "METRES,DEGREES[,VERTICAL_METRES]",
         allow_hyphen_values = true
     )]
     pub init_search: Option<String>,

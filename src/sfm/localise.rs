@@ -41,22 +41,28 @@ use crate::estimators::similarity::Sim3;
 /// Where to search: around the rough initial camera centre and heading.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct SearchRegion {
-    /// Horizontal distance from the rough camera centre, metres (vertically
-    /// at most [`SearchOptions::max_vertical_m`]).
+    /// Horizontal distance from the rough camera centre, metres.
     pub radius_m: f64,
     /// Heading either way from the rough one, degrees (180: any heading).
     pub yaw_deg: f64,
+    /// Height either way from the rough camera centre, metres (by default
+    /// the radius, at most [`DEFAULT_VERTICAL_M`]).
+    pub vertical_m: f64,
 }
 
 impl SearchRegion {
-    /// Parses `METRES,DEGREES`.
+    /// Parses `METRES,DEGREES[,VERTICAL_METRES]`.
     pub fn parse(s: &str) -> Result<Self, String> {
         let parts: Vec<&str> = s.split(',').map(str::trim).collect();
-        let [m, d] = parts.as_slice() else {
-            return Err(format!(
-                "expected METRES,DEGREES (e.g. 2,30), got `{s}` ({} values)",
-                parts.len()
-            ));
+        let (m, d, v) = match parts.as_slice() {
+            [m, d] => (*m, *d, None),
+            [m, d, v] => (*m, *d, Some(*v)),
+            _ => {
+                return Err(format!(
+                    "expected METRES,DEGREES or METRES,DEGREES,VERTICAL_METRES (e.g. 2,30 or 2,30,1.5), got `{s}` ({} values)",
+                    parts.len()
+                ))
+            }
         };
         let parse = |v: &str, what: &str| -> Result<f64, String> {
             v.parse::<f64>()
@@ -64,23 +70,36 @@ impl SearchRegion {
                 .filter(|x| x.is_finite() && *x >= 0.0)
                 .ok_or_else(|| format!("{what} must be a number >= 0, got `{v}`"))
         };
+        let radius_m = parse(m, "the radius (metres)")?;
         let region = Self {
-            radius_m: parse(m, "the radius (metres)")?,
+            radius_m,
             yaw_deg: parse(d, "the heading range (degrees)")?.min(180.0),
+            vertical_m: match v {
+                Some(v) => parse(v, "the vertical range (metres)")?,
+                None => radius_m.min(DEFAULT_VERTICAL_M),
+            },
         };
-        if region.radius_m > MAX_RADIUS_M {
-            return Err(format!(
-                "a radius of {} m is more than this search covers ({MAX_RADIUS_M} m): crop the map to the area (prepare-map --crop) and give a pose within it",
-                region.radius_m
-            ));
+        for (what, metres) in [
+            ("radius", region.radius_m),
+            ("vertical range", region.vertical_m),
+        ] {
+            if metres > MAX_RADIUS_M {
+                return Err(format!(
+                    "a {what} of {metres} m is more than this search covers ({MAX_RADIUS_M} m): crop the map to the area (prepare-map --crop) and give a pose within it"
+                ));
+            }
         }
         Ok(region)
     }
 }
 
-/// The largest radius [`SearchRegion::parse`] accepts: the grid grows with
-/// its square.
+/// The largest radius (and vertical range) [`SearchRegion::parse`]
+/// accepts: the grid grows with the radius' square.
 pub const MAX_RADIUS_M: f64 = 10.0;
+
+/// The vertical range when none is given: photos taken by hand or from a
+/// vehicle are at about the height a rough pose says, within a metre.
+pub const DEFAULT_VERTICAL_M: f64 = 1.0;
 
 /// Options of [`search_placement`].
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
@@ -88,8 +107,6 @@ pub struct SearchOptions {
     /// Grid step of the position, metres (about half the ICP's basin at its
     /// first radius, 1 m).
     pub step_m: f64,
-    /// The vertical search range either way, metres (at most the radius).
-    pub max_vertical_m: f64,
     /// Grid step of the heading, degrees.
     pub step_deg: f64,
     /// Scales from 1/`max_scale` to `max_scale`, in steps of the factor
@@ -120,7 +137,6 @@ impl Default for SearchOptions {
     fn default() -> Self {
         Self {
             step_m: 0.5,
-            max_vertical_m: 1.0,
             step_deg: 5.0,
             max_scale: 4.0,
             scale_step: 1.15,
@@ -164,10 +180,15 @@ pub struct SearchRecord {
     pub scale: f64,
     /// The plain run's start: its second image, paired with the initial one
     /// by their essential matrix, and the metres per unit of their baseline
-    /// that the map's depths at the rough pose gave (`scale` times this is
-    /// the pair's baseline in the map).
+    /// that the map's depths at the rough pose gave.
     pub plain_second_image: u32,
     pub plain_pair_scale: Option<f64>,
+    /// The pair's baseline in the finished plain model (its units; `scale`
+    /// times this is the pair's baseline in the map). The plain run's
+    /// solves hold it only softly, so it may differ from
+    /// `plain_pair_scale`: the seed-0 yard from 1.3 m / 15 deg off moved
+    /// it by 8 % on one database and not on another.
+    pub plain_pair_baseline: Option<f64>,
     /// Wall time of the plain run and of the search, seconds.
     pub plain_run_s: f64,
     pub search_s: f64,
@@ -340,7 +361,7 @@ pub fn search_placement(
         .map(|k| options.scale_step.powi(k as i32))
         .collect();
     let horizontal = symmetric_grid(region.radius_m, options.step_m);
-    let vertical = symmetric_grid(region.radius_m.min(options.max_vertical_m), options.step_m);
+    let vertical = symmetric_grid(region.vertical_m, options.step_m);
     let shifts: Vec<Vector3<f64>> = horizontal
         .iter()
         .flat_map(|&x| horizontal.iter().map(move |&y| (x, y)))
@@ -516,6 +537,7 @@ pub fn search_placement(
         scale: best.scale,
         plain_second_image: 0,
         plain_pair_scale: None,
+        plain_pair_baseline: None,
         plain_run_s: 0.0,
         search_s: 0.0,
     };
@@ -567,11 +589,18 @@ mod tests {
             SearchRegion::parse("2,30"),
             Ok(SearchRegion {
                 radius_m: 2.0,
-                yaw_deg: 30.0
+                yaw_deg: 30.0,
+                vertical_m: 1.0,
             })
         );
+        assert_eq!(SearchRegion::parse("0.5,10").unwrap().vertical_m, 0.5);
+        assert_eq!(SearchRegion::parse("3,10, 2.5").unwrap().vertical_m, 2.5);
+        assert_eq!(SearchRegion::parse("3,10,0").unwrap().vertical_m, 0.0);
         assert_eq!(SearchRegion::parse(" 1.5 , 400 ").unwrap().yaw_deg, 180.0);
-        for bad in ["2", "2,30,1", "-1,30", "x,30", "nan,30", "2,inf", "11,30"] {
+        for bad in [
+            "2", "2,30,1,1", "-1,30", "x,30", "nan,30", "2,inf", "11,30", "2,30,-1", "2,30,11",
+            "2,30,",
+        ] {
             assert!(SearchRegion::parse(bad).is_err(), "{bad}");
         }
     }
@@ -592,6 +621,25 @@ mod tests {
     /// 6 x 4 m room within +-40 deg).
     #[test]
     fn a_model_far_off_is_found_in_the_room() {
+        let region = SearchRegion::parse("2,40").unwrap();
+        find_in_room(&Vector3::new(1.0, -0.8, 0.2), &region);
+    }
+
+    /// Moved 1.7 m down and 0.4 m sideways: found with a vertical range of
+    /// 2 m, whose grid has 9 heights (in steps of 0.5 m) at each of the 13
+    /// positions within 1 m, for each of 17 headings (+-40 deg in 5 deg
+    /// steps) and 21 scales (1.15^-10 to 1.15^10).
+    #[test]
+    fn a_model_far_below_is_found_with_a_vertical_range() {
+        let region = SearchRegion::parse("1,40,2").unwrap();
+        assert_eq!(region.vertical_m, 2.0);
+        let record = find_in_room(&Vector3::new(0.3, 0.25, -1.7), &region);
+        assert_eq!(record.placements, 13 * 9 * 17 * 21);
+    }
+
+    /// The room's points turned 25 deg, scaled by 0.7 about a pivot and
+    /// moved by `shift`, searched for within `region`: the inverse, exactly.
+    fn find_in_room(shift: &Vector3<f64>, region: &SearchRegion) -> SearchRecord {
         let (cloud, on_map) = room_map();
         let index = MapIndex::build(&cloud).unwrap();
         let nearest =
@@ -601,22 +649,18 @@ mod tests {
             tilt: UnitQuaternion::identity(),
             yaw_rad: 25f64.to_radians(),
             scale: 0.7,
-            shift: Vector3::new(1.0, -0.8, 0.2),
+            shift: *shift,
             group: 0,
         }
         .sim3(&pivot_true);
         let model: Vec<Vector3<f64>> = on_map.iter().map(|x| truth.transform_point(x)).collect();
         let pivot = truth.transform_point(&pivot_true);
-        let region = SearchRegion {
-            radius_m: 2.0,
-            yaw_deg: 40.0,
-        };
         let Search { contenders, record } = search_placement(
             &model,
             &[],
             &pivot,
             &nearest,
-            &region,
+            region,
             &SearchOptions::default(),
         )
         .expect("found");
@@ -634,6 +678,7 @@ mod tests {
             record.turned_deg
         );
         assert!((record.moved_m - (pivot_true - pivot).norm()).abs() < 1e-5);
+        record
     }
 
     /// A square room turned by a quarter turn is the same room: with any
@@ -649,6 +694,7 @@ mod tests {
             let region = SearchRegion {
                 radius_m: 0.5,
                 yaw_deg,
+                vertical_m: 0.5,
             };
             search_placement(
                 &on_map,
@@ -733,10 +779,7 @@ mod tests {
             .iter()
             .map(|x| x + Vector3::new(40.0, 0.0, 0.0))
             .collect();
-        let region = SearchRegion {
-            radius_m: 1.0,
-            yaw_deg: 10.0,
-        };
+        let region = SearchRegion::parse("1,10").unwrap();
         let err = search_placement(
             &far,
             &[],

@@ -576,6 +576,17 @@ pub fn run_mapper_searching(
     if let Some(init) = &plain.report.init {
         record.plain_second_image = init.second_image;
         record.plain_pair_scale = init.pair_scale;
+        let centre = |id: u32| {
+            plain
+                .reconstruction
+                .images
+                .get(&ImageId(id))
+                .and_then(|img| img.cam_from_world)
+                .map(|pose| pose.camera_center())
+        };
+        record.plain_pair_baseline = centre(init.initial_image)
+            .zip(centre(init.second_image))
+            .map(|(a, b)| (a - b).norm());
     }
     record.search_s = searched.elapsed().as_secs_f64();
     log::info!(

@@ -833,14 +833,16 @@ fn check_init_search(scene: &Path, work: &Path, exact_run: &Run) {
     assert!(search["on_map"].as_u64().unwrap() > search["runner_up_on_map"].as_u64().unwrap_or(0));
     // The run without the map's planes started from the initial image and
     // a second one by their essential matrix, at a scale from the map's
-    // depths that the search then corrected: the pair's baseline in the map.
+    // depths that the search then corrected: the pair's baseline in the
+    // finished plain model (its solves hold it only softly), placed on the
+    // map by the search's scale.
     let model = read_model(&out).unwrap();
     let name_of = |id: u64| model.images[&ImageId(id as u32)].name.clone();
     let second = name_of(search["plain_second_image"].as_u64().unwrap());
     let first = name_of(run.report["init"]["initial_image"].as_u64().unwrap());
     let baseline = (gt[&second].camera_center() - gt[&first].camera_center()).norm();
     let found = search["scale"].as_f64().unwrap()
-        * search["plain_pair_scale"]
+        * search["plain_pair_baseline"]
             .as_f64()
             .expect("the plain run started from a pair");
     assert!(
