@@ -10,7 +10,9 @@
 # env:   COLMAP (default colmap), COLMAP_LIDAR (default: colmap-lidar on PATH,
 #        else target/release/colmap-lidar), NUM_THREADS for colmap mapper
 #        (default 2), INIT_IMAGE (default frame_0000.jpg), POSE (exact|perturbed,
-#        default exact), MAP_ARGS (extra arguments for colmap-lidar map),
+#        default exact), INIT_POSE (x,y,z,roll,pitch,yaw in degrees: this pose
+#        instead, e.g. a rough one with MAP_ARGS="--init-search 2,30"),
+#        MAP_ARGS (extra arguments for colmap-lidar map),
 #        ABLATION (default 1: also run map --no-lidar-constraints).
 set -euo pipefail
 scene=${1:?usage: bench_map_vs_colmap.sh SCENE_DIR [OUT_DIR]}
@@ -23,7 +25,7 @@ command -v "$colmap" >/dev/null || { echo "error: '$colmap' not found" >&2; exit
 db=$scene/database.db
 [ -f "$db" ] || { echo "error: no database at $db (run scripts/make_database.sh $scene)" >&2; exit 2; }
 pose_key=${POSE:-exact}
-pose=$(sed -n "s/^$pose_key: *//p" "$scene/init_pose.txt")
+pose=${INIT_POSE:-$(sed -n "s/^$pose_key: *//p" "$scene/init_pose.txt")}
 [ -n "$pose" ] || { echo "error: no '$pose_key:' line in $scene/init_pose.txt" >&2; exit 2; }
 mkdir -p "$out"
 
@@ -99,6 +101,11 @@ for kind, k in kinds.items():
           f"{k['residual_s']:.2f}, Jacobians {k['jacobian_s']:.2f}, linear solver "
           f"{k['linear_solver_s']:.2f}), building the problem {k['build_s']:.2f} s, "
           f"association {k['assoc']:6.2f} s")
+search = r.get("init_search")
+if search:
+    print(f"  --init-search: run without the map's planes {search['plain_run_s']:.2f} s, search "
+          f"{search['search_s']:.2f} s ({search['placements']} placements), "
+          f"{len(search['contenders_on_map'])} placement(s) mapped in full (the stages above: the kept one)")
 PY
 fi
 echo "outputs in $out"

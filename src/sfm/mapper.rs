@@ -659,6 +659,13 @@ pub fn run_mapper_searching(
             Some(e) => Err(e),
             None => Ok(o),
         });
+        if let Err(e) = &out {
+            log::info!(
+                "the run from placement {} of {} failed: {e}",
+                runs.len() + 1,
+                contenders.len()
+            );
+        }
         runs.push((found, out));
     }
     record.contender_fits = runs
