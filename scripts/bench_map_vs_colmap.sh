@@ -35,9 +35,13 @@ echo "== colmap-lidar map ($scene)"
 t0=$(now)
 # Both tools read the images to colour the points (colmap mapper always does).
 # shellcheck disable=SC2086
-"$tool" map --database "$db" --lidar "$scene/lidar.ply" --output "$out/map" \
-  --image-path "$scene/images" \
-  --init-image "${INIT_IMAGE:-frame_0000.jpg}" --init-pose "$pose" ${MAP_ARGS:-} 2>"$out/map.log"
+if ! "$tool" map --database "$db" --lidar "$scene/lidar.ply" --output "$out/map" \
+    --image-path "$scene/images" \
+    --init-image "${INIT_IMAGE:-frame_0000.jpg}" --init-pose "$pose" ${MAP_ARGS:-} 2>"$out/map.log"; then
+  echo "error: colmap-lidar map failed; last lines:" >&2
+  tail -n 5 "$out/map.log" >&2
+  exit 1
+fi
 t1=$(now)
 ours=$(echo "$t1 - $t0" | bc -l)
 
@@ -69,8 +73,9 @@ if [ -n "${ABLATION:-1}" ] && [ "${ABLATION:-1}" != 0 ]; then
   echo "== ablation: colmap-lidar map --no-lidar-constraints (the map only initialises)"
   # shellcheck disable=SC2086
   "$tool" map --database "$db" --lidar "$scene/lidar.ply" --output "$out/ablation" \
-    --init-image "${INIT_IMAGE:-frame_0000.jpg}" --init-pose "$pose" --no-lidar-constraints ${MAP_ARGS:-} 2>"$out/ablation.log"
-  if [ -d "$scene/gt" ]; then
+    --init-image "${INIT_IMAGE:-frame_0000.jpg}" --init-pose "$pose" --no-lidar-constraints ${MAP_ARGS:-} 2>"$out/ablation.log" \
+    || echo "the ablation failed (see $out/ablation.log)" >&2
+  if [ -d "$out/ablation" ] && [ -d "$scene/gt" ]; then
     "$tool" evaluate --model "$out/ablation" --reference "$scene/gt" --align none || true
   fi
 fi

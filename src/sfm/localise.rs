@@ -85,7 +85,7 @@ impl SearchRegion {
         ] {
             if metres > MAX_RADIUS_M {
                 return Err(format!(
-                    "a {what} of {metres} m is more than this search covers ({MAX_RADIUS_M} m): crop the map to the area (prepare-map --crop) and give a pose within it"
+                    "a {what} of {metres} m is more than this search covers ({MAX_RADIUS_M} m): give a rough pose within that of the true one"
                 ));
             }
         }

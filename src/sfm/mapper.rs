@@ -146,7 +146,7 @@ pub enum MapperError {
     /// the map loosely and the map holds it only weakly in one direction,
     /// so the placement may be wrong along it (see [`loose_searched_model`]).
     #[error(
-        "searching the map for the initial pose (--init-search): the model mapped from the placement with the initial camera at ({:.2}, {:.2}, {:.2}) has {:.0} % of its points on the surfaces their images see (below the {:.0} % of a model that fits well) and the map's planes hold it only weakly in one direction (similarity-constraint ratio {ratio:.2e}, below the {SEARCH_MIN_CONSTRAINT:.0e} a searched placement needs; weakest [rotation, translation, scale] {weakest:?}): a placement found by the search may be wrong along that direction (a uniform corridor) and the map cannot correct it; give a closer rough pose, or the exact one",
+        "searching the map for the initial pose (--init-search): the model mapped from one of its placements, which ended with the initial camera at ({:.2}, {:.2}, {:.2}), has {:.0} % of its points on the surfaces their images see (below the {:.0} % of a model that fits well) and the map's planes hold it only weakly in one direction (similarity-constraint ratio {ratio:.2e}, below the {SEARCH_MIN_CONSTRAINT:.0e} a searched placement needs; weakest [rotation, translation, scale] {weakest:?}): a placement found by the search may be wrong along that direction (a uniform corridor) and the map cannot correct it; give a closer rough pose, or the exact one",
         centre[0], centre[1], centre[2], share * 100.0, GOOD_FIT_SHARE * 100.0
     )]
     LooseSearchedModel {
@@ -176,12 +176,13 @@ pub struct FitSummary {
 /// of `--init-search` that fits the map below [`GOOD_FIT_SHARE`] is an
 /// error ([`loose_searched_model`]): the seed-0 corridor from 1.56 m /
 /// 19 deg off gave such a model 1.63 m off at 1.5 times the true scale,
-/// fit 82 % with a ratio of 4.96e-3, where right models of fully mapped
-/// scenes measured at least 0.019 (session 36's corridor sweep 3.2e-2 at
-/// 86 %) or fit at least 90 % (the 400-image corridor: 3.4e-3 at 94 %).
-/// Twice the wrong one's, half the lowest right one's (the same as a
-/// partly mapped model needs, [`PARTIAL_MAP_MIN_CONSTRAINT`]).
-const SEARCH_MIN_CONSTRAINT: f64 = 1e-2;
+/// fit 82 % with a ratio of 4.96e-3 (the wrong models of earlier sweeps:
+/// 2.2e-3 to 4.6e-3), where right models of the 24-image scenes measured
+/// at least 0.019 (session 37's sweep: corridor 0.032 at 86 %), the right
+/// 100-image corridor 0.0103 (a longer corridor holds its slide less), and
+/// the 400-image corridor 3.4e-3 at 94 %, passed by its fit. About 1.4
+/// times from the wrong 4.96e-3 and from the right 0.0103.
+const SEARCH_MIN_CONSTRAINT: f64 = 7e-3;
 
 /// At and above this `fit_share`, with the similarity well constrained, a
 /// model that moved its initial image beyond the accepted change is likely
@@ -548,8 +549,9 @@ pub fn run_mapper_searching(
         rough: true,
     };
     log::info!(
-        "searching within {} m and {} deg of the rough initial pose: mapping without the map's planes first",
+        "searching within {} m (vertically {} m) and {} deg of the rough initial pose: mapping without the map's planes first",
         region.radius_m,
+        region.vertical_m,
         region.yaw_deg
     );
     let plain = map_once(
@@ -637,6 +639,7 @@ pub fn run_mapper_searching(
     );
     // Each close placement mapped; the map's fit of the finished models decides.
     let mut runs: Vec<(Rigid3, Result<MapperOutput, MapperError>)> = Vec::new();
+    let mut finished: Vec<Option<(Option<f64>, nalgebra::Vector3<f64>)>> = Vec::new();
     for (_, map_from_plain) in &contenders {
         let found = map_from_plain.transform_pose(&rough);
         let c = found.camera_center();
@@ -655,6 +658,18 @@ pub fn run_mapper_searching(
             options,
             &mut *progress,
         );
+        // A finished model's fit and initial camera centre, kept even when
+        // it is refused as loose: it still counts as a second place below.
+        finished.push(out.as_ref().ok().map(|o| {
+            let centre = o
+                .reconstruction
+                .images
+                .get(&init_image)
+                .and_then(|img| img.cam_from_world)
+                .unwrap_or(found)
+                .camera_center();
+            (judged_fit(o, o.report.partial_map), centre)
+        }));
         let out = out.and_then(|o| match loose_searched_model(&o, init_image) {
             Some(e) => Err(e),
             None => Ok(o),
@@ -668,14 +683,7 @@ pub fn run_mapper_searching(
         }
         runs.push((found, out));
     }
-    record.contender_fits = runs
-        .iter()
-        .map(|(_, r)| {
-            r.as_ref()
-                .ok()
-                .and_then(|o| judged_fit(o, o.report.partial_map))
-        })
-        .collect();
+    record.contender_fits = finished.iter().map(|f| f.and_then(|f| f.0)).collect();
     let fits = record.contender_fits.clone();
     let Some(best) = (0..runs.len())
         .filter(|&i| runs[i].1.is_ok())
@@ -691,20 +699,13 @@ pub fn run_mapper_searching(
             .unwrap_or(0);
         return runs.swap_remove(loose).1;
     };
-    let centre = |i: usize| -> nalgebra::Vector3<f64> {
-        runs[i]
-            .1
-            .as_ref()
-            .ok()
-            .and_then(|o| o.reconstruction.images.get(&init_image))
-            .and_then(|img| img.cam_from_world)
-            .unwrap_or(runs[i].0)
-            .camera_center()
-    };
+    let centre = |i: usize| finished[i].map_or(runs[i].0.camera_center(), |f| f.1);
     let best_fit = fits[best].unwrap_or(0.0);
+    // Another finished model (refused as loose or not) in another place that
+    // fits about as well: the map cannot tell them apart.
     if let Some(other) = (0..runs.len()).find(|&i| {
         i != best
-            && runs[i].1.is_ok()
+            && finished[i].is_some()
             && fits[i].unwrap_or(0.0) >= best_fit - SEARCH_SAME_FIT
             && (centre(i) - centre(best)).norm() > SAME_PLACE_M
     }) {
@@ -753,6 +754,8 @@ pub fn run_mapper_searching(
 /// search put it, so [`check_initial_pose`] sees no move).
 fn loose_searched_model(out: &MapperOutput, init_image: ImageId) -> Option<MapperError> {
     let share = judged_fit(out, out.report.partial_map)?;
+    // No ratio: no map terms (`--no-lidar-constraints`), or too few points
+    // on planes for one.
     let c = out.report.similarity_constraint.as_ref()?;
     if share >= GOOD_FIT_SHARE || c.ratio >= SEARCH_MIN_CONSTRAINT {
         return None;
@@ -771,7 +774,7 @@ fn loose_searched_model(out: &MapperOutput, init_image: ImageId) -> Option<Mappe
         weakest: c
             .weakest
             .iter()
-            .map(|w| (w * 100.0).round() / 100.0)
+            .map(|w| (w * 100.0).round() / 100.0 + 0.0)
             .collect(),
     })
 }
@@ -2603,7 +2606,7 @@ mod tests {
     }
 
     /// A searched model is refused when it fits below 90 % and the map holds
-    /// it with a ratio below 1e-2, and kept when either is better.
+    /// it with a ratio below 7e-3, and kept when either is better.
     #[test]
     fn a_loose_searched_model_is_refused() {
         use crate::sfm::align::SimilarityConstraint;
@@ -2632,15 +2635,16 @@ mod tests {
             "(1.00, 0.00, 0.00)",
             "82 %",
             "ratio 4.96e-3",
-            "below the 1e-2",
+            "below the 7e-3",
             "[0.0, 0.0, 0.0, 0.78, 0.0, 0.24, 0.57]",
         ] {
             assert!(message.contains(part), "{part}: {message}");
         }
         assert!(loose_searched_model(&output(0.86, 0.032), ImageId(2)).is_none());
-        assert!(loose_searched_model(&output(0.82, 0.0101), ImageId(2)).is_none());
+        assert!(loose_searched_model(&output(0.82, 0.0103), ImageId(2)).is_none());
+        assert!(loose_searched_model(&output(0.82, 0.0071), ImageId(2)).is_none());
         assert!(loose_searched_model(&output(0.94, 3.4e-3), ImageId(2)).is_none());
-        assert!(loose_searched_model(&output(0.82, 0.0099), ImageId(2)).is_some());
+        assert!(loose_searched_model(&output(0.82, 0.0069), ImageId(2)).is_some());
         // No fit measured: nothing to judge.
         let mut unmeasured = output(0.5, 1e-4);
         unmeasured.report.fit_share = None;
