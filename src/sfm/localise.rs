@@ -165,7 +165,8 @@ pub struct SearchRecord {
     pub runner_up_on_map: Option<usize>,
     /// The placements mapped (the best and those close to it): the points
     /// on the map at each, and the mapped model's fit (`fit_share`; `None`
-    /// when that run failed). The first is the one kept.
+    /// when that run failed; a model refused as too loosely held by the
+    /// map keeps its fit). The first is the one kept.
     pub contenders_on_map: Vec<usize>,
     pub contender_fits: Vec<Option<f64>>,
     /// How far the cameras' right-hand axes levelled the model (degrees;
