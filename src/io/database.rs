@@ -568,8 +568,8 @@ impl Reader<'_> {
                 .unwrap_or(0);
             let blob = blob.unwrap_or_default();
             // A matrix blob of another size or with non-finite values is not
-            // used (it is only a hint for self-calibration).
-            // (the essential matrix only starts a run from a rough pose).
+            // used: F is only a hint for self-calibration, E only starts a
+            // run from a rough pose.
             let matrix = |column: usize| {
                 let blob: Option<Vec<u8>> = row.get(column).unwrap_or(None);
                 blob.filter(|b| b.len() == 72).and_then(|b| {

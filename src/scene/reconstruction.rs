@@ -77,4 +77,9 @@ impl Reconstruction {
     pub fn image_by_name(&self, name: &str) -> Option<&Image> {
         self.images.values().find(|i| i.name == name)
     }
+
+    /// An image's pose, `None` when it is unknown or not registered.
+    pub fn pose(&self, image: ImageId) -> Option<Rigid3> {
+        self.images.get(&image).and_then(|i| i.cam_from_world)
+    }
 }

@@ -874,10 +874,6 @@ mod tests {
         );
     }
 
-    fn cross(t: &Vector3<f64>) -> Matrix3<f64> {
-        t.cross_matrix()
-    }
-
     #[test]
     fn an_essential_matrix_gives_back_its_pose_among_four() {
         for (k, (axis, angle, t)) in [
@@ -903,7 +899,7 @@ mod tests {
             let r =
                 nalgebra::Rotation3::from_axis_angle(&nalgebra::Unit::new_normalize(axis), angle);
             // Any scale and sign of E.
-            let e = cross(&t) * r.matrix() * (-0.7 * (k as f64 + 1.0));
+            let e = t.cross_matrix() * r.matrix() * (-0.7 * (k as f64 + 1.0));
             let poses = poses_from_essential(&e).expect("rank 2");
             let unit = t.normalize();
             let found = poses.iter().filter(|p| {
@@ -913,7 +909,7 @@ mod tests {
             assert_eq!(found.count(), 1, "pose {k}: {poses:?}");
             for p in &poses {
                 // Each of the four satisfies E's epipolar constraint up to scale.
-                let ep = cross(&p.translation) * p.rotation_matrix();
+                let ep = p.translation.cross_matrix() * p.rotation_matrix();
                 let (a, b) = (ep.normalize(), e.normalize());
                 assert!((a - b).norm().min((a + b).norm()) < 1e-9, "pose {k}");
             }
@@ -941,7 +937,7 @@ mod tests {
         // cam2_from_cam1 and the pixel-space F of the pair (1, 2).
         let r = nalgebra::Rotation3::from_euler_angles(0.05, -0.2, 0.1);
         let t = Vector3::new(0.8, -0.1, 0.3);
-        let e12 = cross(&t) * r.matrix();
+        let e12 = t.cross_matrix() * r.matrix();
         let k = Matrix3::new(500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0);
         let k_inv = k.try_inverse().unwrap();
         let f = k_inv.transpose() * e12 * k_inv * 3.0;

@@ -576,9 +576,7 @@ pub fn run_mapper_searching(
     // Without the map's planes the initial image stays at the rough pose.
     let rough = plain
         .reconstruction
-        .images
-        .get(&init_image)
-        .and_then(|img| img.cam_from_world)
+        .pose(init_image)
         .unwrap_or(*rough_cam_from_world);
     // The cameras' right-hand axes, in the plain model's frame.
     let right_axes: Vec<nalgebra::Vector3<f64>> = plain
@@ -603,12 +601,8 @@ pub fn run_mapper_searching(
         record.plain_second_image = init.second_image;
         record.plain_pair_scale = init.pair_scale;
         let centre = |id: u32| {
-            plain
-                .reconstruction
-                .images
-                .get(&ImageId(id))
-                .and_then(|img| img.cam_from_world)
-                .map(|pose| pose.camera_center())
+            let pose = plain.reconstruction.pose(ImageId(id));
+            pose.map(|p| p.camera_center())
         };
         record.plain_pair_baseline = centre(init.initial_image)
             .zip(centre(init.second_image))
@@ -661,13 +655,8 @@ pub fn run_mapper_searching(
         // A finished model's fit and initial camera centre, kept even when
         // it is refused as loose: it still counts as a second place below.
         finished.push(out.as_ref().ok().map(|o| {
-            let centre = o
-                .reconstruction
-                .images
-                .get(&init_image)
-                .and_then(|img| img.cam_from_world)
-                .unwrap_or(found)
-                .camera_center();
+            let centre = o.reconstruction.pose(init_image).unwrap_or(found);
+            let centre = centre.camera_center();
             (judged_fit(o, o.report.partial_map), centre)
         }));
         let out = out.and_then(|o| match loose_searched_model(&o, init_image) {
@@ -760,12 +749,7 @@ fn loose_searched_model(out: &MapperOutput, init_image: ImageId) -> Option<Mappe
     if share >= GOOD_FIT_SHARE || c.ratio >= SEARCH_MIN_CONSTRAINT {
         return None;
     }
-    let centre = out
-        .reconstruction
-        .images
-        .get(&init_image)
-        .and_then(|img| img.cam_from_world)?
-        .camera_center();
+    let centre = out.reconstruction.pose(init_image)?.camera_center();
     Some(MapperError::LooseSearchedModel {
         // (+ 0.0: no "-0.00" in the message.)
         centre: [centre.x + 0.0, centre.y + 0.0, centre.z + 0.0],
