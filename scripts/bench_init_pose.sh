@@ -65,6 +65,9 @@ for step in "$@"; do
       exit 1
     elif awk -v e="$median" -v t="${RIGHT_M:-0.01}" 'BEGIN {exit !(e < t)}'; then
       outcome="right, $(awk -v e="$median" 'BEGIN {printf "%.1f mm", e * 1000}') median"
+      # The run from the pose failed and the search around it (the mapper's
+      # fallback, bundle.fallback_search_m) found the model.
+      if grep -q '"after_failure": *"' "$run/report.json"; then outcome="$outcome, after the fallback search"; fi
       right=$((right + 1))
     else
       outcome="WRONG WITHOUT AN ERROR, $(awk -v e="$median" 'BEGIN {printf "%.3f m", e}') median"

@@ -29,7 +29,7 @@ use crate::sfm::localise::SearchRegion;
 use crate::sfm::options::{AssociationKind, IntrinsicsRefinement};
 use crate::sfm::report::StageRecord;
 use crate::sfm::{
-    extend_model, run_mapper_searching, run_mapper_with_priors, KnownPose, MapperOptions,
+    extend_model, run_mapper_from_pose, run_mapper_searching, KnownPose, MapperOptions,
 };
 
 /// Known poses: the database's pose priors, overridden by the pose file.
@@ -485,7 +485,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
             &config.options,
             &mut progress,
         ),
-        RunStart::InitialPose(image, pose) => run_mapper_with_priors(
+        RunStart::InitialPose(image, pose) => run_mapper_from_pose(
             &db,
             &cloud,
             *image,

@@ -193,6 +193,11 @@ pub struct SearchRecord {
     /// Wall time of the plain run and of the search, seconds.
     pub plain_run_s: f64,
     pub search_s: f64,
+    /// When the search was not asked for but followed a run from the given
+    /// pose that failed (`bundle.fallback_search_m`): that run's error and
+    /// wall time, seconds (its held retry included).
+    pub after_failure: Option<String>,
+    pub first_run_s: Option<f64>,
 }
 
 /// Why the search found no placement.
@@ -541,6 +546,8 @@ pub fn search_placement(
         plain_pair_baseline: None,
         plain_run_s: 0.0,
         search_s: 0.0,
+        after_failure: None,
+        first_run_s: None,
     };
     Ok(Search { contenders, record })
 }

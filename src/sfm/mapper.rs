@@ -32,7 +32,8 @@ use super::initialize::{
     InitialPairFocalSweep, MapFocalEstimate,
 };
 use super::localise::{
-    search_placement, Search, SearchError, SearchOptions, SearchRegion, SAME_PLACE_M,
+    search_placement, Search, SearchError, SearchOptions, SearchRegion, DEFAULT_VERTICAL_M,
+    SAME_PLACE_M,
 };
 use super::options::{
     AssociationKind, BundleOptions, IntrinsicsRefinement, MapperOptions, OptionsError,
@@ -43,7 +44,7 @@ use super::register::{
 };
 use super::report::{
     AlignmentRecord, ImageRecord, InputModelRecord, IntrinsicsRecord, MapReport, PoseChangeRecord,
-    RetryRecord, RoundRecord, StageRecord, UncertaintySummary,
+    RestartRecord, RetryRecord, RoundRecord, StageRecord, UncertaintySummary,
 };
 use super::state::MapState;
 use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulate_image};
@@ -162,6 +163,39 @@ pub enum MapperError {
         first: Box<MapperError>,
         held: Box<MapperError>,
     },
+    /// The run from the given pose failed as if that pose were off, and the
+    /// search around it (`bundle.fallback_search_m`) failed too.
+    #[error(
+        "{first}\nSearched the map within {:.1} m and {:.0} deg of the given pose for a better one (options bundle.fallback_search_m and _deg); that failed too: {search}",
+        region.radius_m, region.yaw_deg
+    )]
+    FallbackSearchFailed {
+        first: Box<MapperError>,
+        region: SearchRegion,
+        search: Box<MapperError>,
+    },
+}
+
+impl MapperError {
+    /// Whether this error of a run from a given initial pose may mean that
+    /// the pose is off by more than the mapper's basin (about 0.5 m and
+    /// 5 deg), which a search of the map around it can correct: the model
+    /// does not fit the map, the initial image moved too far or slid, or
+    /// the map at that pose supports no start. Not an error of the inputs
+    /// (options, database, map) or of the solver.
+    pub fn may_be_a_pose_off(&self) -> bool {
+        match self {
+            Self::OffMap { .. }
+            | Self::InitialPoseFarOff { .. }
+            | Self::SlidAlongWeakDirection { .. } => true,
+            Self::Init(e) => matches!(
+                e,
+                InitError::NoMapSupport { .. } | InitError::NoSecondImage { .. }
+            ),
+            Self::RetryFailed { first, .. } => first.may_be_a_pose_off(),
+            _ => false,
+        }
+    }
 }
 
 /// How well a finished model fits the map: `fit_share` and the
@@ -490,7 +524,9 @@ pub fn run_mapper(
 /// it at the end (flagged `placed_by_prior` in the report) and refined by the
 /// final bundle adjustments. When the map did not hold the model, the run is
 /// repeated with the initial image held at its given pose
-/// (`bundle.retry_holding_initial`, see [`retry_reason`]).
+/// (`bundle.retry_holding_initial`, see [`retry_reason`]); when the initial
+/// image ended far from its given pose, it is mapped again from where it
+/// ended (`bundle.restart_from_refined_pose`, see [`restart_reason`]).
 pub fn run_mapper_with_priors(
     db: &DatabaseSnapshot,
     cloud: &PointCloud,
@@ -506,12 +542,172 @@ pub fn run_mapper_with_priors(
         cam_from_world: *init_cam_from_world,
         rough: false,
     };
+    let started = Instant::now();
     let run = |options: &MapperOptions| {
         let started = Instant::now();
         let outcome = map_once(db, cloud, &start, known_poses, options, &mut *progress);
         (outcome, started.elapsed().as_secs_f64())
     };
-    run_with_retries(options, db.images.len(), run)
+    let mut first = run_with_retries(options, db.images.len(), run)?;
+    let first_run_s = started.elapsed().as_secs_f64();
+    let Some(change) = restart_reason(&first, options) else {
+        return Ok(first);
+    };
+    let refined = first
+        .reconstruction
+        .pose(init_image)
+        .expect("a run that moved the initial image has its pose");
+    log::info!(
+        "the initial image ended {:.3} m and {:.2} deg from its given pose: mapping again from where it ended (option bundle.restart_from_refined_pose)",
+        change.moved_m,
+        change.turned_deg
+    );
+    let started = Instant::now();
+    let second = map_once(
+        db,
+        cloud,
+        &Start::InitialPose {
+            image: init_image,
+            cam_from_world: refined,
+            rough: false,
+        },
+        known_poses,
+        options,
+        &mut *progress,
+    );
+    let mut record = RestartRecord {
+        first_change: change,
+        first_fit_share: first.report.fit_share,
+        second_fit_share: None,
+        second_kept: false,
+        second_error: None,
+        first_run_s,
+        second_run_s: started.elapsed().as_secs_f64(),
+    };
+    match second {
+        Ok(mut out) => {
+            record.second_fit_share = out.report.fit_share;
+            record.second_kept = true;
+            // How far from the pose the user gave, not from the restart's.
+            out.report.initial_pose_change = out
+                .reconstruction
+                .pose(init_image)
+                .map(|pose| pose_change(&pose, init_cam_from_world));
+            out.report.restart = Some(record);
+            Ok(out)
+        }
+        Err(e) => {
+            log::warn!(
+                "the run from where the initial image ended failed; kept the first run: {e}"
+            );
+            record.second_error = Some(e.to_string());
+            first.report.restart = Some(record);
+            Ok(first)
+        }
+    }
+}
+
+/// A run whose initial image ended farther than this from its given pose
+/// (metres, degrees) is mapped again from where it ended
+/// (`bundle.restart_from_refined_pose`). Runs from exact poses moved it
+/// 0.9-2.0 mm and 0.009-0.016 deg on the seed-0 scenes; from the search's
+/// placements, 3.5-7.6 mm and 0.02-0.07 deg.
+const RESTART_MIN_CHANGE: (f64, f64) = (0.02, 0.2);
+
+/// How far a finished run's initial image ended from its given pose, when
+/// far enough to map again from there (see [`RESTART_MIN_CHANGE`]): not
+/// without LiDAR constraints (the image stays where it was given), and not
+/// after a retry (held at the given pose, or freed because the early hold
+/// failed).
+fn restart_reason(out: &MapperOutput, options: &MapperOptions) -> Option<PoseChangeRecord> {
+    if !options.bundle.restart_from_refined_pose
+        || options.association.kind == AssociationKind::None
+        || out.report.retry.is_some()
+    {
+        return None;
+    }
+    let change = out.report.initial_pose_change?;
+    (change.moved_m > RESTART_MIN_CHANGE.0 || change.turned_deg > RESTART_MIN_CHANGE.1)
+        .then_some(change)
+}
+
+/// Runs the whole mapper from a given initial pose
+/// ([`run_mapper_with_priors`]); when that fails as if the pose were off
+/// ([`MapperError::may_be_a_pose_off`]), searches the map around it
+/// ([`run_mapper_searching`] within `bundle.fallback_search_m` and `_deg`)
+/// and maps from what it finds. The report's `init_search.after_failure`
+/// says that the search followed a failure, and which.
+pub fn run_mapper_from_pose(
+    db: &DatabaseSnapshot,
+    cloud: &PointCloud,
+    init_image: ImageId,
+    init_cam_from_world: &Rigid3,
+    known_poses: &BTreeMap<ImageId, KnownPose>,
+    options: &MapperOptions,
+    progress: Progress<'_>,
+) -> Result<MapperOutput, MapperError> {
+    let started = Instant::now();
+    let first = run_mapper_with_priors(
+        db,
+        cloud,
+        init_image,
+        init_cam_from_world,
+        known_poses,
+        options,
+        &mut *progress,
+    );
+    let first_run_s = started.elapsed().as_secs_f64();
+    let region = SearchRegion {
+        radius_m: options.bundle.fallback_search_m,
+        yaw_deg: options.bundle.fallback_search_deg,
+        vertical_m: options.bundle.fallback_search_m.min(DEFAULT_VERTICAL_M),
+    };
+    let first_error = match first {
+        Err(e)
+            if e.may_be_a_pose_off()
+                && region.radius_m > 0.0
+                && options.association.kind != AssociationKind::None =>
+        {
+            e
+        }
+        other => return other,
+    };
+    log::warn!(
+        "the run from the given initial pose failed: {first_error}\nsearching the map within {} m and {} deg of that pose (options bundle.fallback_search_m and _deg)",
+        region.radius_m,
+        region.yaw_deg
+    );
+    match run_mapper_searching(
+        db,
+        cloud,
+        init_image,
+        init_cam_from_world,
+        &region,
+        known_poses,
+        options,
+        progress,
+    ) {
+        Ok(mut out) => {
+            let record = out
+                .report
+                .init_search
+                .as_mut()
+                .expect("a searched run has its record");
+            log::warn!(
+                "the search found the initial image {:.2} m and {:.1} deg from the given pose, and the model mapped from there passed the checks",
+                record.moved_m,
+                record.turned_deg
+            );
+            record.after_failure = Some(first_error.to_string());
+            record.first_run_s = Some(first_run_s);
+            Ok(out)
+        }
+        Err(search) => Err(MapperError::FallbackSearchFailed {
+            first: Box::new(first_error),
+            region,
+            search: Box::new(search),
+        }),
+    }
 }
 
 /// Two mapped models from the search's placements count as the same fit
@@ -706,6 +902,17 @@ pub fn run_mapper_searching(
             other_centre: [b.x, b.y, b.z],
         }));
     }
+    // Models that fit alike are in one place (else the error above): the
+    // same model, mapped from placements the run corrected. Keep the one
+    // from the search's best placement among them (its fit within
+    // [`SEARCH_SAME_FIT`] of the best): on the CI yard a contender 1 m off,
+    // which the run moved back (and mapped again from there,
+    // `bundle.restart_from_refined_pose`), fitted 0.95748 against the best
+    // placement's 0.95733.
+    let best = (0..runs.len())
+        .find(|&i| runs[i].1.is_ok() && fits[i].unwrap_or(0.0) >= best_fit - SEARCH_SAME_FIT)
+        .unwrap_or(best);
+    let best_fit = fits[best].unwrap_or(0.0);
     if best != 0 {
         log::warn!(
             "kept the model mapped from the search's placement {} of {} (fit {:.1} % against {})",
@@ -2740,6 +2947,32 @@ mod tests {
     }
 
     #[test]
+    fn a_run_whose_initial_image_moved_is_mapped_again_from_where_it_ended() {
+        let options = MapperOptions::default();
+        let moved = |m, deg| restart_reason(&finished_run(0.03, m, deg, 0.9), &options);
+        // From the exact pose (the seed-0 scenes: 0.9-2.0 mm, 0.009-0.016
+        // deg) or a search's placement (3.5-7.6 mm, 0.02-0.07 deg): no.
+        assert!(moved(0.002, 0.016).is_none());
+        assert!(moved(0.0076, 0.074).is_none());
+        assert!(moved(0.02, 0.2).is_none());
+        // From a pose 0.3 m / 3 deg off, or off in either alone: yes.
+        let change = moved(0.2997, 3.01).unwrap();
+        assert_eq!((change.moved_m, change.turned_deg), (0.2997, 3.01));
+        assert!(moved(0.021, 0.0).is_some());
+        assert!(moved(0.0, 0.21).is_some());
+        // Not when turned off, without the map's planes, or after a retry.
+        let mut off = options.clone();
+        off.bundle.restart_from_refined_pose = false;
+        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), &off).is_none());
+        let mut plain = options.clone();
+        plain.association.kind = AssociationKind::None;
+        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), &plain).is_none());
+        let mut retried = finished_run(0.03, 0.3, 3.0, 0.9);
+        retried.report.retry = Some(RetryRecord::default());
+        assert!(restart_reason(&retried, &options).is_none());
+    }
+
+    #[test]
     fn a_run_the_map_did_not_hold_is_retried_with_the_initial_image_held() {
         let options = MapperOptions::default();
         let reason = retry_reason(&off_map(), &options).unwrap();
@@ -3231,6 +3464,102 @@ mod tests {
         let unmeasured = message(0.95, None);
         assert!(unmeasured.contains("ratio not measured"), "{unmeasured}");
         assert!(!unmeasured.contains("raise those limits"), "{unmeasured}");
+    }
+
+    #[test]
+    fn only_errors_a_pose_off_can_cause_fall_back_to_a_search() {
+        let far = || MapperError::InitialPoseFarOff {
+            moved_m: 1.1,
+            turned_deg: 8.1,
+            max_m: 1.0,
+            max_deg: 10.0,
+            fit: None,
+        };
+        let off_map = MapperError::OffMap {
+            share: 0.45,
+            points: 15000,
+            removed: 70,
+            min_share: 0.6,
+            coverage: 1.0,
+            covered_fit: 0.45,
+            ratio: Some(4.4e-4),
+        };
+        let slid = MapperError::SlidAlongWeakDirection {
+            moved_m: 0.6,
+            turned_deg: 1.0,
+            max_m: 1.0,
+            max_deg: 10.0,
+            share: 0.8,
+            ratio: 2e-3,
+        };
+        let no_support = MapperError::Init(InitError::NoMapSupport {
+            name: "a.jpg".into(),
+            id: ImageId(1),
+            num_features: 900,
+            num_hits: 3,
+            num_supported: 0,
+            needed: 30,
+        });
+        let no_second = MapperError::Init(InitError::NoSecondImage {
+            name: "a.jpg".into(),
+            id: ImageId(1),
+            num_supported: 40,
+            attempts: Vec::new(),
+        });
+        for e in [far(), off_map, slid, no_support, no_second] {
+            assert!(e.may_be_a_pose_off(), "{e}");
+        }
+        // After the held retry: what the first run said decides.
+        let retried = MapperError::RetryFailed {
+            first: Box::new(far()),
+            held: Box::new(MapperError::EmptyMap),
+        };
+        assert!(retried.may_be_a_pose_off());
+        // The inputs' and the solver's errors, and the search's own: no.
+        let no_pairs = MapperError::NoVerifiedPairs("db".into());
+        let unknown = MapperError::UnknownImage(ImageId(9));
+        let ambiguous = MapperError::Search(SearchError::TooFewPoints(3));
+        let loose = MapperError::LooseSearchedModel {
+            centre: [0.0; 3],
+            share: 0.8,
+            ratio: 3e-3,
+            weakest: Vec::new(),
+        };
+        let inverted = MapperError::RetryFailed {
+            first: Box::new(MapperError::EmptyMap),
+            held: Box::new(far()),
+        };
+        for e in [
+            no_pairs,
+            unknown,
+            MapperError::EmptyMap,
+            MapperError::NoNormals,
+            ambiguous,
+            loose,
+            inverted,
+        ] {
+            assert!(!e.may_be_a_pose_off(), "{e}");
+        }
+        // The message keeps the first run's error and says what followed.
+        let message = MapperError::FallbackSearchFailed {
+            first: Box::new(far()),
+            region: SearchRegion {
+                radius_m: 2.0,
+                yaw_deg: 30.0,
+                vertical_m: 1.0,
+            },
+            search: Box::new(MapperError::Search(SearchError::TooFewPoints(3))),
+        }
+        .to_string();
+        assert!(
+            message.starts_with("the initial image ended 1.10 m and 8.1 deg"),
+            "{message}"
+        );
+        assert!(
+            message.contains("\nSearched the map within 2.0 m and 30 deg of the given pose")
+                && message.ends_with("that failed too: searching the map for the initial pose (--init-search): the model mapped without the map's planes has only 3 3D points"),
+            "{message}"
+        );
     }
 
     #[test]

@@ -32,7 +32,7 @@ pub mod state;
 pub mod triangulate;
 
 pub use mapper::{
-    extend_model, run_mapper, run_mapper_searching, run_mapper_with_priors, KnownPose, MapperError,
-    MapperOutput,
+    extend_model, run_mapper, run_mapper_from_pose, run_mapper_searching, run_mapper_with_priors,
+    KnownPose, MapperError, MapperOutput,
 };
 pub use options::MapperOptions;

@@ -361,6 +361,33 @@ pub struct BundleOptions {
     /// perturbed pose the held run fits 50 % and the run fails as before.
     /// Default true.
     pub retry_holding_initial: bool,
+    /// When the initial image ended more than 2 cm or 0.2 deg from its given
+    /// pose (the pose was off; runs from exact poses move it 1-2 mm and
+    /// 0.01-0.02 deg), map again from where it ended and keep that run if
+    /// it passes the checks. The initial image is held for its first
+    /// `fix_initial_for` registrations, so a model started from a pose 0.3 m
+    /// off is built around that error and only freed from it later, and it
+    /// ends where the map's grazing-angle bias lets it settle: the seed-0
+    /// corridor from 0.3 m / 3 deg off ended 2.4 mm off (scale 0.99959);
+    /// mapped again from where its initial image ended, 0.9 mm (scale
+    /// 0.999995), as from the exact pose. Costs a second run when the pose
+    /// was off. Not after a retry (`retry_holding_initial`). Default true.
+    pub restart_from_refined_pose: bool,
+    /// When the run from the given initial pose failed as if that pose were
+    /// off (the fit check, the initial pose's limit, the slid-along check,
+    /// or no map support or second image at that pose; also after the held
+    /// retry), search the map within this many metres of the given pose
+    /// (vertically at most 1 m) and map again from what the search finds,
+    /// as `map --init-search` does; its own checks still apply, and the
+    /// first run's error is in `report.json` → `init_search.after_failure`.
+    /// The mapper's own basin is about 0.5 m and 5 deg; the search, 2 m and
+    /// 20-30 deg on the seed-0 scenes (`docs/results.md`, sessions 35-38).
+    /// Not with `--init-search` (already a search) or
+    /// `--no-lidar-constraints`. 0 disables. Default 2.
+    pub fallback_search_m: f64,
+    /// The heading range of that search, degrees either way (180: any).
+    /// Default 30.
+    pub fallback_search_deg: f64,
     /// After the initial pair and again before the final rounds, move the
     /// whole model (shape held) onto the map: point-to-plane ICP over a
     /// similarity, coarse to fine (1 m to 0.1 m), kept only when more points
@@ -447,6 +474,9 @@ impl Default for BundleOptions {
             max_initial_pose_change_m: 1.0,
             max_initial_pose_change_deg: 10.0,
             retry_holding_initial: true,
+            restart_from_refined_pose: true,
+            fallback_search_m: 2.0,
+            fallback_search_deg: 30.0,
             align_to_map: true,
             num_threads: 1,
             uncertainty_max_images: 300,
@@ -498,6 +528,16 @@ impl BundleOptions {
         non_negative(
             "bundle.max_initial_pose_change_deg",
             self.max_initial_pose_change_deg,
+        )?;
+        check(
+            (0.0..=crate::sfm::localise::MAX_RADIUS_M).contains(&self.fallback_search_m),
+            "bundle.fallback_search_m",
+            "must be in 0..=10 (metres; 0 disables)",
+        )?;
+        check(
+            (0.0..=180.0).contains(&self.fallback_search_deg),
+            "bundle.fallback_search_deg",
+            "must be in 0..=180 (degrees)",
         )?;
         check(
             (1..=256).contains(&self.num_threads),

@@ -139,6 +139,13 @@ pub struct MapReport {
     /// given pose (`bundle.retry_holding_initial`): why, and which run this
     /// model is. The stages and solves are those of the kept run.
     pub retry: Option<RetryRecord>,
+    /// When the run was mapped again from where its initial image ended
+    /// (`bundle.restart_from_refined_pose`): how far the first run moved it,
+    /// and whether this model is the second run's. The stages and solves
+    /// are those of the kept run; the second run's solves record the
+    /// initial image's change from where the first run ended, while
+    /// `initial_pose_change` is from the given pose.
+    pub restart: Option<RestartRecord>,
     /// The alignment of the initial pair's model to the map, when run.
     pub initial_alignment: Option<AlignmentRecord>,
     /// The whole-model alignment to the map before the final rounds, when run.
@@ -195,6 +202,24 @@ pub struct MapReport {
 pub struct PoseChangeRecord {
     pub moved_m: f64,
     pub turned_deg: f64,
+}
+
+/// A second run started from where the first run's initial image ended,
+/// when that was far from its given pose.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct RestartRecord {
+    /// How far the first run's initial image ended from its given pose.
+    pub first_change: PoseChangeRecord,
+    /// The first run's `fit_share`, and the second's when it finished.
+    pub first_fit_share: Option<f64>,
+    pub second_fit_share: Option<f64>,
+    /// True when this model is the second run's; false when that run failed
+    /// (`second_error`) and the first run is kept.
+    pub second_kept: bool,
+    pub second_error: Option<String>,
+    /// Wall time of each run, seconds.
+    pub first_run_s: f64,
+    pub second_run_s: f64,
 }
 
 /// A second run with the initial image held at its given pose.

@@ -249,6 +249,8 @@ fn initial_image_held_through_registration_can_be_freed_for_the_final_rounds() {
         options.bundle.hold_initial_in_final_rounds = hold_in_final;
         options.bundle.align_to_map = false;
         options.bundle.retry_holding_initial = false;
+        // One run: its solves' records are from the given pose.
+        options.bundle.restart_from_refined_pose = false;
         let out = run_mapper(
             &scene.db,
             &scene.cloud,
