@@ -584,15 +584,29 @@ pub fn run_mapper_with_priors(
         first_run_s,
         second_run_s: started.elapsed().as_secs_f64(),
     };
+    // How far from the pose the user gave, not from the restart's: within
+    // the accepted change from it, as the first run was.
+    let second = second.and_then(|mut out| {
+        let change = out
+            .reconstruction
+            .pose(init_image)
+            .map(|pose| pose_change(&pose, init_cam_from_world));
+        if let Some(c) = change.filter(|c| pose_change_beyond(c, &options.bundle, 1.0)) {
+            return Err(MapperError::InitialPoseFarOff {
+                moved_m: c.moved_m,
+                turned_deg: c.turned_deg,
+                max_m: options.bundle.max_initial_pose_change_m,
+                max_deg: options.bundle.max_initial_pose_change_deg,
+                fit: None,
+            });
+        }
+        out.report.initial_pose_change = change;
+        Ok(out)
+    });
     match second {
         Ok(mut out) => {
             record.second_fit_share = out.report.fit_share;
             record.second_kept = true;
-            // How far from the pose the user gave, not from the restart's.
-            out.report.initial_pose_change = out
-                .reconstruction
-                .pose(init_image)
-                .map(|pose| pose_change(&pose, init_cam_from_world));
             out.report.restart = Some(record);
             Ok(out)
         }
