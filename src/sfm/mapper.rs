@@ -581,6 +581,7 @@ pub fn run_mapper_with_priors(
         second_fit_share: None,
         second_kept: false,
         second_error: None,
+        first_retry: None,
         first_run_s,
         second_run_s: started.elapsed().as_secs_f64(),
     };
@@ -607,6 +608,7 @@ pub fn run_mapper_with_priors(
         Ok(mut out) => {
             record.second_fit_share = out.report.fit_share;
             record.second_kept = true;
+            record.first_retry = first.report.retry.take().map(Box::new);
             out.report.restart = Some(record);
             Ok(out)
         }
@@ -631,12 +633,13 @@ const RESTART_MIN_CHANGE: (f64, f64) = (0.02, 0.2);
 /// How far a finished run's initial image ended from its given pose, when
 /// far enough to map again from there (see [`RESTART_MIN_CHANGE`]): not
 /// without LiDAR constraints (the image stays where it was given), and not
-/// after a retry (held at the given pose, or freed because the early hold
-/// failed).
+/// when the retry's held run is kept (held at the given pose). The run the
+/// retry freed from the start is (the seed-0 corridor from 0.9 m / 8 deg
+/// off: 3.4 mm, its initial image 0.90 m from the given pose).
 fn restart_reason(out: &MapperOutput, options: &MapperOptions) -> Option<PoseChangeRecord> {
     if !options.bundle.restart_from_refined_pose
         || options.association.kind == AssociationKind::None
-        || out.report.retry.is_some()
+        || out.report.retry.as_ref().is_some_and(|r| r.held_kept)
     {
         return None;
     }
@@ -2974,16 +2977,27 @@ mod tests {
         assert_eq!((change.moved_m, change.turned_deg), (0.2997, 3.01));
         assert!(moved(0.021, 0.0).is_some());
         assert!(moved(0.0, 0.21).is_some());
-        // Not when turned off, without the map's planes, or after a retry.
+        // After the retry: when its run free from the start is kept, yes;
+        // when its held run is, no (at the given pose).
+        let mut freed = finished_run(0.03, 0.9, 8.0, 0.9);
+        freed.report.retry = Some(RetryRecord {
+            free_kept: true,
+            ..Default::default()
+        });
+        assert!(restart_reason(&freed, &options).is_some());
+        // Not when turned off, without the map's planes, or held.
         let mut off = options.clone();
         off.bundle.restart_from_refined_pose = false;
         assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), &off).is_none());
         let mut plain = options.clone();
         plain.association.kind = AssociationKind::None;
         assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), &plain).is_none());
-        let mut retried = finished_run(0.03, 0.3, 3.0, 0.9);
-        retried.report.retry = Some(RetryRecord::default());
-        assert!(restart_reason(&retried, &options).is_none());
+        let mut held = finished_run(0.03, 0.3, 3.0, 0.9);
+        held.report.retry = Some(RetryRecord {
+            held_kept: true,
+            ..Default::default()
+        });
+        assert!(restart_reason(&held, &options).is_none());
     }
 
     #[test]

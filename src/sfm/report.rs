@@ -217,7 +217,10 @@ pub struct RestartRecord {
     /// (`second_error`) and the first run is kept.
     pub second_kept: bool,
     pub second_error: Option<String>,
-    /// Wall time of each run, seconds.
+    /// When the first run came from the retry (its run free from the start
+    /// kept) and the second is kept: the retry's record.
+    pub first_retry: Option<Box<RetryRecord>>,
+    /// Wall time of each run, seconds (the first's with its retry).
     pub first_run_s: f64,
     pub second_run_s: f64,
 }
