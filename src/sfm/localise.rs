@@ -51,6 +51,16 @@ pub struct SearchRegion {
 }
 
 impl SearchRegion {
+    /// Within `radius_m` horizontally and `yaw_deg` of heading, vertically
+    /// the default: the radius, at most [`DEFAULT_VERTICAL_M`].
+    pub fn around(radius_m: f64, yaw_deg: f64) -> Self {
+        Self {
+            radius_m,
+            yaw_deg,
+            vertical_m: radius_m.min(DEFAULT_VERTICAL_M),
+        }
+    }
+
     /// Parses `METRES,DEGREES[,VERTICAL_METRES]`.
     pub fn parse(s: &str) -> Result<Self, String> {
         let parts: Vec<&str> = s.split(',').map(str::trim).collect();
@@ -70,15 +80,13 @@ impl SearchRegion {
                 .filter(|x| x.is_finite() && *x >= 0.0)
                 .ok_or_else(|| format!("{what} must be a number >= 0, got `{v}`"))
         };
-        let radius_m = parse(m, "the radius (metres)")?;
-        let region = Self {
-            radius_m,
-            yaw_deg: parse(d, "the heading range (degrees)")?.min(180.0),
-            vertical_m: match v {
-                Some(v) => parse(v, "the vertical range (metres)")?,
-                None => radius_m.min(DEFAULT_VERTICAL_M),
-            },
-        };
+        let mut region = Self::around(
+            parse(m, "the radius (metres)")?,
+            parse(d, "the heading range (degrees)")?.min(180.0),
+        );
+        if let Some(v) = v {
+            region.vertical_m = parse(v, "the vertical range (metres)")?;
+        }
         for (what, metres) in [
             ("radius", region.radius_m),
             ("vertical range", region.vertical_m),

@@ -32,8 +32,7 @@ use super::initialize::{
     InitialPairFocalSweep, MapFocalEstimate,
 };
 use super::localise::{
-    search_placement, Search, SearchError, SearchOptions, SearchRegion, DEFAULT_VERTICAL_M,
-    SAME_PLACE_M,
+    search_placement, Search, SearchError, SearchOptions, SearchRegion, SAME_PLACE_M,
 };
 use super::options::{
     AssociationKind, BundleOptions, IntrinsicsRefinement, MapperOptions, OptionsError,
@@ -674,11 +673,10 @@ pub fn run_mapper_from_pose(
         &mut *progress,
     );
     let first_run_s = started.elapsed().as_secs_f64();
-    let region = SearchRegion {
-        radius_m: options.bundle.fallback_search_m,
-        yaw_deg: options.bundle.fallback_search_deg,
-        vertical_m: options.bundle.fallback_search_m.min(DEFAULT_VERTICAL_M),
-    };
+    let region = SearchRegion::around(
+        options.bundle.fallback_search_m,
+        options.bundle.fallback_search_deg,
+    );
     let first_error = match first {
         Err(e)
             if e.may_be_a_pose_off()
