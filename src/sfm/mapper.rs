@@ -535,58 +535,21 @@ pub fn run_mapper_with_priors(
     options: &MapperOptions,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
-    // One run and its wall time, seconds.
     let start = Start::InitialPose {
         image: init_image,
         cam_from_world: *init_cam_from_world,
         rough: false,
     };
-    let started = Instant::now();
-    let run = |options: &MapperOptions| {
-        let started = Instant::now();
-        let outcome = map_once(db, cloud, &start, known_poses, options, &mut *progress);
-        (outcome, started.elapsed().as_secs_f64())
-    };
-    let mut first = run_with_retries(options, db.images.len(), run)?;
-    let first_run_s = started.elapsed().as_secs_f64();
-    let Some(change) = restart_reason(&first, options) else {
-        return Ok(first);
-    };
-    let refined = first
-        .reconstruction
-        .pose(init_image)
-        .expect("a run that moved the initial image has its pose");
-    log::info!(
-        "the initial image ended {:.3} m and {:.2} deg from its given pose: mapping again from where it ended (option bundle.restart_from_refined_pose)",
-        change.moved_m,
-        change.turned_deg
-    );
-    let started = Instant::now();
-    let second = map_once(
-        db,
-        cloud,
-        &Start::InitialPose {
+    // A run from where the initial image ended (or was, when the first run
+    // stopped early): kept only within the accepted change from the pose the
+    // user gave, as the first run is, and its change measured from there.
+    let from_refined = |refined: &Rigid3, progress: &mut dyn FnMut(usize, usize)| {
+        let start = Start::InitialPose {
             image: init_image,
-            cam_from_world: refined,
+            cam_from_world: *refined,
             rough: false,
-        },
-        known_poses,
-        options,
-        &mut *progress,
-    );
-    let mut record = RestartRecord {
-        first_change: change,
-        first_fit_share: first.report.fit_share,
-        second_fit_share: None,
-        second_kept: false,
-        second_error: None,
-        first_retry: None,
-        first_run_s,
-        second_run_s: started.elapsed().as_secs_f64(),
-    };
-    // How far from the pose the user gave, not from the restart's: within
-    // the accepted change from it, as the first run was.
-    let second = second.and_then(|mut out| {
+        };
+        let mut out = map_once(db, cloud, &start, known_poses, options, progress)?;
         let change = out
             .reconstruction
             .pose(init_image)
@@ -602,25 +565,165 @@ pub fn run_mapper_with_priors(
         }
         out.report.initial_pose_change = change;
         Ok(out)
-    });
-    match second {
-        Ok(mut out) => {
-            record.second_fit_share = out.report.fit_share;
-            record.second_kept = true;
-            record.first_retry = first.report.retry.take().map(Box::new);
-            out.report.restart = Some(record);
-            Ok(out)
+    };
+    // Maps `first` (`first_run_s` seconds) again from where its initial
+    // image ended, `change` from where it started; keeps `first` when that
+    // run fails.
+    let restart_from_end = |mut first: MapperOutput,
+                            change: PoseChangeRecord,
+                            first_run_s: f64,
+                            progress: &mut dyn FnMut(usize, usize)| {
+        let refined = first
+            .reconstruction
+            .pose(init_image)
+            .expect("a run that moved the initial image has its pose");
+        log::info!(
+            "the initial image ended {:.3} m and {:.2} deg from where the run started it: mapping again from where it ended (option bundle.restart_from_refined_pose)",
+            change.moved_m,
+            change.turned_deg
+        );
+        let started = Instant::now();
+        let second = from_refined(&refined, progress);
+        let mut record = RestartRecord {
+            first_change: change,
+            first_fit_share: first.report.fit_share,
+            first_run_s,
+            second_run_s: started.elapsed().as_secs_f64(),
+            ..Default::default()
+        };
+        match second {
+            Ok(mut out) => {
+                record.second_fit_share = out.report.fit_share;
+                record.second_kept = true;
+                record.first_retry = first.report.retry.take().map(Box::new);
+                out.report.early_restart = first.report.early_restart.take();
+                out.report.restart = Some(record);
+                out
+            }
+            Err(e) => {
+                log::warn!(
+                    "the run from where the initial image ended failed; kept the run before: {e}"
+                );
+                record.second_error = Some(e.to_string());
+                first.report.restart = Some(record);
+                first
+            }
         }
-        Err(e) => {
-            log::warn!(
-                "the run from where the initial image ended failed; kept the first run: {e}"
+    };
+
+    // The first run, which may stop early to map again from where the
+    // initial image is (`bundle.restart_early_at_images`).
+    let b = &options.bundle;
+    let look_at = (b.restart_from_refined_pose
+        && b.restart_early_at_images > 0
+        && db.images.len() >= EARLY_RESTART_MIN_SHARE * b.restart_early_at_images
+        && options.association.kind != AssociationKind::None)
+        .then_some(b.restart_early_at_images);
+    let started = Instant::now();
+    let early = map_until(
+        db,
+        cloud,
+        &start,
+        known_poses,
+        options,
+        look_at,
+        &mut *progress,
+    );
+    let early_s = started.elapsed().as_secs_f64();
+    let (first_outcome, failed_early) = match early {
+        Ok(RunEnd::Moved {
+            cam_from_world,
+            change,
+            registered,
+        }) => {
+            log::info!(
+                "at {registered} images the initial image is {:.3} m and {:.2} deg from its given pose: mapping again from there (options bundle.restart_from_refined_pose, restart_early_at_images)",
+                change.moved_m,
+                change.turned_deg
             );
-            record.second_error = Some(e.to_string());
-            first.report.restart = Some(record);
-            Ok(first)
+            let started = Instant::now();
+            let second = from_refined(&cam_from_world, &mut *progress);
+            let second_run_s = started.elapsed().as_secs_f64();
+            let mut record = RestartRecord {
+                first_change: change,
+                first_stopped_at_images: Some(registered),
+                first_run_s: early_s,
+                second_run_s,
+                ..Default::default()
+            };
+            match second {
+                Ok(mut out) => {
+                    record.second_fit_share = out.report.fit_share;
+                    record.second_kept = true;
+                    out.report.early_restart = Some(record);
+                    // Where the early look found the image unsettled, the
+                    // run from there moved it again: from where it ended.
+                    let moved = out
+                        .reconstruction
+                        .pose(init_image)
+                        .map(|pose| pose_change(&pose, &cam_from_world));
+                    return Ok(match moved.filter(|c| beyond(c, EARLY_RESTART_SETTLED)) {
+                        Some(moved) => restart_from_end(out, moved, second_run_s, &mut *progress),
+                        None => out,
+                    });
+                }
+                Err(e) => {
+                    log::warn!(
+                        "the run from where the initial image was at {registered} images failed: {e}\nmapping from the given pose to the end"
+                    );
+                    record.second_error = Some(e.to_string());
+                    (None, Some(record))
+                }
+            }
         }
-    }
+        Ok(RunEnd::Finished(out)) => (Some((Ok(*out), early_s)), None),
+        Err(e) => (Some((Err(e), early_s)), None),
+    };
+
+    // The first run to its end (as it finished, or again after a failed
+    // early restart), with the retries.
+    let mut first_outcome = first_outcome;
+    let finished_s = first_outcome.as_ref().map_or(0.0, |(_, s)| *s);
+    let started = Instant::now();
+    let run = |options: &MapperOptions| {
+        if let Some(done) = first_outcome.take() {
+            return done;
+        }
+        let started = Instant::now();
+        let outcome = map_once(db, cloud, &start, known_poses, options, &mut *progress);
+        (outcome, started.elapsed().as_secs_f64())
+    };
+    let mut first = run_with_retries(options, db.images.len(), run)?;
+    let first_run_s = finished_s + started.elapsed().as_secs_f64();
+    first.report.early_restart = failed_early;
+    Ok(match restart_reason(&first, options) {
+        Some(change) => restart_from_end(first, change, first_run_s, &mut *progress),
+        None => first,
+    })
 }
+
+/// The early look (`bundle.restart_early_at_images`) happens only in a
+/// database of at least this many times as many images: below, the run it
+/// saves is short, and the look comes before the model has seen enough to
+/// hold it (the 24-image corridor's walk turns back late: from 0.3 m / 3
+/// deg off, at 17 images the initial image was 0.2 m from where it ended).
+const EARLY_RESTART_MIN_SHARE: usize = 3;
+
+/// At the early look, the initial image must have moved farther than this
+/// from its given pose (metres, degrees) for the run to stop there. More
+/// than at the end ([`RESTART_MIN_CHANGE`]): once released, the image
+/// slides along a corridor and comes back as the model grows. From the
+/// exact pose the seed-0 100-image corridor's was 3.4 cm and 0.04 deg off
+/// at 17 images (0.9 mm at the end); from 0.3 m / 3 deg off, 0.32 m and
+/// 3.0 deg.
+const EARLY_LOOK_MIN_CHANGE: (f64, f64) = (0.1, 0.2);
+
+/// After an early restart, a run whose initial image ended farther than
+/// this from where it was started (metres, degrees) is mapped again from
+/// there. Started 1.5-2 cm from where it ended, the seed-0 100-image
+/// corridor came out as from the full run's end (1.1 mm median); started
+/// 0.2 m off (the 24-image corridor at 17 images), 1.0 mm against 0.8.
+const EARLY_RESTART_SETTLED: (f64, f64) = (0.05, 0.5);
 
 /// A run whose initial image ended farther than this from its given pose
 /// (metres, degrees) is mapped again from where it ended
@@ -643,8 +746,12 @@ fn restart_reason(out: &MapperOutput, options: &MapperOptions) -> Option<PoseCha
         return None;
     }
     let change = out.report.initial_pose_change?;
-    (change.moved_m > RESTART_MIN_CHANGE.0 || change.turned_deg > RESTART_MIN_CHANGE.1)
-        .then_some(change)
+    beyond(&change, RESTART_MIN_CHANGE).then_some(change)
+}
+
+/// Whether `change` is beyond `limit` (metres, degrees).
+fn beyond(change: &PoseChangeRecord, limit: (f64, f64)) -> bool {
+    change.moved_m > limit.0 || change.turned_deg > limit.1
 }
 
 /// Runs the whole mapper from a given initial pose
@@ -1385,6 +1492,39 @@ fn map_once(
     options: &MapperOptions,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
+    match map_until(db, cloud, start, known_poses, options, None, progress)? {
+        RunEnd::Finished(out) => Ok(*out),
+        RunEnd::Moved { .. } => unreachable!("a run that does not look early always finishes"),
+    }
+}
+
+/// How a run that may stop early ([`map_until`]) ended.
+enum RunEnd {
+    Finished(Box<MapperOutput>),
+    /// Stopped once `registered` images were registered: the initial image
+    /// had moved `change` from its given pose, to `cam_from_world`.
+    Moved {
+        cam_from_world: Rigid3,
+        change: PoseChangeRecord,
+        registered: usize,
+    },
+}
+
+/// One run of the mapper with `options` as they are; with `look_at` (an
+/// image count), it looks at the initial image once, at the first sphere
+/// solve with at least that many images registered and the image released
+/// (`bundle.fix_initial_for`), and stops there when the image moved far
+/// enough to map again from where it is ([`EARLY_LOOK_MIN_CHANGE`]) and within
+/// the accepted change (`bundle.max_initial_pose_change_m`, `_deg`).
+fn map_until(
+    db: &DatabaseSnapshot,
+    cloud: &PointCloud,
+    start: &Start<'_>,
+    known_poses: &BTreeMap<ImageId, KnownPose>,
+    options: &MapperOptions,
+    look_at: Option<usize>,
+    progress: Progress<'_>,
+) -> Result<RunEnd, MapperError> {
     options.validate()?;
     match start {
         Start::InitialPose { image, .. } if !db.images.contains_key(image) => {
@@ -1765,6 +1905,8 @@ fn map_once(
     let mut last_global_size = state.num_registered();
     let mut since_global = 0usize;
     let mut retriangulated = false;
+    // Whether the early look (`look_at`) happened.
+    let mut looked = false;
     loop {
         let candidates = next_best_images(&state, &failed, &options.register);
         let mut registered = None;
@@ -1891,6 +2033,33 @@ fn map_once(
             )?;
             since_global = 0;
             last_global_size = state.num_registered();
+            let registered = state.num_registered();
+            let init_pose = initial
+                .and_then(|(image, given, _)| Some((state.images[&image].cam_from_world?, given)));
+            if let Some((pose, given)) = init_pose.filter(|_| lidar_gauge) {
+                let change = pose_change(&pose, &given);
+                log::debug!(
+                    "after the sphere solve at {registered} images the initial image is {:.4} m and {:.3} deg from its given pose (similarity constraint {:?})",
+                    change.moved_m,
+                    change.turned_deg,
+                    similarity_constraint(&state).map(|c| c.ratio)
+                );
+                let look = look_at.is_some_and(|n| {
+                    registered >= n && registered > options.bundle.fix_initial_for
+                });
+                if look && !looked {
+                    looked = true;
+                    if beyond(&change, EARLY_LOOK_MIN_CHANGE)
+                        && !pose_change_beyond(&change, &options.bundle, 1.0)
+                    {
+                        return Ok(RunEnd::Moved {
+                            cam_from_world: pose,
+                            change,
+                            registered,
+                        });
+                    }
+                }
+            }
         }
         progress(state.num_registered(), state.images.len());
     }
@@ -2206,10 +2375,10 @@ fn map_once(
         report.num_points,
         report.mean_reprojection_error_px
     );
-    Ok(MapperOutput {
+    Ok(RunEnd::Finished(Box::new(MapperOutput {
         reconstruction: state.to_reconstruction(),
         report,
-    })
+    })))
 }
 
 /// Local BA in `options.bundle.local_passes` passes, each after a

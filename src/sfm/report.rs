@@ -146,6 +146,12 @@ pub struct MapReport {
     /// initial image's change from where the first run ended, while
     /// `initial_pose_change` is from the given pose.
     pub restart: Option<RestartRecord>,
+    /// When the first run stopped early to map again from where its initial
+    /// image was (`bundle.restart_early_at_images`): how far it had moved,
+    /// and whether this model comes from that run (`second_kept`; then a
+    /// `restart` after it is from where that run ended) or it failed and the
+    /// first run was mapped again from the given pose to its end.
+    pub early_restart: Option<RestartRecord>,
     /// The alignment of the initial pair's model to the map, when run.
     pub initial_alignment: Option<AlignmentRecord>,
     /// The whole-model alignment to the map before the final rounds, when run.
@@ -208,9 +214,14 @@ pub struct PoseChangeRecord {
 /// when that was far from its given pose.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct RestartRecord {
-    /// How far the first run's initial image ended from its given pose.
+    /// How far the first run's initial image ended from its given pose (or
+    /// was, when it stopped early).
     pub first_change: PoseChangeRecord,
-    /// The first run's `fit_share`, and the second's when it finished.
+    /// When the first run stopped early (`bundle.restart_early_at_images`):
+    /// the number of images it had registered.
+    pub first_stopped_at_images: Option<usize>,
+    /// The first run's `fit_share` (none when it stopped early), and the
+    /// second's when it finished.
     pub first_fit_share: Option<f64>,
     pub second_fit_share: Option<f64>,
     /// True when this model is the second run's; false when that run failed

@@ -215,18 +215,32 @@ fn max_centre_error(
 /// Runs the mapper on a toy from image 1 at its initial pose; the output
 /// and the largest camera-centre error.
 fn map_toy(scene: &Toy, options: &MapperOptions) -> (colmap_lidar::sfm::MapperOutput, f64) {
-    let init = scene.init_pose.to_cam_from_world();
+    map_toy_from(scene, &scene.init_pose.to_cam_from_world(), options)
+}
+
+/// [`map_toy`] from image 1 at `given`.
+fn map_toy_from(
+    scene: &Toy,
+    given: &Rigid3,
+    options: &MapperOptions,
+) -> (colmap_lidar::sfm::MapperOutput, f64) {
     let out = run_mapper(
         &scene.db,
         &scene.cloud,
         ImageId(1),
-        &init,
+        given,
         options,
         &mut |_, _| {},
     )
     .unwrap();
     let err = max_centre_error(&out.reconstruction, &scene.gt);
     (out, err)
+}
+
+/// The toy's initial pose with its centre moved by `by`, metres.
+fn initial_pose_moved(scene: &Toy, by: Vector3<f64>) -> Rigid3 {
+    let truth = scene.init_pose.to_cam_from_world();
+    Rigid3::from_rotation_and_center(truth.rotation, &(truth.camera_center() + by))
 }
 
 /// The initial image given 10 cm off and held through registration
@@ -238,11 +252,7 @@ fn map_toy(scene: &Toy, options: &MapperOptions) -> (colmap_lidar::sfm::MapperOu
 #[test]
 fn initial_image_held_through_registration_can_be_freed_for_the_final_rounds() {
     let scene = toy(14, 0.3, 0.03, 1);
-    let truth = scene.init_pose.to_cam_from_world();
-    let given = Rigid3::from_rotation_and_center(
-        truth.rotation,
-        &(truth.camera_center() + Vector3::new(0.1, 0.0, 0.0)),
-    );
+    let given = initial_pose_moved(&scene, Vector3::new(0.1, 0.0, 0.0));
     let run = |hold_in_final: bool| {
         let mut options = MapperOptions::default();
         options.bundle.fix_initial_for = 1000;
@@ -251,16 +261,7 @@ fn initial_image_held_through_registration_can_be_freed_for_the_final_rounds() {
         options.bundle.retry_holding_initial = false;
         // One run: its solves' records are from the given pose.
         options.bundle.restart_from_refined_pose = false;
-        let out = run_mapper(
-            &scene.db,
-            &scene.cloud,
-            ImageId(1),
-            &given,
-            &options,
-            &mut |_, _| {},
-        )
-        .unwrap();
-        let err = max_centre_error(&out.reconstruction, &scene.gt);
+        let (out, err) = map_toy_from(&scene, &given, &options);
         let moved = out.report.initial_pose_change.as_ref().unwrap().moved_m;
         // Each solve records where the initial image was: through
         // registration exactly at its given pose.
@@ -293,6 +294,61 @@ fn initial_image_held_through_registration_can_be_freed_for_the_final_rounds() {
     assert!(held_err > 0.05, "{held_err}");
     assert!(freed_moved > 0.05, "{freed_moved}");
     assert!(freed_err < 0.5 * held_err, "{freed_err} vs {held_err}");
+}
+
+/// The initial image given 15 cm off (no alignment to the map, so it is
+/// held there for its first 8 registrations): with
+/// `bundle.restart_early_at_images`, the first run looks at it once it is
+/// released and the model has that many images, sees it moved, stops and
+/// maps again from there; looking only at the end maps the whole first run.
+/// Both come out right; the early look is skipped in databases of fewer
+/// than three times its image count.
+#[test]
+fn a_run_whose_initial_image_moved_early_is_mapped_again_from_there() {
+    let scene = toy(30, 0.3, 0.03, 1);
+    let given = initial_pose_moved(&scene, Vector3::new(0.15, 0.0, 0.0));
+    let run = |look_at: usize| {
+        let mut options = MapperOptions::default();
+        options.bundle.align_to_map = false;
+        options.bundle.restart_early_at_images = look_at;
+        map_toy_from(&scene, &given, &options)
+    };
+    let (early, early_err) = run(10);
+    let (full, full_err) = run(0);
+    eprintln!(
+        "early restart: max error {early_err:.4} m, {:?}; full: {full_err:.4} m, {:?}",
+        early.report.early_restart, full.report.restart
+    );
+    let record = early
+        .report
+        .early_restart
+        .as_ref()
+        .expect("an early restart");
+    let at = record.first_stopped_at_images.expect("stopped early");
+    assert!((10..30).contains(&at), "{at}");
+    assert!(
+        record.second_kept && record.second_error.is_none(),
+        "{record:?}"
+    );
+    assert!(record.first_fit_share.is_none());
+    assert!(record.first_change.moved_m > 0.1, "{record:?}");
+    assert_eq!(early.report.num_registered, 30);
+    // Measured from the given pose, as without the restart.
+    let change = early.report.initial_pose_change.expect("measured");
+    assert!((change.moved_m - 0.15).abs() < 0.02, "{change:?}");
+    assert!(early_err < 0.02, "{early_err}");
+    // Looking only at the end: the whole first run, then the restart.
+    assert!(full.report.early_restart.is_none());
+    let restart = full.report.restart.as_ref().expect("a restart");
+    assert!(restart.first_stopped_at_images.is_none() && restart.second_kept);
+    assert!(full_err < 0.02, "{full_err}");
+    // 30 images are fewer than three times 11: no early look.
+    let (late, _) = run(11);
+    assert!(late.report.early_restart.is_none());
+    assert_eq!(
+        late.reconstruction.pose(ImageId(1)),
+        full.reconstruction.pose(ImageId(1))
+    );
 }
 
 /// A map sampled every 15 cm (the defaults suit 2-5 cm): the mapper finds
