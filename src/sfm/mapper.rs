@@ -642,7 +642,20 @@ pub fn run_mapper_with_priors(
                 change.turned_deg
             );
             let started = Instant::now();
-            let second = from_refined(&cam_from_world, &mut *progress);
+            // A run the retry would follow ([`retry_reason`]: the map leaves
+            // the model nearly free and the image moved far) counts as failed
+            // here: the first run from the given pose, with the retries,
+            // decides then.
+            let second = match from_refined(&cam_from_world, &mut *progress) {
+                Ok(out) => {
+                    let outcome = Ok(out);
+                    match retry_reason(&outcome, options) {
+                        Some(why) => Err(why),
+                        None => outcome.map_err(|e: MapperError| e.to_string()),
+                    }
+                }
+                Err(e) => Err(e.to_string()),
+            };
             let second_run_s = started.elapsed().as_secs_f64();
             let mut record = RestartRecord {
                 first_change: change,
@@ -676,7 +689,7 @@ pub fn run_mapper_with_priors(
                     log::warn!(
                         "the run from where the initial image was at {registered} images failed: {e}\nmapping from the given pose to the end"
                     );
-                    record.second_error = Some(e.to_string());
+                    record.second_error = Some(e);
                     (None, Some(record))
                 }
             }

@@ -149,8 +149,9 @@ pub struct MapReport {
     /// When the first run stopped early to map again from where its initial
     /// image was (`bundle.restart_early_at_images`): how far it had moved,
     /// and whether this model comes from that run (`second_kept`; then a
-    /// `restart` after it is from where that run ended) or it failed and the
-    /// first run was mapped again from the given pose to its end.
+    /// `restart` after it is from where that run ended) or it failed (or
+    /// called for the held retry: `second_error` says why) and the first run
+    /// was mapped again from the given pose to its end.
     pub early_restart: Option<RestartRecord>,
     /// The alignment of the initial pair's model to the map, when run.
     pub initial_alignment: Option<AlignmentRecord>,
