@@ -215,8 +215,9 @@ pub struct PoseChangeRecord {
 /// when that was far from its given pose.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct RestartRecord {
-    /// How far the first run's initial image ended from its given pose (or
-    /// was, when it stopped early).
+    /// How far the first run's initial image ended (or was, when it stopped
+    /// early) from where that run started it: the given pose, or, for a
+    /// `restart` after a kept `early_restart`, the early look's pose.
     pub first_change: PoseChangeRecord,
     /// When the first run stopped early (`bundle.restart_early_at_images`):
     /// the number of images it had registered.
