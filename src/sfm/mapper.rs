@@ -646,15 +646,10 @@ pub fn run_mapper_with_priors(
             // the model nearly free and the image moved far) counts as failed
             // here: the first run from the given pose, with the retries,
             // decides then.
-            let second = match from_refined(&cam_from_world, &mut *progress) {
-                Ok(out) => {
-                    let outcome = Ok(out);
-                    match retry_reason(&outcome, options) {
-                        Some(why) => Err(why),
-                        None => outcome.map_err(|e: MapperError| e.to_string()),
-                    }
-                }
-                Err(e) => Err(e.to_string()),
+            let second = from_refined(&cam_from_world, &mut *progress);
+            let second = match retry_reason(&second, options) {
+                Some(why) => Err(why),
+                None => second.map_err(|e| e.to_string()),
             };
             let second_run_s = started.elapsed().as_secs_f64();
             let mut record = RestartRecord {
@@ -700,18 +695,16 @@ pub fn run_mapper_with_priors(
 
     // The first run to its end (as it finished, or again after a failed
     // early restart), with the retries.
-    let mut first_outcome = first_outcome;
-    let finished_s = first_outcome.as_ref().map_or(0.0, |(_, s)| *s);
     let started = Instant::now();
-    let run = |options: &MapperOptions| {
-        if let Some(done) = first_outcome.take() {
-            return done;
-        }
+    let mut run = |options: &MapperOptions| {
         let started = Instant::now();
         let outcome = map_once(db, cloud, &start, known_poses, options, &mut *progress);
         (outcome, started.elapsed().as_secs_f64())
     };
-    let mut first = run_with_retries(options, db.images.len(), run)?;
+    // A run that finished at once was timed then.
+    let finished_s = first_outcome.as_ref().map_or(0.0, |(_, s)| *s);
+    let first_outcome = first_outcome.unwrap_or_else(|| run(options));
+    let mut first = run_with_retries(options, db.images.len(), first_outcome, run)?;
     let first_run_s = finished_s + started.elapsed().as_secs_f64();
     first.report.early_restart = failed_early;
     Ok(match restart_reason(&first, options) {
@@ -1247,18 +1240,19 @@ enum Start<'a> {
     Model(&'a ExistingModel),
 }
 
-/// The retry schedule of [`run_mapper_with_priors`] around `run` (one mapper
-/// run with the given options and its wall time, seconds) for a database of
-/// `num_images` images: the run as configured; when [`retry_reason`] calls
+/// The retry schedule of [`run_mapper_with_priors`] after `first` (the run
+/// as configured and its wall time, seconds), with `run` (one mapper run with
+/// the given options and its wall time) for a database of `num_images`
+/// images: `first`; when [`retry_reason`] calls
 /// for it and the initial image was held only early, the run free from the
 /// start; when that fails too, or when there was no early hold, the run with
 /// the initial image held throughout, and [`pick_run`] between the two.
 fn run_with_retries(
     options: &MapperOptions,
     num_images: usize,
+    (first, first_run_s): (Result<MapperOutput, MapperError>, f64),
     mut run: impl FnMut(&MapperOptions) -> (Result<MapperOutput, MapperError>, f64),
 ) -> Result<MapperOutput, MapperError> {
-    let (first, first_run_s) = run(options);
     let holds_already =
         options.bundle.fix_initial_for >= num_images && options.bundle.hold_initial_in_final_rounds;
     let Some(reason) = retry_reason(&first, options).filter(|_| !holds_already) else {
@@ -1917,8 +1911,8 @@ fn map_until(
     let mut last_global_size = state.num_registered();
     let mut since_global = 0usize;
     let mut retriangulated = false;
-    // Whether the early look (`look_at`) happened.
-    let mut looked = false;
+    // The early look, until it happened.
+    let mut look_at = look_at;
     loop {
         let candidates = next_best_images(&state, &failed, &options.register);
         let mut registered = None;
@@ -2059,8 +2053,8 @@ fn map_until(
                 let look = look_at.is_some_and(|n| {
                     registered >= n && registered > options.bundle.fix_initial_for
                 });
-                if look && !looked {
-                    looked = true;
+                if look {
+                    look_at = None;
                     if beyond(&change, EARLY_LOOK_MIN_CHANGE)
                         && !pose_change_beyond(&change, &options.bundle, 1.0)
                     {
@@ -3377,10 +3371,12 @@ mod tests {
             |options: &MapperOptions,
              outcome: &dyn Fn(Which) -> Result<MapperOutput, MapperError>| {
                 let mut calls = Vec::new();
-                let result = run_with_retries(options, N, |o| {
+                let mut run = |o: &MapperOptions| {
                     calls.push(which(o));
                     (outcome(which(o)), calls.len() as f64)
-                });
+                };
+                let first = run(options);
+                let result = run_with_retries(options, N, first, run);
                 (result, calls)
             };
 
