@@ -188,6 +188,49 @@ pub struct EvaluationReport {
     /// Errors over the uncertainties the model reported for itself (see
     /// [`EvaluationReport::compare_with_uncertainty`]).
     pub error_over_sigma: Option<ErrorOverSigma>,
+    /// The model's error split into where it is placed as a whole and its
+    /// shape (with at least 3 registered images with distinct centres).
+    pub placement: Option<Placement>,
+}
+
+/// A model's error as a whole: the best similarity from the model to the
+/// reference (least squares over camera centres) read as the model's
+/// placement error, and what remains after it (the shape error). For a tool
+/// whose model is placed by a map, the first is what the map fixed, the
+/// second what the images did.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Placement {
+    /// Where the model's mean camera centre lies relative to where the
+    /// reference puts that point, metres, the reference's axes.
+    pub shift_m: [f64; 3],
+    /// The model's rotation relative to the reference as a rotation vector,
+    /// degrees (its length is the angle).
+    pub rotation_deg: [f64; 3],
+    /// The model's size over the reference's (1: right).
+    pub scale: f64,
+    /// Camera-centre errors after the best similarity, metres.
+    pub shape_error_m: Stats,
+}
+
+impl Placement {
+    /// The placement of a model whose best similarity onto the reference
+    /// is `to_reference`; `model_centres` are its registered camera centres,
+    /// `shape_errors` their errors after that similarity.
+    fn of(to_reference: &Sim3, model_centres: &[Vector3<f64>], shape_errors: &[f64]) -> Option<Self> {
+        let shape_error_m = Stats::of(shape_errors)?;
+        let centroid = model_centres.iter().sum::<Vector3<f64>>() / model_centres.len() as f64;
+        let shift = centroid - to_reference.transform_point(&centroid);
+        // The model is turned by R^T and scaled by 1 / s against the reference.
+        let turn = nalgebra::Rotation3::from_matrix_unchecked(to_reference.rotation.transpose())
+            .scaled_axis()
+            .map(f64::to_degrees);
+        Some(Self {
+            shift_m: shift.into(),
+            rotation_deg: turn.into(),
+            scale: 1.0 / to_reference.scale,
+            shape_error_m,
+        })
+    }
 }
 
 /// One image's reported uncertainty (one sigma): the camera centre along its
@@ -278,6 +321,14 @@ pub fn evaluate(
         .collect();
     let centres: Vec<f64> = images.iter().map(|e| e.centre_error_m).collect();
     let rotations: Vec<f64> = images.iter().map(|e| e.rotation_error_deg).collect();
+    let placement = best.and_then(|sim| {
+        let shape: Vec<f64> = src
+            .iter()
+            .zip(&dst)
+            .map(|(m, r)| (sim.transform_point(m) - r).norm())
+            .collect();
+        Placement::of(&sim, &src, &shape)
+    });
     Ok(EvaluationReport {
         alignment,
         num_reference: n_ref,
@@ -292,6 +343,7 @@ pub fn evaluate(
         within,
         images,
         error_over_sigma: None,
+        placement,
     })
 }
 
@@ -357,6 +409,19 @@ impl EvaluationReport {
             s += &format!(
                 "                     {:<12.2} {:<12.2} {:.2}   (rotation)\n",
                 e.rotation.median, e.rotation.p90, e.rotation.max
+            );
+        }
+        if let (Some(p), Alignment::None) = (&self.placement, self.alignment) {
+            let [x, y, z] = p.shift_m.map(|v| 1e3 * v);
+            let angle = Vector3::from(p.rotation_deg).norm();
+            s += &format!(
+                "placement error      {:.2} mm (x {x:.2} y {y:.2} z {z:.2}) at the cameras' centroid, {angle:.4} deg, scale {:.6}\n",
+                Vector3::new(x, y, z).norm(),
+                p.scale
+            );
+            s += &format!(
+                "shape error (m)      {:<12.4} {:<12.4} {:.4}   (centres after the best sim3)\n",
+                p.shape_error_m.median, p.shape_error_m.p90, p.shape_error_m.max
             );
         }
         for t in &self.within {
@@ -433,6 +498,64 @@ mod tests {
         assert!((e.rotation.max - 2.0).abs() < 1e-6, "{e:?}");
         assert!((e.rotation.median - 1.0).abs() < 1e-6, "{e:?}");
         assert!(report.table().contains("error / own sigma"));
+    }
+
+    /// The model is the reference moved by `(scale, rotation about the
+    /// reference's mean centre, shift)`.
+    fn moved(
+        reference: &BTreeMap<String, Rigid3>,
+        scale: f64,
+        rotation: Rotation3<f64>,
+        shift: Vector3<f64>,
+    ) -> BTreeMap<String, Rigid3> {
+        let n = reference.len() as f64;
+        let c = reference.values().map(|r| r.camera_center()).sum::<Vector3<f64>>() / n;
+        let t = Sim3 {
+            scale,
+            rotation: *rotation.matrix(),
+            translation: c - scale * (rotation * c) + shift,
+        };
+        reference
+            .iter()
+            .map(|(k, r)| (k.clone(), t.transform_pose(r)))
+            .collect()
+    }
+
+    #[test]
+    fn placement_of_a_moved_model() {
+        let reference = reference();
+        let placement = |model: &BTreeMap<String, Rigid3>| {
+            evaluate(model, &reference, Alignment::None)
+                .unwrap()
+                .placement
+                .expect("10 images")
+        };
+        // Shifted by (1, -2, 0.5) mm: the shift, nothing else.
+        let shift = Vector3::new(0.001, -0.002, 0.0005);
+        let p = placement(&moved(&reference, 1.0, Rotation3::identity(), shift));
+        assert!((Vector3::from(p.shift_m) - shift).norm() < 1e-12, "{p:?}");
+        assert!(Vector3::from(p.rotation_deg).norm() < 1e-9, "{p:?}");
+        assert!((p.scale - 1.0).abs() < 1e-12 && p.shape_error_m.max < 1e-12, "{p:?}");
+        // Turned 0.01 deg about z through the mean centre and 2e-4 too large:
+        // no shift at the centroid.
+        let turn = Rotation3::from_axis_angle(&Vector3::z_axis(), 0.01f64.to_radians());
+        let p = placement(&moved(&reference, 1.0002, turn, Vector3::zeros()));
+        assert!(Vector3::from(p.shift_m).norm() < 1e-12, "{p:?}");
+        let r = Vector3::from(p.rotation_deg);
+        assert!((r - Vector3::new(0.0, 0.0, 0.01)).norm() < 1e-9, "{r}");
+        assert!((p.scale - 1.0002).abs() < 1e-12 && p.shape_error_m.max < 1e-12, "{p:?}");
+        // One camera of ten moved 3 cm: that is shape, mostly.
+        let mut model = reference.clone();
+        let r1 = reference["im04.jpg"];
+        let c1 = r1.camera_center() + Vector3::new(0.0, 0.0, 0.03);
+        model.insert("im04.jpg".into(), Rigid3::from_rotation_and_center(r1.rotation, &c1));
+        let rep = evaluate(&model, &reference, Alignment::None).unwrap();
+        let p = rep.placement.unwrap();
+        assert!(p.shape_error_m.max > 0.02 && p.shape_error_m.max < 0.03, "{p:?}");
+        assert!(rep.table().contains("placement error") && rep.table().contains("shape error"));
+        // Not printed after a sim3 alignment (it is the alignment itself).
+        let rep = evaluate(&model, &reference, Alignment::Sim3).unwrap();
+        assert!(!rep.table().contains("placement error"));
     }
 
     #[test]
