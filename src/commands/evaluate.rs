@@ -50,7 +50,10 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
     let own = args.model.join("report.json");
     if args.align == Alignment::None && own.is_file() {
         match reported_sigmas(&own) {
-            Ok(sigmas) => report.compare_with_uncertainty(&sigmas),
+            Ok((formal, clustered)) => {
+                report.error_over_sigma = report.errors_over(&formal);
+                report.error_over_clustered_sigma = report.errors_over(&clustered);
+            }
             Err(e) => log::warn!(
                 "{}: uncertainties not read ({e:#}); errors not compared with them",
                 own.display()
@@ -148,26 +151,38 @@ fn options_of_run(path: &Path) -> anyhow::Result<Option<MapperOptions>> {
 
 /// Per image name, the sigmas of `report.json` (`images[].pose_uncertainty`);
 /// empty when the report has none.
-fn reported_sigmas(path: &std::path::Path) -> anyhow::Result<BTreeMap<String, ReportedSigma>> {
+/// The formal and the cluster-robust sigmas of a `map` report, by image name.
+type Sigmas = BTreeMap<String, ReportedSigma>;
+
+fn reported_sigmas(path: &std::path::Path) -> anyhow::Result<(Sigmas, Sigmas)> {
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path)?)?;
-    let mut out = BTreeMap::new();
+    let mut formal = BTreeMap::new();
+    let mut clustered = BTreeMap::new();
     for image in report["images"].as_array().into_iter().flatten() {
         let u = &image["pose_uncertainty"];
-        if let (Some(name), Some(c), Some(r)) = (
-            image["name"].as_str(),
-            u["centre_sigma_major_m"].as_f64(),
-            u["rotation_sigma_deg"].as_f64(),
-        ) {
-            out.insert(
-                name.to_string(),
-                ReportedSigma {
-                    centre_m: c,
-                    rotation_deg: r,
-                },
-            );
+        let Some(name) = image["name"].as_str() else {
+            continue;
+        };
+        for (out, centre, rotation) in [
+            (&mut formal, "centre_sigma_major_m", "rotation_sigma_deg"),
+            (
+                &mut clustered,
+                "clustered_centre_sigma_major_m",
+                "clustered_rotation_sigma_deg",
+            ),
+        ] {
+            if let (Some(c), Some(r)) = (u[centre].as_f64(), u[rotation].as_f64()) {
+                out.insert(
+                    name.to_string(),
+                    ReportedSigma {
+                        centre_m: c,
+                        rotation_deg: r,
+                    },
+                );
+            }
         }
     }
-    Ok(out)
+    Ok((formal, clustered))
 }
 
 #[cfg(test)]

@@ -186,8 +186,10 @@ pub struct EvaluationReport {
     pub within: Vec<ThresholdShare>,
     pub images: Vec<ImageError>,
     /// Errors over the uncertainties the model reported for itself (see
-    /// [`EvaluationReport::compare_with_uncertainty`]).
+    /// [`EvaluationReport::errors_over`]).
     pub error_over_sigma: Option<ErrorOverSigma>,
+    /// The same over the model's cluster-robust sigmas.
+    pub error_over_clustered_sigma: Option<ErrorOverSigma>,
     /// The model's error split into where it is placed as a whole and its
     /// shape (with at least 3 registered images with distinct centres).
     pub placement: Option<Placement>,
@@ -216,7 +218,11 @@ impl Placement {
     /// The placement of a model whose best similarity onto the reference
     /// is `to_reference`; `model_centres` are its registered camera centres,
     /// `shape_errors` their errors after that similarity.
-    fn of(to_reference: &Sim3, model_centres: &[Vector3<f64>], shape_errors: &[f64]) -> Option<Self> {
+    fn of(
+        to_reference: &Sim3,
+        model_centres: &[Vector3<f64>],
+        shape_errors: &[f64],
+    ) -> Option<Self> {
         let shape_error_m = Stats::of(shape_errors)?;
         let centroid = model_centres.iter().sum::<Vector3<f64>>() / model_centres.len() as f64;
         let shift = centroid - to_reference.transform_point(&centroid);
@@ -343,14 +349,15 @@ pub fn evaluate(
         within,
         images,
         error_over_sigma: None,
+        error_over_clustered_sigma: None,
         placement,
     })
 }
 
 impl EvaluationReport {
-    /// Fills `error_over_sigma` from the model's own sigmas (by image name;
-    /// images without a positive, finite sigma are skipped).
-    pub fn compare_with_uncertainty(&mut self, sigmas: &BTreeMap<String, ReportedSigma>) {
+    /// The errors over the model's own sigmas (by image name; images
+    /// without a positive, finite sigma are skipped); `None` without any.
+    pub fn errors_over(&self, sigmas: &BTreeMap<String, ReportedSigma>) -> Option<ErrorOverSigma> {
         let mut centre = Vec::new();
         let mut rotation = Vec::new();
         for e in &self.images {
@@ -363,14 +370,14 @@ impl EvaluationReport {
                 rotation.push(e.rotation_error_deg / s.rotation_deg);
             }
         }
-        self.error_over_sigma = match (Stats::of(&centre), Stats::of(&rotation)) {
+        match (Stats::of(&centre), Stats::of(&rotation)) {
             (Some(c), Some(r)) => Some(ErrorOverSigma {
                 count: centre.len(),
                 centre: c,
                 rotation: r,
             }),
             _ => None,
-        };
+        }
     }
 
     /// A human-readable table.
@@ -401,15 +408,20 @@ impl EvaluationReport {
                 r.median, r.p90, r.max
             );
         }
-        if let Some(e) = &self.error_over_sigma {
-            s += &format!(
-                "error / own sigma    {:<12.2} {:<12.2} {:.2}   (centre; {} images)\n",
-                e.centre.median, e.centre.p90, e.centre.max, e.count
-            );
-            s += &format!(
-                "                     {:<12.2} {:<12.2} {:.2}   (rotation)\n",
-                e.rotation.median, e.rotation.p90, e.rotation.max
-            );
+        for (label, ratio) in [
+            ("error / own sigma   ", &self.error_over_sigma),
+            ("error / clustered s.", &self.error_over_clustered_sigma),
+        ] {
+            if let Some(e) = ratio {
+                s += &format!(
+                    "{label} {:<12.2} {:<12.2} {:.2}   (centre; {} images)\n",
+                    e.centre.median, e.centre.p90, e.centre.max, e.count
+                );
+                s += &format!(
+                    "                     {:<12.2} {:<12.2} {:.2}   (rotation)\n",
+                    e.rotation.median, e.rotation.p90, e.rotation.max
+                );
+            }
         }
         if let (Some(p), Alignment::None) = (&self.placement, self.alignment) {
             let [x, y, z] = p.shift_m.map(|v| 1e3 * v);
@@ -478,6 +490,7 @@ mod tests {
         );
         let mut report = evaluate(&model, &reference, Alignment::None).unwrap();
         assert!(report.error_over_sigma.is_none());
+        assert!(report.errors_over(&BTreeMap::new()).is_none());
         let sigma = |c: f64, r: f64| ReportedSigma {
             centre_m: c,
             rotation_deg: r,
@@ -489,7 +502,7 @@ mod tests {
             ("not_there.jpg".to_string(), sigma(0.001, 0.01)),
         ]
         .into();
-        report.compare_with_uncertainty(&sigmas);
+        report.error_over_sigma = report.errors_over(&sigmas);
         let e = report.error_over_sigma.expect("two images");
         assert_eq!(e.count, 2);
         // Centres: 3 mm / 1 mm and 0 / 2 mm; rotations: 0 and 0.02 / 0.01 deg.
@@ -509,7 +522,11 @@ mod tests {
         shift: Vector3<f64>,
     ) -> BTreeMap<String, Rigid3> {
         let n = reference.len() as f64;
-        let c = reference.values().map(|r| r.camera_center()).sum::<Vector3<f64>>() / n;
+        let c = reference
+            .values()
+            .map(|r| r.camera_center())
+            .sum::<Vector3<f64>>()
+            / n;
         let t = Sim3 {
             scale,
             rotation: *rotation.matrix(),
@@ -535,7 +552,10 @@ mod tests {
         let p = placement(&moved(&reference, 1.0, Rotation3::identity(), shift));
         assert!((Vector3::from(p.shift_m) - shift).norm() < 1e-12, "{p:?}");
         assert!(Vector3::from(p.rotation_deg).norm() < 1e-9, "{p:?}");
-        assert!((p.scale - 1.0).abs() < 1e-12 && p.shape_error_m.max < 1e-12, "{p:?}");
+        assert!(
+            (p.scale - 1.0).abs() < 1e-12 && p.shape_error_m.max < 1e-12,
+            "{p:?}"
+        );
         // Turned 0.01 deg about z through the mean centre and 2e-4 too large:
         // no shift at the centroid.
         let turn = Rotation3::from_axis_angle(&Vector3::z_axis(), 0.01f64.to_radians());
@@ -543,15 +563,24 @@ mod tests {
         assert!(Vector3::from(p.shift_m).norm() < 1e-12, "{p:?}");
         let r = Vector3::from(p.rotation_deg);
         assert!((r - Vector3::new(0.0, 0.0, 0.01)).norm() < 1e-9, "{r}");
-        assert!((p.scale - 1.0002).abs() < 1e-12 && p.shape_error_m.max < 1e-12, "{p:?}");
+        assert!(
+            (p.scale - 1.0002).abs() < 1e-12 && p.shape_error_m.max < 1e-12,
+            "{p:?}"
+        );
         // One camera of ten moved 3 cm: that is shape, mostly.
         let mut model = reference.clone();
         let r1 = reference["im04.jpg"];
         let c1 = r1.camera_center() + Vector3::new(0.0, 0.0, 0.03);
-        model.insert("im04.jpg".into(), Rigid3::from_rotation_and_center(r1.rotation, &c1));
+        model.insert(
+            "im04.jpg".into(),
+            Rigid3::from_rotation_and_center(r1.rotation, &c1),
+        );
         let rep = evaluate(&model, &reference, Alignment::None).unwrap();
         let p = rep.placement.unwrap();
-        assert!(p.shape_error_m.max > 0.02 && p.shape_error_m.max < 0.03, "{p:?}");
+        assert!(
+            p.shape_error_m.max > 0.02 && p.shape_error_m.max < 0.03,
+            "{p:?}"
+        );
         assert!(rep.table().contains("placement error") && rep.table().contains("shape error"));
         // Not printed after a sim3 alignment (it is the alignment itself).
         let rep = evaluate(&model, &reference, Alignment::Sim3).unwrap();

@@ -14,9 +14,9 @@ use super::report::PoseChangeRecord;
 use super::state::{MapState, PointPlane, MAX_IMPLAUSIBLE_REFINEMENTS};
 use crate::scene::{Camera, CameraId, ImageId, Point3DId, Rigid3};
 use crate::solver::{
-    pose_covariances, sigma_of_variance, solve, BaCamera, BaObservation, BaPoint, BaPose,
-    BundleAdjustmentProblem, ConstantParams, CovarianceError, LossFunction, PlaneFamily, PosePrior,
-    SolveTimes, SolverError, SolverOptions,
+    clustered_pose_covariances, pose_covariances, sigma_of_variance, solve, BaCamera,
+    BaObservation, BaPoint, BaPose, BundleAdjustmentProblem, ConstantParams, CovarianceError,
+    LossFunction, PlaneFamily, PosePrior, SolveTimes, SolverError, SolverOptions,
 };
 
 /// What varies in one solve.
@@ -600,6 +600,27 @@ pub struct PoseUncertainty {
     pub centre_covariance_m2: [[f64; 3]; 3],
     /// About the rotation's least determined axis, degrees.
     pub rotation_sigma_deg: f64,
+    /// The cluster-robust estimate (`bundle.uncertainty_cluster_m`; see
+    /// [`crate::solver::clustered_pose_covariances`]): the centre along its
+    /// least determined direction, metres; absent when turned off.
+    pub clustered_centre_sigma_major_m: Option<f64>,
+    /// Its centre covariance in the map frame, square metres (rows).
+    pub clustered_centre_covariance_m2: Option<[[f64; 3]; 3]>,
+    /// Its rotation about the least determined axis, degrees.
+    pub clustered_rotation_sigma_deg: Option<f64>,
+}
+
+/// Cluster ids of points at `positions` (world frame): the cube of side
+/// `cell_m` each lies in, numbered in the order first met.
+fn cell_clusters(positions: impl Iterator<Item = Vector3<f64>>, cell_m: f64) -> Vec<u32> {
+    let mut ids: BTreeMap<[i64; 3], u32> = BTreeMap::new();
+    positions
+        .map(|x| {
+            let cell = (x / cell_m).map(|v| v.floor() as i64);
+            let next = ids.len() as u32;
+            *ids.entry([cell.x, cell.y, cell.z]).or_insert(next)
+        })
+        .collect()
 }
 
 /// Pose uncertainties of the variable images of `config`, from a solve of
@@ -615,7 +636,16 @@ pub fn pose_uncertainty(
 ) -> Result<(BTreeMap<ImageId, PoseUncertainty>, f64, usize), CovarianceError> {
     let mut built = build_bundle(state, config);
     add_planes(&mut built, state, kind, associator);
-    let cov = pose_covariances(&built.problem, &solver_options(kind, associator, options))?;
+    let solver_options = solver_options(kind, associator, options);
+    let cov = if options.uncertainty_cluster_m > 0.0 {
+        let clusters = cell_clusters(
+            built.point_list.iter().map(|pid| state.points[pid].xyz),
+            options.uncertainty_cluster_m,
+        );
+        clustered_pose_covariances(&built.problem, &solver_options, &clusters)?
+    } else {
+        pose_covariances(&built.problem, &solver_options)?
+    };
     let mut out = BTreeMap::new();
     for (&image, &pi) in &built.pose_idx {
         let pi = pi as usize;
@@ -632,9 +662,22 @@ pub fn pose_uncertainty(
             axis = -axis;
         }
         let rotation_max = rotation.symmetric_eigen().eigenvalues.max();
+        let clustered_centre = cov.clustered_centre_covariance(pi);
+        let clustered_rotation = cov.clustered_rotation_covariance(pi);
         out.insert(
             image,
             PoseUncertainty {
+                clustered_centre_sigma_major_m: clustered_centre
+                    .map(|c| sigma_of_variance(c.symmetric_eigen().eigenvalues.max())),
+                clustered_centre_covariance_m2: clustered_centre.map(|c| {
+                    [
+                        [c[(0, 0)], c[(0, 1)], c[(0, 2)]],
+                        [c[(1, 0)], c[(1, 1)], c[(1, 2)]],
+                        [c[(2, 0)], c[(2, 1)], c[(2, 2)]],
+                    ]
+                }),
+                clustered_rotation_sigma_deg: clustered_rotation
+                    .map(|r| sigma_of_variance(r.symmetric_eigen().eigenvalues.max()).to_degrees()),
                 centre_sigma_m: [sigma.x, sigma.y, sigma.z],
                 centre_sigma_major_m: sigma_of_variance(eig.eigenvalues[k]),
                 centre_major_axis: [axis.x, axis.y, axis.z],

@@ -71,6 +71,11 @@ pub struct UncertaintySummary {
     /// Over the images: the rotation's sigma about its least determined axis.
     pub median_rotation_sigma_deg: f64,
     pub max_rotation_sigma_deg: f64,
+    /// The same of the cluster-robust estimate
+    /// (`bundle.uncertainty_cluster_m`), when computed.
+    pub median_clustered_centre_sigma_major_m: Option<f64>,
+    pub max_clustered_centre_sigma_major_m: Option<f64>,
+    pub median_clustered_rotation_sigma_deg: Option<f64>,
     /// 3D points whose own position the data do not fully fix.
     pub num_degenerate_points: usize,
     pub time_s: f64,

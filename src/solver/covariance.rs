@@ -15,6 +15,12 @@
 //! estimates (`sum r^2 / (rows - columns)`). It says how well the data fix
 //! each pose under the solve's own noise model; a systematic error of the
 //! map or the features is not in it.
+//!
+//! [`clustered_pose_covariances`] gives beside it the cluster-robust
+//! ("sandwich") estimate `S^-1 M S^-1`: `M` sums the outer products of each
+//! cluster's gradient `J^T r` with its points eliminated, so residuals that
+//! err together within a cluster count by their joint pull, as the data
+//! show it, not by their number.
 use nalgebra::{DMatrix, Matrix3, Matrix6, Vector3};
 
 use super::bridge;
@@ -36,6 +42,9 @@ pub struct PoseCovariances {
     /// problem's frame (metres); already scaled by `residual_variance`.
     /// `None` for constant poses and poses without residuals.
     pub poses: Vec<Option<Matrix6<f64>>>,
+    /// The same from [`clustered_pose_covariances`] (the cluster-robust
+    /// estimate, not scaled by `residual_variance`); empty otherwise.
+    pub clustered_poses: Vec<Option<Matrix6<f64>>>,
     /// Variance of a unit-weight residual, estimated from the fit
     /// (pixels squared for reprojections).
     pub residual_variance: f64,
@@ -55,15 +64,29 @@ impl PoseCovariances {
 
     /// The camera centre's covariance, square metres.
     pub fn centre_covariance(&self, pose: usize) -> Option<Matrix3<f64>> {
-        let c = self.poses.get(pose)?.as_ref()?;
-        Some(c.fixed_view::<3, 3>(3, 3).into_owned())
+        block(&self.poses, pose, 3)
     }
 
     /// The rotation's covariance (world-frame rotation vector), square radians.
     pub fn rotation_covariance(&self, pose: usize) -> Option<Matrix3<f64>> {
-        let c = self.poses.get(pose)?.as_ref()?;
-        Some(c.fixed_view::<3, 3>(0, 0).into_owned())
+        block(&self.poses, pose, 0)
     }
+
+    /// The cluster-robust camera centre covariance, square metres.
+    pub fn clustered_centre_covariance(&self, pose: usize) -> Option<Matrix3<f64>> {
+        block(&self.clustered_poses, pose, 3)
+    }
+
+    /// The cluster-robust rotation covariance, square radians.
+    pub fn clustered_rotation_covariance(&self, pose: usize) -> Option<Matrix3<f64>> {
+        block(&self.clustered_poses, pose, 0)
+    }
+}
+
+/// The 3x3 diagonal block from row and column `at` of pose `pose`'s covariance.
+fn block(poses: &[Option<Matrix6<f64>>], pose: usize, at: usize) -> Option<Matrix3<f64>> {
+    let c = poses.get(pose)?.as_ref()?;
+    Some(c.fixed_view::<3, 3>(at, at).into_owned())
 }
 
 /// Square root of a variance; NaN (not 0) for a negative or NaN one.
@@ -87,6 +110,9 @@ pub enum CovarianceError {
     /// As many parameters as residuals: the residual variance is unknown.
     #[error("no redundancy ({rows} residuals for {cols} parameters)")]
     NoRedundancy { rows: usize, cols: usize },
+    /// The cluster-robust estimate needs at least two clusters.
+    #[error("{0} cluster(s) of residuals: the cluster-robust covariance needs at least 2")]
+    TooFewClusters(usize),
     /// The bridge returned a layout this code does not expect.
     #[error("unexpected Jacobian layout: {0}")]
     Layout(String),
@@ -98,6 +124,39 @@ pub enum CovarianceError {
 pub fn pose_covariances(
     problem: &BundleAdjustmentProblem,
     options: &SolverOptions,
+) -> Result<PoseCovariances, CovarianceError> {
+    covariances(problem, options, None)
+}
+
+/// Cluster-robust ("sandwich") pose covariances: `S^-1 M S^-1`, where `M`
+/// sums, over clusters of points, the outer product of each cluster's
+/// gradient with its points eliminated (`point_cluster[i]`: the cluster of
+/// point `i`; rows without a point are clusters of one row each), times
+/// `G / (G - 1)` for `G` clusters. Where the residuals of a cluster's points
+/// err together (the map's noise shared by neighbouring points, a feature
+/// bias common to a surface), this is what the data's own scatter says;
+/// with independent residuals it agrees with [`pose_covariances`] on
+/// average. The result holds both: `poses` as [`pose_covariances`] gives
+/// them, `clustered_poses` the sandwich.
+pub fn clustered_pose_covariances(
+    problem: &BundleAdjustmentProblem,
+    options: &SolverOptions,
+    point_cluster: &[u32],
+) -> Result<PoseCovariances, CovarianceError> {
+    if point_cluster.len() != problem.points.len() {
+        return Err(CovarianceError::Layout(format!(
+            "{} clusters for {} points",
+            point_cluster.len(),
+            problem.points.len()
+        )));
+    }
+    covariances(problem, options, Some(point_cluster))
+}
+
+fn covariances(
+    problem: &BundleAdjustmentProblem,
+    options: &SolverOptions,
+    point_cluster: Option<&[u32]>,
 ) -> Result<PoseCovariances, CovarianceError> {
     let jac = bridge::jacobian(problem, options)?;
     let rows = jac.num_rows as usize;
@@ -149,6 +208,12 @@ pub fn pose_covariances(
     let mut hcc = DMatrix::<f64>::zeros(nc, nc);
     let mut hpp = vec![Matrix3::<f64>::zeros(); num_points];
     let mut hpc: Vec<Vec<(usize, Vector3<f64>)>> = vec![Vec::new(); num_points];
+    // The gradient J^T r, per point (its own 3 and its cameras' columns) and
+    // per row without a point; only for the clustered covariance.
+    let clustered = point_cluster.is_some();
+    let mut grad_point = vec![Vector3::<f64>::zeros(); if clustered { num_points } else { 0 }];
+    let mut grad_cam: Vec<Vec<(usize, f64)>> = vec![Vec::new(); grad_point.len()];
+    let mut grad_lone: Vec<Vec<(usize, f64)>> = Vec::new();
     let mut cam: Vec<(usize, f64)> = Vec::new();
     for r in 0..rows {
         let (begin, end) = (jac.row_starts[r] as usize, jac.row_starts[r + 1] as usize);
@@ -173,6 +238,16 @@ pub fn pose_covariances(
                 hcc[(a, b)] += va * vb;
             }
         }
+        if clustered {
+            let res = jac.residuals[r];
+            match point {
+                Some(p) => {
+                    grad_point[p] += jp * res;
+                    add_sparse(&mut grad_cam[p], cam.iter().map(|&(a, va)| (a, va * res)));
+                }
+                None => grad_lone.push(cam.iter().map(|&(a, va)| (a, va * res)).collect()),
+            }
+        }
         if let Some(p) = point {
             hpp[p] += jp * jp.transpose();
             for &(a, va) in &cam {
@@ -187,11 +262,20 @@ pub fn pose_covariances(
     // Eliminate the points: S = Hcc - sum_p Hcp Hpp^+ Hpc.
     let mut num_degenerate_points = 0;
     let mut rank_deficit = 0;
-    for (h, b) in hpp.iter().zip(&hpc) {
+    // Each cluster's reduced gradient z = g_c - Hcp Hpp^+ g_p, sparse.
+    let mut cluster_grad: std::collections::BTreeMap<u32, Vec<(usize, f64)>> =
+        std::collections::BTreeMap::new();
+    for (p, (h, b)) in hpp.iter().zip(&hpc).enumerate() {
         let (inv, rank) = pseudo_inverse(h);
         if rank < 3 {
             num_degenerate_points += 1;
             rank_deficit += 3 - rank;
+        }
+        if let Some(clusters) = point_cluster {
+            let moved = inv * grad_point[p];
+            let z = cluster_grad.entry(clusters[p]).or_default();
+            add_sparse(z, grad_cam[p].iter().copied());
+            add_sparse(z, b.iter().map(|(a, va)| (*a, -va.dot(&moved))));
         }
         if b.is_empty() {
             continue;
@@ -223,40 +307,76 @@ pub fn pose_covariances(
         return Err(CovarianceError::Singular);
     }
     let inverse = cholesky.inverse();
-
-    let mut poses = vec![None; problem.poses.len()];
-    for (pose, cols) in pose_cols.iter().enumerate() {
-        let [Some(rc), Some(tc)] = *cols else {
-            continue;
-        };
-        // Tangent covariance, order [d (rotation tangent), dt].
-        let idx = [rc, rc + 1, rc + 2, tc, tc + 1, tc + 2];
-        let tangent = Matrix6::from_fn(|i, j| inverse[(idx[i], idx[j])]) * residual_variance;
-        let rigid = problem.poses[pose].rigid();
-        let r = rigid.rotation.to_rotation_matrix().into_inner();
-        let t = rigid.translation;
-        // Ceres' quaternion tangent d turns q into exp(2 d) q (left), so
-        // world_from_cam = R^T turns by the world-frame vector -2 R^T d; the
-        // centre C = -R^T t moves by -2 R^T [t]x d - R^T dt.
-        let mut jacobian = Matrix6::zeros();
-        jacobian
-            .fixed_view_mut::<3, 3>(0, 0)
-            .copy_from(&(-2.0 * r.transpose()));
-        jacobian
-            .fixed_view_mut::<3, 3>(3, 0)
-            .copy_from(&(-2.0 * r.transpose() * t.cross_matrix()));
-        jacobian
-            .fixed_view_mut::<3, 3>(3, 3)
-            .copy_from(&(-r.transpose()));
-        let c = jacobian * tangent * jacobian.transpose();
-        poses[pose] = Some((c + c.transpose()) * 0.5);
-    }
+    // Clustered: S^-1 M S^-1 with M = G / (G - 1) sum_c z_c z_c^T, already
+    // in the residuals' units (no residual variance).
+    let sandwich = match point_cluster {
+        None => None,
+        Some(_) => {
+            let groups: Vec<&Vec<(usize, f64)>> =
+                cluster_grad.values().chain(grad_lone.iter()).collect();
+            if groups.len() < 2 {
+                return Err(CovarianceError::TooFewClusters(groups.len()));
+            }
+            let g = groups.len() as f64;
+            let mut m = DMatrix::<f64>::zeros(nc, nc);
+            for z in groups {
+                for &(a, va) in z {
+                    for &(b, vb) in z {
+                        m[(a, b)] += va * vb;
+                    }
+                }
+            }
+            m *= g / (g - 1.0);
+            Some(&inverse * m * &inverse)
+        }
+    };
+    let world_blocks = |tangent_cov: &DMatrix<f64>, scale: f64| -> Vec<Option<Matrix6<f64>>> {
+        let mut out = vec![None; problem.poses.len()];
+        for (pose, cols) in pose_cols.iter().enumerate() {
+            let [Some(rc), Some(tc)] = *cols else {
+                continue;
+            };
+            // Tangent covariance, order [d (rotation tangent), dt].
+            let idx = [rc, rc + 1, rc + 2, tc, tc + 1, tc + 2];
+            let tangent = Matrix6::from_fn(|i, j| tangent_cov[(idx[i], idx[j])]) * scale;
+            let rigid = problem.poses[pose].rigid();
+            let r = rigid.rotation.to_rotation_matrix().into_inner();
+            let t = rigid.translation;
+            // Ceres' quaternion tangent d turns q into exp(2 d) q (left), so
+            // world_from_cam = R^T turns by the world-frame vector -2 R^T d; the
+            // centre C = -R^T t moves by -2 R^T [t]x d - R^T dt.
+            let mut jacobian = Matrix6::zeros();
+            jacobian
+                .fixed_view_mut::<3, 3>(0, 0)
+                .copy_from(&(-2.0 * r.transpose()));
+            jacobian
+                .fixed_view_mut::<3, 3>(3, 0)
+                .copy_from(&(-2.0 * r.transpose() * t.cross_matrix()));
+            jacobian
+                .fixed_view_mut::<3, 3>(3, 3)
+                .copy_from(&(-r.transpose()));
+            let c = jacobian * tangent * jacobian.transpose();
+            out[pose] = Some((c + c.transpose()) * 0.5);
+        }
+        out
+    };
     Ok(PoseCovariances {
-        poses,
+        poses: world_blocks(&inverse, residual_variance),
+        clustered_poses: sandwich.map_or_else(Vec::new, |m| world_blocks(&m, 1.0)),
         residual_variance,
         redundancy: rows - fitted,
         num_degenerate_points,
     })
+}
+
+/// Adds sparse `(column, value)` entries into `acc` (one entry per column).
+fn add_sparse(acc: &mut Vec<(usize, f64)>, entries: impl Iterator<Item = (usize, f64)>) {
+    for (a, v) in entries {
+        match acc.iter_mut().find(|(col, _)| *col == a) {
+            Some((_, x)) => *x += v,
+            None => acc.push((a, v)),
+        }
+    }
 }
 
 /// Pseudo-inverse of a symmetric positive semi-definite 3x3 matrix; eigen

@@ -33,7 +33,10 @@ pub mod problem;
 pub mod reference;
 pub mod summary;
 
-pub use covariance::{pose_covariances, sigma_of_variance, CovarianceError, PoseCovariances};
+pub use covariance::{
+    clustered_pose_covariances, pose_covariances, sigma_of_variance, CovarianceError,
+    PoseCovariances,
+};
 pub use options::{LinearSolver, LossFunction, SolverOptions};
 pub use problem::{
     BaCamera, BaObservation, BaPoint, BaPose, BundleAdjustmentProblem, ConstantParams,

@@ -161,6 +161,7 @@ fn check_uncertainty(r: &Run) {
         "residual sigma {sigma_px} px"
     );
     let mut majors = Vec::new();
+    let mut clustered_majors = Vec::new();
     for image in r.report["images"].as_array().unwrap() {
         let u = &image["pose_uncertainty"];
         if !image["registered"].as_bool().unwrap() {
@@ -180,17 +181,56 @@ fn check_uncertainty(r: &Run) {
         let rotation = u["rotation_sigma_deg"].as_f64().unwrap();
         assert!(rotation > 0.0 && rotation < 1.0, "{u}");
         majors.push(major);
+        // The cluster-robust estimate (default 1 m cubes): its major sigma
+        // is the largest eigenvalue of the covariance it reports.
+        let clustered = u["clustered_centre_sigma_major_m"].as_f64().unwrap();
+        let cov: Vec<Vec<f64>> = u["clustered_centre_covariance_m2"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|row| {
+                row.as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|v| v.as_f64().unwrap())
+                    .collect()
+            })
+            .collect();
+        let m = nalgebra::Matrix3::from_fn(|i, j| cov[i][j]);
+        let top = m.symmetric_eigen().eigenvalues.max().sqrt();
+        assert!(
+            (clustered - top).abs() <= 1e-9 * top && clustered > 0.0,
+            "{u}"
+        );
+        let clustered_rotation = u["clustered_rotation_sigma_deg"].as_f64().unwrap();
+        assert!(clustered_rotation > 0.0 && clustered_rotation < 1.0, "{u}");
+        clustered_majors.push(clustered);
     }
     majors.sort_by(f64::total_cmp);
+    clustered_majors.sort_by(f64::total_cmp);
     let median_sigma = majors[majors.len() / 2];
+    let median_clustered = clustered_majors[clustered_majors.len() / 2];
     let median_error = r.none.centre_error_m.as_ref().unwrap().median;
     let ratio = median_error / median_sigma;
     eprintln!(
-        "pose uncertainty: median sigma {:.2} mm, median error {:.2} mm (ratio {ratio:.1}), residual sigma {sigma_px:.3} px",
+        "pose uncertainty: median sigma {:.2} mm (cluster-robust {:.2} mm), median error {:.2} mm (ratio {ratio:.1}), residual sigma {sigma_px:.3} px",
         median_sigma * 1e3,
+        median_clustered * 1e3,
         median_error * 1e3
     );
     assert!((0.2..10.0).contains(&ratio), "error / sigma {ratio}");
+    let clustered_ratio = median_error / median_clustered;
+    assert!(
+        (0.1..5.0).contains(&clustered_ratio),
+        "error / cluster-robust sigma {clustered_ratio}"
+    );
+    let summary_median = summary["median_clustered_centre_sigma_major_m"]
+        .as_f64()
+        .unwrap();
+    let expected = colmap_lidar::eval::Stats::of(&clustered_majors)
+        .unwrap()
+        .median;
+    assert!((summary_median - expected).abs() <= 1e-12, "{summary}");
 }
 
 /// A video-like database: COLMAP's sequential matcher (overlap 5 in name
@@ -483,6 +523,15 @@ fn yard_with_colmap_database() {
     assert_eq!(over["count"].as_u64(), Some(a.none.num_registered as u64));
     let median = over["centre"]["median"].as_f64().unwrap();
     assert!((0.2..10.0).contains(&median), "{over}");
+    let clustered = &evaluation["error_over_clustered_sigma"];
+    assert_eq!(
+        clustered["count"].as_u64(),
+        Some(a.none.num_registered as u64)
+    );
+    assert!(
+        clustered["centre"]["median"].as_f64().unwrap() > 0.0,
+        "{clustered}"
+    );
     // The tracks at the true poses and the model's points lie on the map
     // where seen head-on (measured: medians within 0.25 mm; the map's
     // noise is 15 mm, its planes average it).
