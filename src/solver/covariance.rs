@@ -272,10 +272,11 @@ fn covariances(
             rank_deficit += 3 - rank;
         }
         if let Some(clusters) = point_cluster {
+            // Entries pushed as they come; merged per column below.
             let moved = inv * grad_point[p];
             let z = cluster_grad.entry(clusters[p]).or_default();
-            add_sparse(z, grad_cam[p].iter().copied());
-            add_sparse(z, b.iter().map(|(a, va)| (*a, -va.dot(&moved))));
+            z.extend(grad_cam[p].iter().copied());
+            z.extend(b.iter().map(|(a, va)| (*a, -va.dot(&moved))));
         }
         if b.is_empty() {
             continue;
@@ -312,6 +313,9 @@ fn covariances(
     let sandwich = match point_cluster {
         None => None,
         Some(_) => {
+            for z in cluster_grad.values_mut() {
+                merge_columns(z);
+            }
             let groups: Vec<&Vec<(usize, f64)>> =
                 cluster_grad.values().chain(grad_lone.iter()).collect();
             if groups.len() < 2 {
@@ -377,6 +381,20 @@ fn add_sparse(acc: &mut Vec<(usize, f64)>, entries: impl Iterator<Item = (usize,
             None => acc.push((a, v)),
         }
     }
+}
+
+/// Sorts sparse `(column, value)` entries by column and sums those of the
+/// same column (in a fixed order: the sums do not depend on anything else).
+fn merge_columns(entries: &mut Vec<(usize, f64)>) {
+    entries.sort_by_key(|&(col, _)| col);
+    let mut merged: Vec<(usize, f64)> = Vec::with_capacity(entries.len());
+    for &(col, v) in entries.iter() {
+        match merged.last_mut() {
+            Some((last, acc)) if *last == col => *acc += v,
+            _ => merged.push((col, v)),
+        }
+    }
+    *entries = merged;
 }
 
 /// Pseudo-inverse of a symmetric positive semi-definite 3x3 matrix; eigen
