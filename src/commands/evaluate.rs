@@ -149,11 +149,11 @@ fn options_of_run(path: &Path) -> anyhow::Result<Option<MapperOptions>> {
     }
 }
 
-/// Per image name, the sigmas of `report.json` (`images[].pose_uncertainty`);
-/// empty when the report has none.
-/// The formal and the cluster-robust sigmas of a `map` report, by image name.
+/// Sigmas by image name.
 type Sigmas = BTreeMap<String, ReportedSigma>;
 
+/// Per image name, the formal and the cluster-robust sigmas of `report.json`
+/// (`images[].pose_uncertainty`); empty when the report has none.
 fn reported_sigmas(path: &std::path::Path) -> anyhow::Result<(Sigmas, Sigmas)> {
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path)?)?;
     let mut formal = BTreeMap::new();
