@@ -68,13 +68,13 @@ for scene in $scenes; do
       if "$tool" map --database "$dir/database.db" --lidar "$dir/lidar.ply" \
           --init-image frame_0000.jpg --init-pose "$init" --output "$run/model" \
           ${MAP_ARGS:-} >"$run/map.log" 2>&1; then
-        secs=$(echo "$(date +%s.%N) - $start" | bc)
+        secs=$(awk -v a="$start" -v b="$(date +%s.%N)" 'BEGIN { print b - a }')
         "$tool" evaluate --model "$run/model" --reference "$dir/gt" --align none \
           --json "$run/eval.json" >/dev/null
         read -r med p90 rot reg < <(read_eval "$run/eval.json")
         ratio=$(python3 -c "import math,sys; o=float('$oracle'); print('nan' if math.isnan(o) else f'{$med/o:.2f}')")
       else
-        secs=$(echo "$(date +%s.%N) - $start" | bc)
+        secs=$(awk -v a="$start" -v b="$(date +%s.%N)" 'BEGIN { print b - a }')
         med=fail p90=- rot=- reg=- ratio=-
         echo "   $scene $seed $pose: map failed: $(tail -n 1 "$run/map.log")" >&2
       fi
