@@ -610,6 +610,11 @@ pub struct PoseUncertainty {
     pub clustered_rotation_sigma_deg: Option<f64>,
 }
 
+/// A 3x3 matrix as its rows (as `report.json` writes covariances).
+fn rows(m: &nalgebra::Matrix3<f64>) -> [[f64; 3]; 3] {
+    [0, 1, 2].map(|i| [m[(i, 0)], m[(i, 1)], m[(i, 2)]])
+}
+
 /// Cluster ids of points at `positions` (world frame): the cube of side
 /// `cell_m` each lies in, numbered in the order first met.
 fn cell_clusters(positions: impl Iterator<Item = Vector3<f64>>, cell_m: f64) -> Vec<u32> {
@@ -669,23 +674,13 @@ pub fn pose_uncertainty(
             PoseUncertainty {
                 clustered_centre_sigma_major_m: clustered_centre
                     .map(|c| sigma_of_variance(c.symmetric_eigen().eigenvalues.max())),
-                clustered_centre_covariance_m2: clustered_centre.map(|c| {
-                    [
-                        [c[(0, 0)], c[(0, 1)], c[(0, 2)]],
-                        [c[(1, 0)], c[(1, 1)], c[(1, 2)]],
-                        [c[(2, 0)], c[(2, 1)], c[(2, 2)]],
-                    ]
-                }),
+                clustered_centre_covariance_m2: clustered_centre.as_ref().map(rows),
                 clustered_rotation_sigma_deg: clustered_rotation
                     .map(|r| sigma_of_variance(r.symmetric_eigen().eigenvalues.max()).to_degrees()),
                 centre_sigma_m: [sigma.x, sigma.y, sigma.z],
                 centre_sigma_major_m: sigma_of_variance(eig.eigenvalues[k]),
                 centre_major_axis: [axis.x, axis.y, axis.z],
-                centre_covariance_m2: [
-                    [centre[(0, 0)], centre[(0, 1)], centre[(0, 2)]],
-                    [centre[(1, 0)], centre[(1, 1)], centre[(1, 2)]],
-                    [centre[(2, 0)], centre[(2, 1)], centre[(2, 2)]],
-                ],
+                centre_covariance_m2: rows(&centre),
                 rotation_sigma_deg: sigma_of_variance(rotation_max).to_degrees(),
             },
         );

@@ -207,12 +207,13 @@ fn covariances(
     // Accumulate Hcc (dense), Hpp (3x3 per point) and Hpc (sparse per point).
     let mut hcc = DMatrix::<f64>::zeros(nc, nc);
     let mut hpp = vec![Matrix3::<f64>::zeros(); num_points];
-    let mut hpc: Vec<Vec<(usize, Vector3<f64>)>> = vec![Vec::new(); num_points];
-    // The gradient J^T r, per point (its own 3 and its cameras' columns) and
-    // per row without a point; only for the clustered covariance.
+    // Per point and camera column: Hpc's 3 entries and the camera side of
+    // the gradient J^T r (only used for the clustered covariance).
+    let mut hpc: Vec<Vec<(usize, Vector3<f64>, f64)>> = vec![Vec::new(); num_points];
+    // The point side of the gradient, and the gradient of each row without
+    // a point; only for the clustered covariance.
     let clustered = point_cluster.is_some();
     let mut grad_point = vec![Vector3::<f64>::zeros(); if clustered { num_points } else { 0 }];
-    let mut grad_cam: Vec<Vec<(usize, f64)>> = vec![Vec::new(); grad_point.len()];
     let mut grad_lone: Vec<Vec<(usize, f64)>> = Vec::new();
     let mut cam: Vec<(usize, f64)> = Vec::new();
     for r in 0..rows {
@@ -238,25 +239,24 @@ fn covariances(
                 hcc[(a, b)] += va * vb;
             }
         }
-        if clustered {
-            let res = jac.residuals[r];
-            match point {
-                Some(p) => {
-                    grad_point[p] += jp * res;
-                    add_sparse(&mut grad_cam[p], cam.iter().map(|&(a, va)| (a, va * res)));
-                }
-                None => grad_lone.push(cam.iter().map(|&(a, va)| (a, va * res)).collect()),
-            }
-        }
+        let res = jac.residuals[r];
         if let Some(p) = point {
             hpp[p] += jp * jp.transpose();
+            if clustered {
+                grad_point[p] += jp * res;
+            }
             for &(a, va) in &cam {
                 let entry = &mut hpc[p];
-                match entry.iter_mut().find(|(col, _)| *col == a) {
-                    Some((_, acc)) => *acc += jp * va,
-                    None => entry.push((a, jp * va)),
+                match entry.iter_mut().find(|(col, _, _)| *col == a) {
+                    Some((_, acc, grad)) => {
+                        *acc += jp * va;
+                        *grad += va * res;
+                    }
+                    None => entry.push((a, jp * va, va * res)),
                 }
             }
+        } else if clustered {
+            grad_lone.push(cam.iter().map(|&(a, va)| (a, va * res)).collect());
         }
     }
     // Eliminate the points: S = Hcc - sum_p Hcp Hpp^+ Hpc.
@@ -275,15 +275,14 @@ fn covariances(
             // Entries pushed as they come; merged per column below.
             let moved = inv * grad_point[p];
             let z = cluster_grad.entry(clusters[p]).or_default();
-            z.extend(grad_cam[p].iter().copied());
-            z.extend(b.iter().map(|(a, va)| (*a, -va.dot(&moved))));
+            z.extend(b.iter().map(|(a, va, grad)| (*a, grad - va.dot(&moved))));
         }
         if b.is_empty() {
             continue;
         }
-        let w: Vec<Vector3<f64>> = b.iter().map(|(_, v)| inv * v).collect();
-        for (a, va) in b {
-            for ((c, _), wc) in b.iter().zip(&w) {
+        let w: Vec<Vector3<f64>> = b.iter().map(|(_, v, _)| inv * v).collect();
+        for (a, va, _) in b {
+            for ((c, _, _), wc) in b.iter().zip(&w) {
                 hcc[(*a, *c)] -= va.dot(wc);
             }
         }
@@ -371,16 +370,6 @@ fn covariances(
         redundancy: rows - fitted,
         num_degenerate_points,
     })
-}
-
-/// Adds sparse `(column, value)` entries into `acc` (one entry per column).
-fn add_sparse(acc: &mut Vec<(usize, f64)>, entries: impl Iterator<Item = (usize, f64)>) {
-    for (a, v) in entries {
-        match acc.iter_mut().find(|(col, _)| *col == a) {
-            Some((_, x)) => *x += v,
-            None => acc.push((a, v)),
-        }
-    }
 }
 
 /// Sorts sparse `(column, value)` entries by column and sums those of the
