@@ -469,17 +469,22 @@ mod tests {
             .collect()
     }
 
+    /// Moves image `name`'s camera centre by `delta`, keeping its rotation.
+    fn move_centre(model: &mut BTreeMap<String, Rigid3>, name: &str, delta: Vector3<f64>) {
+        let pose = model[name];
+        let centre = pose.camera_center() + delta;
+        model.insert(
+            name.into(),
+            Rigid3::from_rotation_and_center(pose.rotation, &centre),
+        );
+    }
+
     #[test]
     fn errors_over_reported_sigmas() {
         let reference = reference();
         let mut model = reference.clone();
         // im01 moved 3 mm along x; im02 turned 0.02 deg.
-        let r1 = reference["im01.jpg"];
-        let c1 = r1.camera_center() + Vector3::new(0.003, 0.0, 0.0);
-        model.insert(
-            "im01.jpg".into(),
-            Rigid3::from_rotation_and_center(r1.rotation, &c1),
-        );
+        move_centre(&mut model, "im01.jpg", Vector3::new(0.003, 0.0, 0.0));
         let r2 = reference["im02.jpg"];
         let turned =
             r2.rotation * UnitQuaternion::from_euler_angles(0.02f64.to_radians(), 0.0, 0.0);
@@ -569,12 +574,7 @@ mod tests {
         );
         // One camera of ten moved 3 cm: that is shape, mostly.
         let mut model = reference.clone();
-        let r1 = reference["im04.jpg"];
-        let c1 = r1.camera_center() + Vector3::new(0.0, 0.0, 0.03);
-        model.insert(
-            "im04.jpg".into(),
-            Rigid3::from_rotation_and_center(r1.rotation, &c1),
-        );
+        move_centre(&mut model, "im04.jpg", Vector3::new(0.0, 0.0, 0.03));
         let rep = evaluate(&model, &reference, Alignment::None).unwrap();
         let p = rep.placement.unwrap();
         assert!(
@@ -636,12 +636,7 @@ mod tests {
         let reference = reference();
         let mut model = reference.clone();
         // Shift one camera centre by 3 cm.
-        let p = model["im02.jpg"];
-        let c = p.camera_center() + Vector3::new(0.0, 0.03, 0.0);
-        model.insert(
-            "im02.jpg".into(),
-            Rigid3::from_rotation_and_center(p.rotation, &c),
-        );
+        move_centre(&mut model, "im02.jpg", Vector3::new(0.0, 0.03, 0.0));
         // Rotate another by 0.2 deg about its own optical axis, keeping its centre.
         let p = model["im05.jpg"];
         let c = p.camera_center();
