@@ -9,6 +9,8 @@
 # env:   SCENES (default "corridor room yard"), SEEDS (default "0 1 2"),
 #        IMAGES (default 24), POSES (default "exact perturbed"),
 #        MAP_ARGS (extra arguments for map, e.g. "--options opts.toml"),
+#        SYNTH_ARGS (extra arguments for synth when a database is made, e.g.
+#        "--offset 500000,4400000,200" or "--width 1024 --height 768"),
 #        TAG (default "default": each run's folder is TAG-POSE), ORACLE (1: run
 #        colmap mapper once per database, 0: skip), COLMAP_LIDAR (default:
 #        colmap-lidar on PATH, else target/release/colmap-lidar)
@@ -46,7 +48,9 @@ for scene in $scenes; do
     if [ ! -f "$dir/database.db" ]; then
       echo "== $scene seed $seed: scene and database"
       rm -rf "$dir"
-      "$tool" synth --scene "$scene" --images "${IMAGES:-24}" --seed "$seed" --output "$dir" >/dev/null
+      # shellcheck disable=SC2086
+      "$tool" synth --scene "$scene" --images "${IMAGES:-24}" --seed "$seed" --output "$dir" \
+        ${SYNTH_ARGS:-} >/dev/null
       scripts_dir="$here/scripts"
       "$scripts_dir/make_database.sh" "$dir" >/dev/null
     fi
