@@ -29,7 +29,8 @@ use crate::sfm::localise::SearchRegion;
 use crate::sfm::options::{AssociationKind, IntrinsicsRefinement};
 use crate::sfm::report::StageRecord;
 use crate::sfm::{
-    extend_model, run_mapper_from_pose, run_mapper_searching, KnownPose, MapperOptions,
+    extend_model, run_mapper_from_pose, run_mapper_searching, KnownPose, MapperInputs,
+    MapperOptions,
 };
 
 /// Known poses: the database's pose priors, overridden by the pose file.
@@ -474,34 +475,24 @@ pub fn run(args: &MapArgs) -> Result<()> {
             bar.set_position(done as u64);
         }
     };
+    let inputs = MapperInputs {
+        db: &db,
+        cloud: &cloud,
+        known_poses: &known_poses,
+    };
     let out = match &start {
         RunStart::InitialPose(image, pose) if config.init_search.is_some() => run_mapper_searching(
-            &db,
-            &cloud,
+            inputs,
             *image,
             pose,
             config.init_search.as_ref().expect("checked"),
-            &known_poses,
             &config.options,
             &mut progress,
         ),
-        RunStart::InitialPose(image, pose) => run_mapper_from_pose(
-            &db,
-            &cloud,
-            *image,
-            pose,
-            &known_poses,
-            &config.options,
-            &mut progress,
-        ),
-        RunStart::Model(existing) => extend_model(
-            &db,
-            &cloud,
-            existing,
-            &known_poses,
-            &config.options,
-            &mut progress,
-        ),
+        RunStart::InitialPose(image, pose) => {
+            run_mapper_from_pose(inputs, *image, pose, &config.options, &mut progress)
+        }
+        RunStart::Model(existing) => extend_model(inputs, existing, &config.options, &mut progress),
     };
     let mut out = out.with_context(|| {
         format!(

@@ -497,6 +497,15 @@ pub struct KnownPose {
     pub has_rotation: bool,
 }
 
+/// What every run of the mapper reads and none changes: the database, the
+/// LiDAR map and the images' known poses (pose priors; empty for none).
+#[derive(Clone, Copy)]
+pub struct MapperInputs<'a> {
+    pub db: &'a DatabaseSnapshot,
+    pub cloud: &'a PointCloud,
+    pub known_poses: &'a BTreeMap<ImageId, KnownPose>,
+}
+
 /// Runs the whole mapper without pose priors.
 pub fn run_mapper(
     db: &DatabaseSnapshot,
@@ -506,15 +515,12 @@ pub fn run_mapper(
     options: &MapperOptions,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
-    run_mapper_with_priors(
+    let inputs = MapperInputs {
         db,
         cloud,
-        init_image,
-        init_cam_from_world,
-        &BTreeMap::new(),
-        options,
-        progress,
-    )
+        known_poses: &BTreeMap::new(),
+    };
+    run_mapper_with_priors(inputs, init_image, init_cam_from_world, options, progress)
 }
 
 /// Runs the whole mapper. `known_poses` become soft prior residuals in every
@@ -527,14 +533,13 @@ pub fn run_mapper(
 /// image ended far from its given pose, it is mapped again from where it
 /// ended (`bundle.restart_from_refined_pose`, see [`restart_reason`]).
 pub fn run_mapper_with_priors(
-    db: &DatabaseSnapshot,
-    cloud: &PointCloud,
+    inputs: MapperInputs<'_>,
     init_image: ImageId,
     init_cam_from_world: &Rigid3,
-    known_poses: &BTreeMap<ImageId, KnownPose>,
     options: &MapperOptions,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
+    let db = inputs.db;
     let start = Start::InitialPose {
         image: init_image,
         cam_from_world: *init_cam_from_world,
@@ -549,7 +554,7 @@ pub fn run_mapper_with_priors(
             cam_from_world: *refined,
             rough: false,
         };
-        let mut out = map_once(db, cloud, &start, known_poses, options, progress)?;
+        let mut out = map_once(inputs, &start, options, progress)?;
         let change = out
             .reconstruction
             .pose(init_image)
@@ -620,15 +625,7 @@ pub fn run_mapper_with_priors(
         && options.association.kind != AssociationKind::None)
         .then_some(b.restart_early_at_images);
     let started = Instant::now();
-    let early = map_until(
-        db,
-        cloud,
-        &start,
-        known_poses,
-        options,
-        look_at,
-        &mut *progress,
-    );
+    let early = map_until(inputs, &start, options, look_at, &mut *progress);
     let early_s = started.elapsed().as_secs_f64();
     let (first_outcome, failed_early) = match early {
         Ok(RunEnd::Moved {
@@ -710,7 +707,7 @@ pub fn run_mapper_with_priors(
     let started = Instant::now();
     let mut run = |options: &MapperOptions| {
         let started = Instant::now();
-        let outcome = map_once(db, cloud, &start, known_poses, options, &mut *progress);
+        let outcome = map_once(inputs, &start, options, &mut *progress);
         (outcome, started.elapsed().as_secs_f64())
     };
     // A run that finished at once was timed then.
@@ -778,21 +775,17 @@ fn beyond(change: &PoseChangeRecord, limit: (f64, f64)) -> bool {
 /// and maps from what it finds. The report's `init_search.after_failure`
 /// says that the search followed a failure, and which.
 pub fn run_mapper_from_pose(
-    db: &DatabaseSnapshot,
-    cloud: &PointCloud,
+    inputs: MapperInputs<'_>,
     init_image: ImageId,
     init_cam_from_world: &Rigid3,
-    known_poses: &BTreeMap<ImageId, KnownPose>,
     options: &MapperOptions,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
     let started = Instant::now();
     let first = run_mapper_with_priors(
-        db,
-        cloud,
+        inputs,
         init_image,
         init_cam_from_world,
-        known_poses,
         options,
         &mut *progress,
     );
@@ -817,12 +810,10 @@ pub fn run_mapper_from_pose(
         region.yaw_deg
     );
     match run_mapper_searching(
-        db,
-        cloud,
+        inputs,
         init_image,
         init_cam_from_world,
         &region,
-        known_poses,
         options,
         progress,
     ) {
@@ -864,17 +855,15 @@ const SEARCH_SAME_FIT: f64 = 0.02;
 /// finished model that fits the map best is kept; an error when two in
 /// different places fit alike. The report's `init_search` says what the
 /// search found.
-#[allow(clippy::too_many_arguments)]
 pub fn run_mapper_searching(
-    db: &DatabaseSnapshot,
-    cloud: &PointCloud,
+    inputs: MapperInputs<'_>,
     init_image: ImageId,
     rough_cam_from_world: &Rigid3,
     region: &SearchRegion,
-    known_poses: &BTreeMap<ImageId, KnownPose>,
     options: &MapperOptions,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
+    let cloud = inputs.cloud;
     let started = Instant::now();
     let mut plain_options = options.clone();
     plain_options.association.kind = AssociationKind::None;
@@ -889,15 +878,15 @@ pub fn run_mapper_searching(
         region.vertical_m,
         region.yaw_deg
     );
-    let plain = map_once(
-        db,
-        cloud,
-        &start,
-        &BTreeMap::new(),
-        &plain_options,
-        &mut *progress,
-    )
-    .map_err(|e| MapperError::PlainRun(Box::new(e)))?;
+    // Without the map's planes and without the pose priors: the search
+    // places the model by the map alone.
+    let no_priors = BTreeMap::new();
+    let plain_inputs = MapperInputs {
+        known_poses: &no_priors,
+        ..inputs
+    };
+    let plain = map_once(plain_inputs, &start, &plain_options, &mut *progress)
+        .map_err(|e| MapperError::PlainRun(Box::new(e)))?;
     let plain_run_s = started.elapsed().as_secs_f64();
     let searched = Instant::now();
     let index = MapIndex::build(cloud)?;
@@ -978,15 +967,7 @@ pub fn run_mapper_searching(
             c.y,
             c.z
         );
-        let out = run_mapper_with_priors(
-            db,
-            cloud,
-            init_image,
-            &found,
-            known_poses,
-            options,
-            &mut *progress,
-        );
+        let out = run_mapper_with_priors(inputs, init_image, &found, options, &mut *progress);
         // A finished model's fit and initial camera centre, kept even when
         // it is refused as loose: it still counts as a second place below.
         finished.push(out.as_ref().ok().map(|o| {
@@ -1116,21 +1097,12 @@ fn loose_searched_model(out: &MapperOutput, init_image: ImageId) -> Option<Mappe
 /// map; with `model.hold` its images keep their poses and intrinsics
 /// throughout. One run: with no initial pose to hold, there is no retry.
 pub fn extend_model(
-    db: &DatabaseSnapshot,
-    cloud: &PointCloud,
+    inputs: MapperInputs<'_>,
     model: &ExistingModel,
-    known_poses: &BTreeMap<ImageId, KnownPose>,
     options: &MapperOptions,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
-    map_once(
-        db,
-        cloud,
-        &Start::Model(model),
-        known_poses,
-        options,
-        progress,
-    )
+    map_once(inputs, &Start::Model(model), options, progress)
 }
 
 /// Puts `model`'s images at their poses and its points with their tracks
@@ -1503,14 +1475,12 @@ fn retry_reason(
 
 /// One run of the mapper with `options` as they are.
 fn map_once(
-    db: &DatabaseSnapshot,
-    cloud: &PointCloud,
+    inputs: MapperInputs<'_>,
     start: &Start<'_>,
-    known_poses: &BTreeMap<ImageId, KnownPose>,
     options: &MapperOptions,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
-    match map_until(db, cloud, start, known_poses, options, None, progress)? {
+    match map_until(inputs, start, options, None, progress)? {
         RunEnd::Finished(out) => Ok(*out),
         RunEnd::Moved { .. } => unreachable!("a run that does not look early always finishes"),
     }
@@ -1535,14 +1505,17 @@ enum RunEnd {
 /// enough to map again from where it is ([`EARLY_LOOK_MIN_CHANGE`]) and within
 /// the accepted change (`bundle.max_initial_pose_change_m`, `_deg`).
 fn map_until(
-    db: &DatabaseSnapshot,
-    cloud: &PointCloud,
+    inputs: MapperInputs<'_>,
     start: &Start<'_>,
-    known_poses: &BTreeMap<ImageId, KnownPose>,
     options: &MapperOptions,
     look_at: Option<usize>,
     progress: Progress<'_>,
 ) -> Result<RunEnd, MapperError> {
+    let MapperInputs {
+        db,
+        cloud,
+        known_poses,
+    } = inputs;
     options.validate()?;
     match start {
         Start::InitialPose { image, .. } if !db.images.contains_key(image) => {

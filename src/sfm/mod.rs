@@ -33,6 +33,6 @@ pub mod triangulate;
 
 pub use mapper::{
     extend_model, run_mapper, run_mapper_from_pose, run_mapper_searching, run_mapper_with_priors,
-    KnownPose, MapperError, MapperOutput,
+    KnownPose, MapperError, MapperInputs, MapperOutput,
 };
 pub use options::MapperOptions;

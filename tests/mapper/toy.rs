@@ -11,7 +11,9 @@ use colmap_lidar::map::PointCloud;
 use colmap_lidar::scene::BodyPose;
 use colmap_lidar::scene::{Camera, CameraId, CameraModel, ImageId, Rigid3};
 use colmap_lidar::sfm::options::{AssociationKind, IntrinsicsRefinement};
-use colmap_lidar::sfm::{run_mapper, run_mapper_with_priors, KnownPose, MapperOptions};
+use colmap_lidar::sfm::{
+    run_mapper, run_mapper_with_priors, KnownPose, MapperInputs, MapperOptions,
+};
 use nalgebra::{Vector2, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -967,16 +969,12 @@ fn toy_room_image_with_too_few_matches_is_placed_at_its_known_pose() {
             has_rotation: true,
         },
     )]);
-    let out = run_mapper_with_priors(
-        &scene.db,
-        &scene.cloud,
-        ImageId(1),
-        &init,
-        &known,
-        &options,
-        &mut |_, _| {},
-    )
-    .unwrap();
+    let inputs = MapperInputs {
+        db: &scene.db,
+        cloud: &scene.cloud,
+        known_poses: &known,
+    };
+    let out = run_mapper_with_priors(inputs, ImageId(1), &init, &options, &mut |_, _| {}).unwrap();
     let rec = out
         .report
         .images
