@@ -667,7 +667,7 @@ fn triangulate_pair(
 
 /// Registers the initial image at its rough `cam_from_world` and a second
 /// image from their essential matrix, for a run that does not use the map's
-/// planes ([`super::mapper::run_mapper_searching`]): the map need not be
+/// planes ([`super::runs::run_mapper_searching`]): the map need not be
 /// seen from a rough pose, which may even lie outside the mapped space. The
 /// candidate with the most triangulated points is taken (of the
 /// `max_candidates` with the most verified matches); the pair's scale is the

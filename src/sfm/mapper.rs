@@ -31,9 +31,7 @@ use super::initialize::{
     focal_from_map, initialize, initialize_from_pair, swept_cameras, InitError,
     InitialPairFocalSweep, MapFocalEstimate,
 };
-use super::localise::{
-    search_placement, Search, SearchError, SearchOptions, SearchRegion, SAME_PLACE_M,
-};
+use super::localise::{SearchError, SearchRegion};
 use super::options::{
     AssociationKind, BundleOptions, IntrinsicsRefinement, MapperOptions, OptionsError,
 };
@@ -43,7 +41,7 @@ use super::register::{
 };
 use super::report::{
     AlignmentRecord, ImageRecord, InputModelRecord, IntrinsicsRecord, MapReport, PoseChangeRecord,
-    RestartRecord, RetryRecord, RoundRecord, StageRecord, UncertaintySummary,
+    RoundRecord, StageRecord, UncertaintySummary,
 };
 use super::state::MapState;
 use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulate_image};
@@ -144,7 +142,7 @@ pub enum MapperError {
     },
     /// `--init-search`: the model mapped from the search's placement fits
     /// the map loosely and the map holds it only weakly in one direction,
-    /// so the placement may be wrong along it (see [`loose_searched_model`]).
+    /// so the placement may be wrong along it (see [`loose_searched_model`](super::runs::loose_searched_model)).
     #[error(
         "searching the map for the initial pose (--init-search): the model mapped from one of its placements, which ended with the initial camera at ({:.2}, {:.2}, {:.2}), has {:.0} % of its points on the surfaces their images see (below the {:.0} % of a model that fits well) and the map's planes hold it only weakly in one direction (similarity-constraint ratio {ratio:.2e}, below the {SEARCH_MIN_CONSTRAINT:.0e} a searched placement needs; weakest [rotation, translation, scale] {weakest:?}): a placement found by the search may be wrong along that direction (a uniform corridor) and the map cannot correct it; give a closer rough pose, or the exact one",
         centre[0], centre[1], centre[2], share * 100.0, GOOD_FIT_SHARE * 100.0
@@ -207,7 +205,7 @@ pub struct FitSummary {
 
 /// Below this similarity-constraint ratio a model mapped from a placement
 /// of `--init-search` that fits the map below [`GOOD_FIT_SHARE`] is an
-/// error ([`loose_searched_model`]): the seed-0 corridor from 1.56 m /
+/// error ([`loose_searched_model`](super::runs::loose_searched_model)): the seed-0 corridor from 1.56 m /
 /// 19 deg off gave such a model 1.63 m off at 1.5 times the true scale,
 /// fit 82 % with a ratio of 4.96e-3 (the wrong models of earlier sweeps:
 /// 2.2e-3 to 4.6e-3), where right models of the 24-image scenes measured
@@ -215,14 +213,14 @@ pub struct FitSummary {
 /// 100-image corridor 0.0103 (a longer corridor holds its slide less), and
 /// the 400-image corridor 3.4e-3 at 94 %, passed by its fit. About 1.4
 /// times from the wrong 4.96e-3 and from the right 0.0103.
-const SEARCH_MIN_CONSTRAINT: f64 = 7e-3;
+pub(super) const SEARCH_MIN_CONSTRAINT: f64 = 7e-3;
 
 /// At and above this `fit_share`, with the similarity well constrained, a
 /// model that moved its initial image beyond the accepted change is likely
 /// right and the given pose wrong: right models of the synthetic scenes fit
 /// 0.78-0.97 (the seed-7 yard from poses 1.1-1.8 m off: 0.92-0.96), the
 /// wrong ones measured 0.01-0.79 (see `docs/results.md`, session 25).
-const GOOD_FIT_SHARE: f64 = 0.9;
+pub(super) const GOOD_FIT_SHARE: f64 = 0.9;
 
 /// A model below `min_points_on_map_share` is still accepted as one the
 /// map covers only in part when at least this share of the points where
@@ -377,7 +375,7 @@ fn partly_mapped(
 /// that warning, while the right runs from poses up to 0.75 m off measured
 /// ratios of at least 0.019, and the right 400-image corridor 3.4e-3 with
 /// 93.7 % and its initial image 4 mm from the given pose.
-fn check_initial_pose(
+pub(super) fn check_initial_pose(
     state: &MapState,
     init_image: ImageId,
     given: &Rigid3,
@@ -441,7 +439,7 @@ fn note_initial_image(state: &MapState, report: &MapReport, record: &mut SolveRe
 }
 
 /// The change from `given` to `pose`.
-fn pose_change(pose: &Rigid3, given: &Rigid3) -> PoseChangeRecord {
+pub(super) fn pose_change(pose: &Rigid3, given: &Rigid3) -> PoseChangeRecord {
     PoseChangeRecord {
         moved_m: (pose.camera_center() - given.camera_center()).norm(),
         turned_deg: (pose.rotation * given.rotation.inverse())
@@ -452,7 +450,11 @@ fn pose_change(pose: &Rigid3, given: &Rigid3) -> PoseChangeRecord {
 
 /// Whether `change` exceeds `fraction` of the accepted change
 /// (`max_initial_pose_change_m` / `_deg`; a limit of 0 is off).
-fn pose_change_beyond(change: &PoseChangeRecord, options: &BundleOptions, fraction: f64) -> bool {
+pub(super) fn pose_change_beyond(
+    change: &PoseChangeRecord,
+    options: &BundleOptions,
+    fraction: f64,
+) -> bool {
     let (max_m, max_deg) = (
         options.max_initial_pose_change_m,
         options.max_initial_pose_change_deg,
@@ -506,594 +508,25 @@ pub struct MapperInputs<'a> {
     pub known_poses: &'a BTreeMap<ImageId, KnownPose>,
 }
 
-/// Runs the whole mapper without pose priors.
-pub fn run_mapper(
-    db: &DatabaseSnapshot,
-    cloud: &PointCloud,
-    init_image: ImageId,
-    init_cam_from_world: &Rigid3,
-    options: &MapperOptions,
-    progress: Progress<'_>,
-) -> Result<MapperOutput, MapperError> {
-    let inputs = MapperInputs {
-        db,
-        cloud,
-        known_poses: &BTreeMap::new(),
-    };
-    run_mapper_with_priors(inputs, init_image, init_cam_from_world, options, progress)
-}
-
-/// Runs the whole mapper. `known_poses` become soft prior residuals in every
-/// solve (weights `bundle.prior_position_weight`, `bundle.prior_rotation_weight`);
-/// an image with a full known pose that PnP could not register is placed at
-/// it at the end (flagged `placed_by_prior` in the report) and refined by the
-/// final bundle adjustments. When the map did not hold the model, the run is
-/// repeated with the initial image held at its given pose
-/// (`bundle.retry_holding_initial`, see [`retry_reason`]); when the initial
-/// image ended far from its given pose, it is mapped again from where it
-/// ended (`bundle.restart_from_refined_pose`, see [`restart_reason`]).
-pub fn run_mapper_with_priors(
-    inputs: MapperInputs<'_>,
-    init_image: ImageId,
-    init_cam_from_world: &Rigid3,
-    options: &MapperOptions,
-    progress: Progress<'_>,
-) -> Result<MapperOutput, MapperError> {
-    let db = inputs.db;
-    let start = Start::InitialPose {
-        image: init_image,
-        cam_from_world: *init_cam_from_world,
-        rough: false,
-    };
-    // A run from where the initial image ended (or was, when the first run
-    // stopped early): kept only within the accepted change from the pose the
-    // user gave, as the first run is, and its change measured from there.
-    let from_refined = |refined: &Rigid3, progress: &mut dyn FnMut(usize, usize)| {
-        let start = Start::InitialPose {
-            image: init_image,
-            cam_from_world: *refined,
-            rough: false,
-        };
-        let mut out = map_once(inputs, &start, options, progress)?;
-        let change = out
-            .reconstruction
-            .pose(init_image)
-            .map(|pose| pose_change(&pose, init_cam_from_world));
-        if let Some(c) = change.filter(|c| pose_change_beyond(c, &options.bundle, 1.0)) {
-            return Err(MapperError::InitialPoseFarOff {
-                moved_m: c.moved_m,
-                turned_deg: c.turned_deg,
-                max_m: options.bundle.max_initial_pose_change_m,
-                max_deg: options.bundle.max_initial_pose_change_deg,
-                fit: None,
-            });
-        }
-        out.report.initial_pose_change = change;
-        Ok(out)
-    };
-    // Maps `first` (`first_run_s` seconds) again from where its initial
-    // image ended, `change` from where it started; keeps `first` when that
-    // run fails.
-    let restart_from_end = |mut first: MapperOutput,
-                            change: PoseChangeRecord,
-                            first_run_s: f64,
-                            progress: &mut dyn FnMut(usize, usize)| {
-        let refined = first
-            .reconstruction
-            .pose(init_image)
-            .expect("a run that moved the initial image has its pose");
-        log::info!(
-            "the initial image ended {:.3} m and {:.2} deg from where the run started it: mapping again from where it ended (option bundle.restart_from_refined_pose)",
-            change.moved_m,
-            change.turned_deg
-        );
-        let started = Instant::now();
-        let second = from_refined(&refined, progress);
-        let mut record = RestartRecord {
-            first_change: change,
-            first_fit_share: first.report.fit_share,
-            first_run_s,
-            second_run_s: started.elapsed().as_secs_f64(),
-            ..Default::default()
-        };
-        match second {
-            Ok(mut out) => {
-                record.second_fit_share = out.report.fit_share;
-                record.second_kept = true;
-                record.first_retry = first.report.retry.take().map(Box::new);
-                out.report.early_restart = first.report.early_restart.take();
-                out.report.restart = Some(record);
-                out
-            }
-            Err(e) => {
-                log::warn!(
-                    "the run from where the initial image ended failed; kept the run before: {e}"
-                );
-                record.second_error = Some(e.to_string());
-                first.report.restart = Some(record);
-                first
-            }
-        }
-    };
-
-    // The first run, which may stop early to map again from where the
-    // initial image is (`bundle.restart_early_at_images`).
-    let b = &options.bundle;
-    let look_at = (b.restart_from_refined_pose
-        && b.restart_early_at_images > 0
-        && db.images.len() >= EARLY_RESTART_MIN_SHARE * b.restart_early_at_images
-        && options.association.kind != AssociationKind::None)
-        .then_some(b.restart_early_at_images);
-    let started = Instant::now();
-    let early = map_until(inputs, &start, options, look_at, &mut *progress);
-    let early_s = started.elapsed().as_secs_f64();
-    let (first_outcome, failed_early) = match early {
-        Ok(RunEnd::Moved {
-            cam_from_world,
-            change,
-            registered,
-        }) => {
-            log::info!(
-                "at {registered} images the initial image is {:.3} m and {:.2} deg from its given pose: mapping again from there (options bundle.restart_from_refined_pose, restart_early_at_images)",
-                change.moved_m,
-                change.turned_deg
-            );
-            let started = Instant::now();
-            // A run the retry would follow ([`retry_reason`]: the map leaves
-            // the model nearly free and the image moved far) counts as failed
-            // here: the first run from the given pose, with the retries,
-            // decides then.
-            let second = from_refined(&cam_from_world, &mut *progress);
-            let second = match retry_reason(&second, options) {
-                Some(why) => Err(why),
-                None => second.map_err(|e| e.to_string()),
-            };
-            let second_run_s = started.elapsed().as_secs_f64();
-            let mut record = RestartRecord {
-                first_change: change,
-                first_stopped_at_images: Some(registered),
-                first_run_s: early_s,
-                second_run_s,
-                ..Default::default()
-            };
-            // The run from there must leave the image where the look put it
-            // (within the look's own bar). One that moves it that far again
-            // was started from a model that had not settled, and counts as
-            // failed: the seed-2 60-image corridor from 0.3 m / 3 deg off was
-            // looked at at 17 images mid-slide along the corridor (0.38 m
-            // from the given pose), its run from there moved the image 0.55 m
-            // further, and mapped once more from that run's end it came out
-            // 0.63 m off along the corridor without an error; its first run
-            // to the end had left the image 0.300 m / 3.00 deg from the given
-            // pose, right. (The seed-0 100-image corridor's run from its look
-            // ended 1.5-2 cm from where it started: kept.)
-            let second = second.and_then(|out| {
-                let moved = out
-                    .reconstruction
-                    .pose(init_image)
-                    .map(|pose| pose_change(&pose, &cam_from_world));
-                match moved.filter(|c| beyond(c, EARLY_LOOK_MIN_CHANGE)) {
-                    Some(c) => Err(format!(
-                        "its initial image moved {:.3} m and {:.2} deg again from where the look put it (fit {:.3}): the model had not settled",
-                        c.moved_m,
-                        c.turned_deg,
-                        out.report.fit_share.unwrap_or(f64::NAN)
-                    )),
-                    None => Ok(out),
-                }
-            });
-            match second {
-                Ok(mut out) => {
-                    record.second_fit_share = out.report.fit_share;
-                    record.second_kept = true;
-                    out.report.early_restart = Some(record);
-                    return Ok(out);
-                }
-                Err(e) => {
-                    log::warn!(
-                        "the run from where the initial image was at {registered} images failed: {e}\nmapping from the given pose to the end"
-                    );
-                    record.second_error = Some(e);
-                    (None, Some(record))
-                }
-            }
-        }
-        Ok(RunEnd::Finished(out)) => (Some((Ok(*out), early_s)), None),
-        Err(e) => (Some((Err(e), early_s)), None),
-    };
-
-    // The first run to its end (as it finished, or again after a failed
-    // early restart), with the retries.
-    let started = Instant::now();
-    let mut run = |options: &MapperOptions| {
-        let started = Instant::now();
-        let outcome = map_once(inputs, &start, options, &mut *progress);
-        (outcome, started.elapsed().as_secs_f64())
-    };
-    // A run that finished at once was timed then.
-    let finished_s = first_outcome.as_ref().map_or(0.0, |(_, s)| *s);
-    let first_outcome = first_outcome.unwrap_or_else(|| run(options));
-    let mut first = run_with_retries(options, db.images.len(), first_outcome, run)?;
-    let first_run_s = finished_s + started.elapsed().as_secs_f64();
-    first.report.early_restart = failed_early;
-    Ok(match restart_reason(&first, options) {
-        Some(change) => restart_from_end(first, change, first_run_s, &mut *progress),
-        None => first,
-    })
-}
-
-/// The early look (`bundle.restart_early_at_images`) happens only in a
-/// database of at least this many times as many images: below, the run it
-/// saves is short, and the look comes before the model has seen enough to
-/// hold it (the 24-image corridor's walk turns back late: from 0.3 m / 3
-/// deg off, at 17 images the initial image was 0.2 m from where it ended).
-const EARLY_RESTART_MIN_SHARE: usize = 3;
-
 /// At the early look, the initial image must have moved farther than this
 /// from its given pose (metres, degrees) for the run to stop there. More
-/// than at the end ([`RESTART_MIN_CHANGE`]): once released, the image
+/// than at the end ([`RESTART_MIN_CHANGE`](super::runs::RESTART_MIN_CHANGE)): once released, the image
 /// slides along a corridor and turns a little, and comes back as the model
 /// grows. At 17 images, from exact poses (seed 0): the 100-image corridor's
 /// 3.4 cm and 0.04 deg off (0.9 mm at the end), the 60-image yard's 3.2 cm
 /// and 0.26 deg; from 0.3 m / 3 deg off: 0.30-0.33 m and 2.95-3.25 deg
 /// (corridor, room, yard).
-const EARLY_LOOK_MIN_CHANGE: (f64, f64) = (0.1, 1.0);
-
-/// A run whose initial image ended farther than this from its given pose
-/// (metres, degrees) is mapped again from where it ended
-/// (`bundle.restart_from_refined_pose`). Runs from exact poses moved it
-/// 0.9-2.0 mm and 0.009-0.016 deg on the seed-0 scenes; from the search's
-/// placements, 3.5-7.6 mm and 0.02-0.07 deg.
-const RESTART_MIN_CHANGE: (f64, f64) = (0.02, 0.2);
-
-/// How far a finished run's initial image ended from its given pose, when
-/// far enough to map again from there (see [`RESTART_MIN_CHANGE`]): not
-/// without LiDAR constraints (the image stays where it was given), and not
-/// when the retry's held run is kept (held at the given pose). The run the
-/// retry freed from the start is (the seed-0 corridor from 0.9 m / 8 deg
-/// off: 3.4 mm, its initial image 0.90 m from the given pose).
-fn restart_reason(out: &MapperOutput, options: &MapperOptions) -> Option<PoseChangeRecord> {
-    if !options.bundle.restart_from_refined_pose
-        || options.association.kind == AssociationKind::None
-        || out.report.retry.as_ref().is_some_and(|r| r.held_kept)
-    {
-        return None;
-    }
-    let change = out.report.initial_pose_change?;
-    beyond(&change, RESTART_MIN_CHANGE).then_some(change)
-}
+pub(super) const EARLY_LOOK_MIN_CHANGE: (f64, f64) = (0.1, 1.0);
 
 /// Whether `change` is beyond `limit` (metres, degrees).
-fn beyond(change: &PoseChangeRecord, limit: (f64, f64)) -> bool {
+pub(super) fn beyond(change: &PoseChangeRecord, limit: (f64, f64)) -> bool {
     change.moved_m > limit.0 || change.turned_deg > limit.1
-}
-
-/// Runs the whole mapper from a given initial pose
-/// ([`run_mapper_with_priors`]); when that fails as if the pose were off
-/// ([`MapperError::may_be_a_pose_off`]), searches the map around it
-/// ([`run_mapper_searching`] within `bundle.fallback_search_m` and `_deg`)
-/// and maps from what it finds. The report's `init_search.after_failure`
-/// says that the search followed a failure, and which.
-pub fn run_mapper_from_pose(
-    inputs: MapperInputs<'_>,
-    init_image: ImageId,
-    init_cam_from_world: &Rigid3,
-    options: &MapperOptions,
-    progress: Progress<'_>,
-) -> Result<MapperOutput, MapperError> {
-    let started = Instant::now();
-    let first = run_mapper_with_priors(
-        inputs,
-        init_image,
-        init_cam_from_world,
-        options,
-        &mut *progress,
-    );
-    let first_run_s = started.elapsed().as_secs_f64();
-    let region = SearchRegion::around(
-        options.bundle.fallback_search_m,
-        options.bundle.fallback_search_deg,
-    );
-    let first_error = match first {
-        Err(e)
-            if e.may_be_a_pose_off()
-                && region.radius_m > 0.0
-                && options.association.kind != AssociationKind::None =>
-        {
-            e
-        }
-        other => return other,
-    };
-    log::warn!(
-        "the run from the given initial pose failed: {first_error}\nsearching the map within {} m and {} deg of that pose (options bundle.fallback_search_m and _deg)",
-        region.radius_m,
-        region.yaw_deg
-    );
-    match run_mapper_searching(
-        inputs,
-        init_image,
-        init_cam_from_world,
-        &region,
-        options,
-        progress,
-    ) {
-        Ok(mut out) => {
-            let record = out
-                .report
-                .init_search
-                .as_mut()
-                .expect("a searched run has its record");
-            log::warn!(
-                "the search found the initial image {:.2} m and {:.1} deg from the given pose, and the model mapped from there passed the checks",
-                record.moved_m,
-                record.turned_deg
-            );
-            record.after_failure = Some(first_error.to_string());
-            record.first_run_s = Some(first_run_s);
-            Ok(out)
-        }
-        Err(search) => Err(MapperError::FallbackSearchFailed {
-            first: Box::new(first_error),
-            region,
-            search: Box::new(search),
-        }),
-    }
-}
-
-/// Two mapped models from the search's placements count as the same fit
-/// within this share of their points (`fit_share`); as one place with
-/// their initial cameras within [`super::localise::SAME_PLACE_M`].
-const SEARCH_SAME_FIT: f64 = 0.02;
-
-/// Runs the whole mapper from an initial pose known only to within `region`
-/// ([`super::localise`]): the database mapped without the map's planes from
-/// the rough pose (the initial pair from its essential matrix, the map's
-/// depths there giving only its scale: [`initialize_from_pair`]), that
-/// model placed on the map by [`search_placement`], and then
-/// [`run_mapper_with_priors`] from the initial image's pose there. When
-/// other placements come close, the database is mapped from each and the
-/// finished model that fits the map best is kept; an error when two in
-/// different places fit alike. The report's `init_search` says what the
-/// search found.
-pub fn run_mapper_searching(
-    inputs: MapperInputs<'_>,
-    init_image: ImageId,
-    rough_cam_from_world: &Rigid3,
-    region: &SearchRegion,
-    options: &MapperOptions,
-    progress: Progress<'_>,
-) -> Result<MapperOutput, MapperError> {
-    let cloud = inputs.cloud;
-    let started = Instant::now();
-    let mut plain_options = options.clone();
-    plain_options.association.kind = AssociationKind::None;
-    let start = Start::InitialPose {
-        image: init_image,
-        cam_from_world: *rough_cam_from_world,
-        rough: true,
-    };
-    log::info!(
-        "searching within {} m (vertically {} m) and {} deg of the rough initial pose: mapping without the map's planes first",
-        region.radius_m,
-        region.vertical_m,
-        region.yaw_deg
-    );
-    // Without the map's planes and without the pose priors: the search
-    // places the model by the map alone.
-    let no_priors = BTreeMap::new();
-    let plain_inputs = MapperInputs {
-        known_poses: &no_priors,
-        ..inputs
-    };
-    let plain = map_once(plain_inputs, &start, &plain_options, &mut *progress)
-        .map_err(|e| MapperError::PlainRun(Box::new(e)))?;
-    let plain_run_s = started.elapsed().as_secs_f64();
-    let searched = Instant::now();
-    let index = MapIndex::build(cloud)?;
-    let nearest = NearestNeighbourAssociator::new(cloud, &index, options.association.clone());
-    let points: Vec<nalgebra::Vector3<f64>> = plain
-        .reconstruction
-        .points3d
-        .values()
-        .map(|p| p.xyz)
-        .collect();
-    // Without the map's planes the initial image stays at the rough pose.
-    let rough = plain
-        .reconstruction
-        .pose(init_image)
-        .unwrap_or(*rough_cam_from_world);
-    // The cameras' right-hand axes, in the plain model's frame.
-    let right_axes: Vec<nalgebra::Vector3<f64>> = plain
-        .reconstruction
-        .registered_images()
-        .filter_map(|img| img.cam_from_world)
-        .map(|pose| pose.rotation.inverse() * nalgebra::Vector3::x())
-        .collect();
-    let Search {
-        contenders,
-        mut record,
-    } = search_placement(
-        &points,
-        &right_axes,
-        &rough.camera_center(),
-        &nearest,
-        region,
-        &SearchOptions::default(),
-    )?;
-    record.plain_run_s = plain_run_s;
-    if let Some(init) = &plain.report.init {
-        record.plain_second_image = init.second_image;
-        record.plain_pair_scale = init.pair_scale;
-        let centre = |id: u32| {
-            let pose = plain.reconstruction.pose(ImageId(id));
-            pose.map(|p| p.camera_center())
-        };
-        record.plain_pair_baseline = centre(init.initial_image)
-            .zip(centre(init.second_image))
-            .map(|(a, b)| (a - b).norm());
-    }
-    record.search_s = searched.elapsed().as_secs_f64();
-    log::info!(
-        "the search placed the initial image {:.2} m and {:.1} deg from the rough pose (the plain model's scale {:.3}; {} of {} points on the map, the next placement {}; {} placements, {:.1} s + {:.1} s){}",
-        record.moved_m,
-        record.turned_deg,
-        record.scale,
-        record.on_map,
-        record.num_checked,
-        record
-            .runner_up_on_map
-            .map_or_else(|| "none".to_owned(), |n| n.to_string()),
-        record.placements,
-        record.plain_run_s,
-        record.search_s,
-        if contenders.len() > 1 {
-            format!(
-                "; {} placements come close, each is mapped",
-                contenders.len()
-            )
-        } else {
-            String::new()
-        }
-    );
-    // Each close placement mapped; the map's fit of the finished models decides.
-    let mut runs: Vec<(Rigid3, Result<MapperOutput, MapperError>)> = Vec::new();
-    let mut finished: Vec<Option<(Option<f64>, nalgebra::Vector3<f64>)>> = Vec::new();
-    for (_, map_from_plain) in &contenders {
-        let found = map_from_plain.transform_pose(&rough);
-        let c = found.camera_center();
-        log::info!(
-            "mapping from the initial image at ({:.3}, {:.3}, {:.3})",
-            c.x,
-            c.y,
-            c.z
-        );
-        let out = run_mapper_with_priors(inputs, init_image, &found, options, &mut *progress);
-        // A finished model's fit and initial camera centre, kept even when
-        // it is refused as loose: it still counts as a second place below.
-        finished.push(out.as_ref().ok().map(|o| {
-            let centre = o.reconstruction.pose(init_image).unwrap_or(found);
-            let centre = centre.camera_center();
-            (judged_fit(o, o.report.partial_map), centre)
-        }));
-        let out = out.and_then(|o| match loose_searched_model(&o, init_image) {
-            Some(e) => Err(e),
-            None => Ok(o),
-        });
-        if let Err(e) = &out {
-            log::info!(
-                "the run from placement {} of {} failed: {e}",
-                runs.len() + 1,
-                contenders.len()
-            );
-        }
-        runs.push((found, out));
-    }
-    record.contender_fits = finished.iter().map(|f| f.and_then(|f| f.0)).collect();
-    let fits = record.contender_fits.clone();
-    let Some(best) = (0..runs.len())
-        .filter(|&i| runs[i].1.is_ok())
-        .max_by(|&a, &b| {
-            let f = |i: usize| fits[i].unwrap_or(0.0);
-            f(a).total_cmp(&f(b)).then(b.cmp(&a))
-        })
-    else {
-        // The loose model's error says the most: a model was mapped.
-        let loose = runs
-            .iter()
-            .position(|(_, r)| matches!(r, Err(MapperError::LooseSearchedModel { .. })))
-            .unwrap_or(0);
-        return runs.swap_remove(loose).1;
-    };
-    let centre = |i: usize| finished[i].map_or(runs[i].0.camera_center(), |f| f.1);
-    let best_fit = fits[best].unwrap_or(0.0);
-    // Another finished model (refused as loose or not) in another place that
-    // fits about as well: the map cannot tell them apart.
-    if let Some(other) = (0..runs.len()).find(|&i| {
-        i != best
-            && finished[i].is_some()
-            && fits[i].unwrap_or(0.0) >= best_fit - SEARCH_SAME_FIT
-            && (centre(i) - centre(best)).norm() > SAME_PLACE_M
-    }) {
-        let (a, b) = (centre(best), centre(other));
-        return Err(MapperError::Search(SearchError::Ambiguous {
-            best_fit,
-            other_fit: fits[other].unwrap_or(0.0),
-            best_centre: [a.x, a.y, a.z],
-            other_centre: [b.x, b.y, b.z],
-        }));
-    }
-    // Models that fit alike are in one place (else the error above): the
-    // same model, mapped from placements the run corrected. Keep the one
-    // from the search's best placement among them (its fit within
-    // [`SEARCH_SAME_FIT`] of the best): on the CI yard a contender 1 m off,
-    // which the run moved back (and mapped again from there,
-    // `bundle.restart_from_refined_pose`), fitted 0.95748 against the best
-    // placement's 0.95733.
-    let best = (0..runs.len())
-        .find(|&i| runs[i].1.is_ok() && fits[i].unwrap_or(0.0) >= best_fit - SEARCH_SAME_FIT)
-        .unwrap_or(best);
-    let best_fit = fits[best].unwrap_or(0.0);
-    if best != 0 {
-        log::warn!(
-            "kept the model mapped from the search's placement {} of {} (fit {:.1} % against {})",
-            best + 1,
-            runs.len(),
-            best_fit * 100.0,
-            fits.iter()
-                .map(|f| f.map_or_else(|| "failed".to_owned(), |f| format!("{:.1} %", f * 100.0)))
-                .collect::<Vec<_>>()
-                .join(", ")
-        );
-    }
-    let (found, out) = runs.swap_remove(best);
-    let mut out = out?;
-    let c = found.camera_center();
-    record.found_centre = [c.x, c.y, c.z];
-    record.moved_m = (c - rough.camera_center()).norm();
-    record.turned_deg = (found.rotation * rough.rotation.inverse())
-        .angle()
-        .to_degrees();
-    record.scale = contenders[best].1.scale;
-    record.on_map = contenders[best].0;
-    // The kept placement first.
-    record.contenders_on_map.swap(0, best);
-    record.contender_fits.swap(0, best);
-    out.report.init_search = Some(record);
-    Ok(out)
-}
-
-/// The error for a model mapped from a placement of `--init-search` that
-/// fits the map below [`GOOD_FIT_SHARE`] while the map holds it only
-/// weakly in one direction (similarity-constraint ratio below
-/// [`SEARCH_MIN_CONSTRAINT`]): the search may have put it off along that
-/// direction, and the run from there cannot tell (it starts where the
-/// search put it, so [`check_initial_pose`] sees no move).
-fn loose_searched_model(out: &MapperOutput, init_image: ImageId) -> Option<MapperError> {
-    let share = judged_fit(out, out.report.partial_map)?;
-    // No ratio: no map terms (`--no-lidar-constraints`), or too few points
-    // on planes for one.
-    let c = out.report.similarity_constraint.as_ref()?;
-    if share >= GOOD_FIT_SHARE || c.ratio >= SEARCH_MIN_CONSTRAINT {
-        return None;
-    }
-    let centre = out.reconstruction.pose(init_image)?.camera_center();
-    Some(MapperError::LooseSearchedModel {
-        // (+ 0.0: no "-0.00" in the message.)
-        centre: [centre.x + 0.0, centre.y + 0.0, centre.z + 0.0],
-        share,
-        ratio: c.ratio,
-        weakest: c
-            .weakest
-            .iter()
-            .map(|w| (w * 100.0).round() / 100.0 + 0.0)
-            .collect(),
-    })
 }
 
 /// Extends `model` (an earlier model of the same database in the map's
 /// frame, see [`ExistingModel`]) with the database's other images: its
 /// images and points are taken as they are, the others registered into it
-/// as in [`run_mapper_with_priors`], then the whole model solved with the
+/// as in [`super::runs::run_mapper_with_priors`], then the whole model solved with the
 /// map; with `model.hold` its images keep their poses and intrinsics
 /// throughout. One run: with no initial pose to hold, there is no retry.
 pub fn extend_model(
@@ -1207,12 +640,12 @@ fn seed_from_model(
 const HELD_MODEL_DISAGREES: (f64, f64, f64) = (0.005, 0.1, 1e-3);
 
 /// Where a run starts.
-enum Start<'a> {
+pub(super) enum Start<'a> {
     /// The initial image at its given pose in the map's frame.
     InitialPose {
         image: ImageId,
         cam_from_world: Rigid3,
-        /// The pose is only rough ([`run_mapper_searching`]'s run without
+        /// The pose is only rough ([`super::runs::run_mapper_searching`]'s run without
         /// the map's planes): the second image is not held with the initial
         /// one (that would keep the pair's relative pose as PnP found it
         /// against the map seen from the wrong place, and the whole model
@@ -1224,257 +657,8 @@ enum Start<'a> {
     Model(&'a ExistingModel),
 }
 
-/// The retry schedule of [`run_mapper_with_priors`] after `first` (the run
-/// as configured and its wall time, seconds), with `run` (one mapper run with
-/// the given options and its wall time) for a database of `num_images`
-/// images: `first`; when [`retry_reason`] calls
-/// for it and the initial image was held only early, the run free from the
-/// start; when that fails too, or when there was no early hold, the run with
-/// the initial image held throughout, and [`pick_run`] between the two.
-fn run_with_retries(
-    options: &MapperOptions,
-    num_images: usize,
-    (first, first_run_s): (Result<MapperOutput, MapperError>, f64),
-    mut run: impl FnMut(&MapperOptions) -> (Result<MapperOutput, MapperError>, f64),
-) -> Result<MapperOutput, MapperError> {
-    let holds_already =
-        options.bundle.fix_initial_for >= num_images && options.bundle.hold_initial_in_final_rounds;
-    let Some(reason) = retry_reason(&first, options).filter(|_| !holds_already) else {
-        return first;
-    };
-    // Held early (`fix_initial_for`) at a pose that is off, the model can be
-    // built around it and stay there: the seed-7 yard from 0.6 m / 4 deg off
-    // ended 0.27 m off (the slid-along-a-weak-direction error), free from the
-    // start 2.4 mm. So a failed early-held run is first mapped again free,
-    // as before session 28; only if that fails too, held throughout.
-    let early_hold =
-        options.bundle.fix_initial_for > 0 && options.bundle.fix_initial_for < num_images;
-    let (first, free_run_s, held_reason) = if early_hold {
-        log::warn!("{reason}: mapping again with the initial image free from the start");
-        let mut free = options.clone();
-        free.bundle.fix_initial_for = 0;
-        let (mut free_run, free_run_s) = run(&free);
-        // An error that holding cannot mend goes on to the held run too.
-        let why = retry_reason(&free_run, &free)
-            .or_else(|| free_run.as_ref().err().map(|e| e.to_string()));
-        match why {
-            None => {
-                let note = "kept the run with the initial image free from the start".to_owned();
-                log::warn!("{note}");
-                if let Ok(out) = &mut free_run {
-                    out.report.retry = Some(RetryRecord {
-                        reason,
-                        held_kept: false,
-                        free_kept: true,
-                        outcome: note,
-                        first_run_s,
-                        free_run_s: Some(free_run_s),
-                        held_run_s: None,
-                    });
-                }
-                return free_run;
-            }
-            Some(why) => (free_run, Some(free_run_s), why),
-        }
-    } else {
-        (first, None, reason.clone())
-    };
-    log::warn!("{held_reason}: mapping again with the initial image held at its given pose");
-    let mut held = options.clone();
-    held.bundle.fix_initial_for = num_images;
-    held.bundle.hold_initial_in_final_rounds = true;
-    let (held_run, held_run_s) = run(&held);
-    let (mut outcome, held_kept, note) = pick_run(first, held_run);
-    log::warn!("{note}");
-    if let Ok(out) = &mut outcome {
-        let note = match free_run_s {
-            Some(_) => format!("the run free from the start: {held_reason}; {note}"),
-            None => note,
-        };
-        out.report.retry = Some(RetryRecord {
-            reason,
-            held_kept,
-            free_kept: free_run_s.is_some() && !held_kept,
-            outcome: note,
-            first_run_s,
-            free_run_s,
-            held_run_s: Some(held_run_s),
-        });
-    }
-    outcome
-}
-
-/// The most a held run's whole-model alignment trial may move it for the
-/// map to count as agreeing with the given pose (see [`pick_run`]): centroid
-/// shift, metres; rotation, degrees; scale's departure from 1. The held
-/// 400-image corridor measured 0.8 mm, 0.0008 deg and 7e-5.
-const HELD_SETTLED: (f64, f64, f64) = (0.02, 0.1, 2e-3);
-
-/// Whether a held run's whole-model alignment found nothing to move and at
-/// least `GOOD_FIT_SHARE` of its points fit the map: the model built around
-/// the given pose sits where the map holds it. The trial alone does not
-/// tell: held throughout at poses 0.3 m and 3 deg off, the room 0 and yard 0
-/// table runs ended 0.28 and 0.22 m off with trials that moved 1 mm and
-/// under 0.1 deg, but fitted 65 % and 60 % (right held runs 86-96 %, the
-/// 400-image corridor 93.7 %).
-fn held_run_settled(out: &MapperOutput) -> bool {
-    let (max_m, max_deg, max_scale) = HELD_SETTLED;
-    let fits = judged_fit(out, out.report.partial_map).is_some_and(|f| f >= GOOD_FIT_SHARE);
-    fits && out.report.alignment.as_ref().is_some_and(|a| {
-        a.translation_m <= max_m && a.rotation_deg <= max_deg && (a.scale - 1.0).abs() <= max_scale
-    })
-}
-
-/// How well a run fits the map for choosing between runs: `fit_share`, or
-/// over the points the map covers (`covered_fit_share`) when `by_covered`
-/// (a partly mapped run: its `fit_share` is low by what the map lacks).
-fn judged_fit(out: &MapperOutput, by_covered: bool) -> Option<f64> {
-    if by_covered {
-        out.report.covered_fit_share
-    } else {
-        out.report.fit_share
-    }
-}
-
-/// Of a first run and the run with the initial image held, the one to keep,
-/// whether it is the held one, and what was decided (for the log and the
-/// report): the held run when it passed its checks, its planes leave a
-/// direction nearly free or, where the map fixes the whole model, it is
-/// settled ([`held_run_settled`]: its alignment trial found nothing to move
-/// and it fits the map well; else the map disagrees with
-/// the given pose: the seed-7 yard from a pose 1.1 m and 8 deg off must
-/// fail; the 400-image corridor, which slid 1.18 m in its first run, is
-/// right held: 1.1 mm), and the first failed or fits the map less (a
-/// smaller `fit_share`, or `covered_fit_share` when either is partly mapped);
-/// the first otherwise (both errors when both failed).
-fn pick_run(
-    first: Result<MapperOutput, MapperError>,
-    held: Result<MapperOutput, MapperError>,
-) -> (Result<MapperOutput, MapperError>, bool, String) {
-    let by_covered = [&first, &held]
-        .iter()
-        .any(|run| run.as_ref().is_ok_and(|out| out.report.partial_map));
-    let fit = |out: &MapperOutput| 100.0 * judged_fit(out, by_covered).unwrap_or(0.0);
-    let points = if by_covered {
-        "of the points the map covers"
-    } else {
-        "of its points"
-    };
-    let ratio = |out: &MapperOutput| {
-        out.report
-            .similarity_constraint
-            .as_ref()
-            .map_or(0.0, |c| c.ratio)
-    };
-    match (first, held) {
-        (first, Ok(held))
-            if ratio(&held) >= MIN_SIMILARITY_CONSTRAINT && !held_run_settled(&held) =>
-        {
-            let trial = held.report.alignment.as_ref().map_or_else(
-                || "no alignment trial (bundle.align_to_map off)".to_owned(),
-                |a| {
-                    format!(
-                        "its alignment trial moved it {:.3} m, {:.2} deg, scale {:.4}",
-                        a.translation_m, a.rotation_deg, a.scale
-                    )
-                },
-            );
-            let note = format!(
-                "with the initial image held at its given pose the map fixes the whole model (constraint ratio {:.1e}), {trial} and {:.1} % {points} fit the map (at most {:.3} m, {:.2} deg, {:.1} % in scale and at least {:.0} % fitting show that the map and that pose agree): kept the first run's outcome",
-                ratio(&held),
-                fit(&held),
-                HELD_SETTLED.0,
-                HELD_SETTLED.1,
-                HELD_SETTLED.2 * 100.0,
-                GOOD_FIT_SHARE * 100.0
-            );
-            (first, false, note)
-        }
-        (Ok(first), Ok(held)) if fit(&held) < fit(&first) => {
-            let note = format!(
-                "the run with the initial image held fits the map less ({:.1} % against {:.1} % {points}): kept the first",
-                fit(&held),
-                fit(&first)
-            );
-            (Ok(first), false, note)
-        }
-        (_, Ok(held)) => {
-            let why = if ratio(&held) >= MIN_SIMILARITY_CONSTRAINT {
-                let weak = if ratio(&held) < WEAK_SIMILARITY_CONSTRAINT {
-                    "; the map holds one direction only weakly, along which the model is only as right as the given pose"
-                } else {
-                    ""
-                };
-                format!(
-                    "the map fixes the whole model (constraint ratio {:.1e}), its alignment to the map found nothing to move and the model fits it well: the map and the given pose agree{weak}",
-                    ratio(&held)
-                )
-            } else {
-                "along the directions the map leaves free the model is only as right as the given pose".to_owned()
-            };
-            let note = format!(
-                "kept the run with the initial image held at its given pose ({:.1} % {points} on the map): {why}",
-                fit(&held)
-            );
-            (Ok(held), true, note)
-        }
-        (Ok(first), Err(e)) => {
-            let note = format!("holding the initial image at its given pose did not help: {e}");
-            (Ok(first), false, note)
-        }
-        (Err(first), Err(held)) => {
-            let note = "holding the initial image at its given pose did not help".to_owned();
-            let error = MapperError::RetryFailed {
-                first: Box::new(first),
-                held: Box::new(held),
-            };
-            (Err(error), false, note)
-        }
-    }
-}
-
-/// Why a run's outcome calls for mapping again with the initial image held
-/// at its given pose: the model did not fit the map, or the initial image
-/// ended beyond the accepted change, or the final planes leave a similarity
-/// of the model nearly free while the initial image moved farther than its
-/// prior's standard deviation (a right model moves it back by the given
-/// pose's error; along a free direction nothing but that pose places the
-/// model). `None` without LiDAR constraints, with the retry off, or for any
-/// other error.
-fn retry_reason(
-    outcome: &Result<MapperOutput, MapperError>,
-    options: &MapperOptions,
-) -> Option<String> {
-    if !options.bundle.retry_holding_initial || options.association.kind == AssociationKind::None {
-        return None;
-    }
-    match outcome {
-        Err(
-            e @ (MapperError::OffMap { .. }
-            | MapperError::InitialPoseFarOff { .. }
-            | MapperError::SlidAlongWeakDirection { .. }),
-        ) => Some(e.to_string()),
-        Err(_) => None,
-        Ok(out) => {
-            let change = out.report.initial_pose_change.as_ref()?;
-            let ratio = out.report.similarity_constraint.as_ref()?.ratio;
-            let b = &options.bundle;
-            let moved = (b.initial_prior_position_m > 0.0
-                && change.moved_m > b.initial_prior_position_m)
-                || (b.initial_prior_rotation_deg > 0.0
-                    && change.turned_deg > b.initial_prior_rotation_deg);
-            (ratio < MIN_SIMILARITY_CONSTRAINT && moved).then(|| {
-                format!(
-                    "the map's planes leave the model nearly free in one direction (constraint ratio {ratio:.1e}) and the initial image ended {:.2} m and {:.1} deg from its given pose",
-                    change.moved_m, change.turned_deg
-                )
-            })
-        }
-    }
-}
-
 /// One run of the mapper with `options` as they are.
-fn map_once(
+pub(super) fn map_once(
     inputs: MapperInputs<'_>,
     start: &Start<'_>,
     options: &MapperOptions,
@@ -1487,7 +671,7 @@ fn map_once(
 }
 
 /// How a run that may stop early ([`map_until`]) ended.
-enum RunEnd {
+pub(super) enum RunEnd {
     Finished(Box<MapperOutput>),
     /// Stopped once `registered` images were registered: the initial image
     /// had moved `change` from its given pose, to `cam_from_world`.
@@ -1504,7 +688,7 @@ enum RunEnd {
 /// (`bundle.fix_initial_for`), and stops there when the image moved far
 /// enough to map again from where it is ([`EARLY_LOOK_MIN_CHANGE`]) and within
 /// the accepted change (`bundle.max_initial_pose_change_m`, `_deg`).
-fn map_until(
+pub(super) fn map_until(
     inputs: MapperInputs<'_>,
     start: &Start<'_>,
     options: &MapperOptions,
@@ -2940,12 +2124,12 @@ fn global_ba(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// Images 1..=6 registered with centres at x = 0, 1, 2, 3, 10, 50 m
     /// (image 7 is not registered).
-    fn line_of_images() -> MapState {
+    pub(crate) fn line_of_images() -> MapState {
         use crate::io::database::DatabaseSnapshot;
         use crate::scene::CameraId;
         use crate::sfm::associate::tests::{add_test_image, test_camera};
@@ -2992,52 +2176,6 @@ mod tests {
         options.global_max_images = 0;
         options.global_radius_m = 7.5;
         assert_eq!(sphere_images(&state, ImageId(5), &options), ids(&[4, 5]));
-    }
-
-    /// A searched model is refused when it fits below 90 % and the map holds
-    /// it with a ratio below 7e-3, and kept when either is better.
-    #[test]
-    fn a_loose_searched_model_is_refused() {
-        use crate::sfm::align::SimilarityConstraint;
-        let output = |fit: f64, ratio: f64| {
-            let state = line_of_images();
-            let mut out = MapperOutput {
-                reconstruction: state.to_reconstruction(),
-                report: MapReport::default(),
-            };
-            out.report.fit_share = Some(fit);
-            out.report.similarity_constraint = Some(SimilarityConstraint {
-                num_points: 1000,
-                ratio,
-                weakest: [0.0, 0.0, 0.0, 0.784, 0.0, 0.239, 0.572],
-            });
-            out
-        };
-        let err = loose_searched_model(&output(0.82, 4.96e-3), ImageId(2)).expect("refused");
-        let MapperError::LooseSearchedModel { centre, share, .. } = &err else {
-            panic!("{err}");
-        };
-        assert_eq!(*centre, [1.0, 0.0, 0.0]);
-        assert_eq!(*share, 0.82);
-        let message = err.to_string();
-        for part in [
-            "(1.00, 0.00, 0.00)",
-            "82 %",
-            "ratio 4.96e-3",
-            "below the 7e-3",
-            "[0.0, 0.0, 0.0, 0.78, 0.0, 0.24, 0.57]",
-        ] {
-            assert!(message.contains(part), "{part}: {message}");
-        }
-        assert!(loose_searched_model(&output(0.86, 0.032), ImageId(2)).is_none());
-        assert!(loose_searched_model(&output(0.82, 0.0103), ImageId(2)).is_none());
-        assert!(loose_searched_model(&output(0.82, 0.0071), ImageId(2)).is_none());
-        assert!(loose_searched_model(&output(0.94, 3.4e-3), ImageId(2)).is_none());
-        assert!(loose_searched_model(&output(0.82, 0.0069), ImageId(2)).is_some());
-        // No fit measured: nothing to judge.
-        let mut unmeasured = output(0.5, 1e-4);
-        unmeasured.report.fit_share = None;
-        assert!(loose_searched_model(&unmeasured, ImageId(2)).is_none());
     }
 
     #[test]
@@ -3109,374 +2247,6 @@ mod tests {
         assert!(partly_mapped(&count(7_200), 0.93, Some(1e-2), 0.6));
         assert!(!partly_mapped(&count(7_200), 0.93, None, 0.6));
         assert!(!partly_mapped(&count(7_200), 0.93, r, 0.95));
-    }
-
-    /// The off-map error of the yard that slid (45 % of its points on the map).
-    fn off_map() -> Result<MapperOutput, MapperError> {
-        Err(MapperError::OffMap {
-            share: 0.45,
-            points: 10494,
-            removed: 4791,
-            min_share: 0.6,
-            coverage: 0.98,
-            covered_fit: 0.46,
-            ratio: Some(0.02),
-        })
-    }
-
-    /// A finished run with these checks' results.
-    fn finished_run(ratio: f64, moved_m: f64, turned_deg: f64, fit: f64) -> MapperOutput {
-        MapperOutput {
-            reconstruction: Reconstruction::default(),
-            report: MapReport {
-                initial_pose_change: Some(PoseChangeRecord {
-                    moved_m,
-                    turned_deg,
-                }),
-                similarity_constraint: Some(crate::sfm::align::SimilarityConstraint {
-                    num_points: 1000,
-                    ratio,
-                    weakest: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
-                }),
-                fit_share: Some(fit),
-                ..Default::default()
-            },
-        }
-    }
-
-    #[test]
-    fn a_run_whose_initial_image_moved_is_mapped_again_from_where_it_ended() {
-        let options = MapperOptions::default();
-        let moved = |m, deg| restart_reason(&finished_run(0.03, m, deg, 0.9), &options);
-        // From the exact pose (the seed-0 scenes: 0.9-2.0 mm, 0.009-0.016
-        // deg) or a search's placement (3.5-7.6 mm, 0.02-0.07 deg): no.
-        assert!(moved(0.002, 0.016).is_none());
-        assert!(moved(0.0076, 0.074).is_none());
-        assert!(moved(0.02, 0.2).is_none());
-        // From a pose 0.3 m / 3 deg off, or off in either alone: yes.
-        let change = moved(0.2997, 3.01).unwrap();
-        assert_eq!((change.moved_m, change.turned_deg), (0.2997, 3.01));
-        assert!(moved(0.021, 0.0).is_some());
-        assert!(moved(0.0, 0.21).is_some());
-        // After the retry: when its run free from the start is kept, yes;
-        // when its held run is, no (at the given pose).
-        let mut freed = finished_run(0.03, 0.9, 8.0, 0.9);
-        freed.report.retry = Some(RetryRecord {
-            free_kept: true,
-            ..Default::default()
-        });
-        assert!(restart_reason(&freed, &options).is_some());
-        // Not when turned off, without the map's planes, or held.
-        let mut off = options.clone();
-        off.bundle.restart_from_refined_pose = false;
-        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), &off).is_none());
-        let mut plain = options.clone();
-        plain.association.kind = AssociationKind::None;
-        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), &plain).is_none());
-        let mut held = finished_run(0.03, 0.3, 3.0, 0.9);
-        held.report.retry = Some(RetryRecord {
-            held_kept: true,
-            ..Default::default()
-        });
-        assert!(restart_reason(&held, &options).is_none());
-    }
-
-    #[test]
-    fn a_run_the_map_did_not_hold_is_retried_with_the_initial_image_held() {
-        let options = MapperOptions::default();
-        let reason = retry_reason(&off_map(), &options).unwrap();
-        assert!(reason.contains("does not fit the map"), "{reason}");
-        let far = Err(MapperError::InitialPoseFarOff {
-            moved_m: 1.2,
-            turned_deg: 0.5,
-            max_m: 1.0,
-            max_deg: 10.0,
-            fit: None,
-        });
-        assert!(retry_reason(&far, &options).is_some());
-        let slid = Err(MapperError::SlidAlongWeakDirection {
-            moved_m: 0.75,
-            turned_deg: 6.0,
-            max_m: 1.0,
-            max_deg: 10.0,
-            share: 0.74,
-            ratio: 1.5e-3,
-        });
-        assert!(retry_reason(&slid, &options)
-            .unwrap()
-            .contains("may have slid"));
-        // Errors that holding the initial image cannot mend.
-        assert!(retry_reason(&Err(MapperError::EmptyMap), &options).is_none());
-        // Finished runs: a nearly free direction (ratio below 1e-3) and the
-        // initial image beyond its prior's 0.3 m or 3 deg; the 18 table
-        // runs measured ratios 0.019-0.043, a perturbed pose moves back by
-        // 0.3 m and 3 deg.
-        let weak = MIN_SIMILARITY_CONSTRAINT / 4.0;
-        let reason = retry_reason(&Ok(finished_run(weak, 0.45, 0.1, 0.77)), &options).unwrap();
-        assert!(reason.contains("ended 0.45 m and 0.1 deg"), "{reason}");
-        assert!(retry_reason(&Ok(finished_run(weak, 0.1, 3.5, 0.77)), &options).is_some());
-        assert!(retry_reason(&Ok(finished_run(weak, 0.29, 2.9, 0.77)), &options).is_none());
-        assert!(retry_reason(&Ok(finished_run(0.02, 0.45, 4.0, 0.77)), &options).is_none());
-        // Off, without map terms, and (in the caller) when already held.
-        let mut no_retry = options.clone();
-        no_retry.bundle.retry_holding_initial = false;
-        assert!(retry_reason(&off_map(), &no_retry).is_none());
-        let mut plain = options.clone();
-        plain.association.kind = AssociationKind::None;
-        assert!(retry_reason(&off_map(), &plain).is_none());
-    }
-
-    #[test]
-    fn the_held_run_is_kept_when_it_passes_and_fits_at_least_as_well() {
-        let run = |fit: f64| Ok(finished_run(1e-4, 0.45, 0.1, fit));
-        let fit_of = |r: &Result<MapperOutput, MapperError>| r.as_ref().unwrap().report.fit_share;
-        // The first failed: the held run when it passed, else the first's error.
-        let (kept, held, _) = pick_run(off_map(), run(0.80));
-        assert!(held && fit_of(&kept) == Some(0.80));
-        let (kept, held, _) = pick_run(off_map(), off_map());
-        assert!(!held);
-        let Err(MapperError::RetryFailed { first, held }) = kept else {
-            panic!("not both failures: {:?}", kept.err())
-        };
-        assert!(matches!(*first, MapperError::OffMap { .. }));
-        assert!(matches!(*held, MapperError::OffMap { .. }));
-        // Both failures are in the message, the first's first.
-        let both = MapperError::RetryFailed { first, held }.to_string();
-        assert_eq!(
-            both.matches("does not fit the map: 45 %").count(),
-            2,
-            "{both}"
-        );
-        assert!(both.starts_with("the model does not fit the map"), "{both}");
-        assert!(
-            both.contains("?\nMapped again with the initial image held at its given pose; that run failed too: the model"),
-            "{both}"
-        );
-        // Both passed: the better fit, the held run on a tie.
-        let (kept, held, _) = pick_run(run(0.77), run(0.80));
-        assert!(held && fit_of(&kept) == Some(0.80));
-        let (kept, held, note) = pick_run(run(0.90), run(0.62));
-        assert!(!held && fit_of(&kept) == Some(0.90));
-        assert!(
-            note.contains("(62.0 % against 90.0 % of its points)"),
-            "{note}"
-        );
-        let (_, held, _) = pick_run(run(0.80), run(0.80));
-        assert!(held);
-        // The held run failed: the first as it was.
-        let (kept, held, _) = pick_run(run(0.77), off_map());
-        assert!(!held && fit_of(&kept) == Some(0.77));
-        // The map fixes the held model in every direction: the given pose
-        // disagrees with the map, the first outcome stands.
-        let fixed = || Ok(finished_run(0.02, 0.0, 0.0, 0.95));
-        let (kept, held, note) = pick_run(off_map(), fixed());
-        assert!(!held && kept.is_err());
-        assert!(note.contains("constraint ratio 2.0e-2"), "{note}");
-        let (kept, held, _) = pick_run(run(0.77), fixed());
-        assert!(!held && fit_of(&kept) == Some(0.77));
-        // Unless its alignment to the map found nothing to move: the map and
-        // the given pose agree (the 400-image corridor held: 0.8 mm,
-        // 0.0008 deg, scale 0.99993; its first run slid 1.18 m).
-        let aligned = |translation_m: f64, rotation_deg: f64, scale: f64| {
-            let mut out = finished_run(3.4e-3, 0.004, 0.03, 0.94);
-            out.report.alignment = Some(AlignmentRecord {
-                scale,
-                rotation_deg,
-                translation_m,
-                ..Default::default()
-            });
-            Ok(out)
-        };
-        let (kept, held, note) = pick_run(off_map(), aligned(0.0008, 0.0008, 0.99993));
-        assert!(held && fit_of(&kept) == Some(0.94), "{note}");
-        assert!(note.contains("the map and the given pose agree"), "{note}");
-        // Still the better fit of two that passed.
-        let (kept, held, _) = pick_run(run(0.96), aligned(0.0008, 0.0008, 0.99993));
-        assert!(!held && fit_of(&kept) == Some(0.96));
-        // A trial that moves nothing but a fit below 90 %: the room 0 table
-        // run held at a pose 0.3 m off (0.28 m wrong, trial 1 mm, fit 65 %).
-        let mut loose = aligned(0.001, 0.07, 1.00001);
-        if let Ok(out) = &mut loose {
-            out.report.fit_share = Some(0.65);
-        }
-        let (kept, held, note) = pick_run(off_map(), loose);
-        assert!(!held && kept.is_err(), "{note}");
-        assert!(note.contains("65.0 % of its points fit"), "{note}");
-        // A trial that would move it in any of the three: the first stands.
-        for (t, r, sc) in [(0.05, 0.0, 1.0), (0.0, 0.5, 1.0), (0.0, 0.0, 0.99)] {
-            let (kept, held, note) = pick_run(off_map(), aligned(t, r, sc));
-            assert!(!held && kept.is_err(), "{note}");
-            assert!(note.contains("its alignment trial moved it"), "{note}");
-        }
-        // A partly mapped held run is judged by the points the map covers:
-        // 34 % on the map over all, 93 % over the covered ones, settled.
-        let partial = |covered_fit: f64| {
-            let mut out = aligned(0.0008, 0.0008, 0.99993);
-            if let Ok(out) = &mut out {
-                out.report.fit_share = Some(0.34);
-                out.report.covered_fit_share = Some(covered_fit);
-                out.report.partial_map = true;
-            }
-            out
-        };
-        let (kept, held, note) = pick_run(off_map(), partial(0.93));
-        assert!(held && fit_of(&kept) == Some(0.34), "{note}");
-        assert!(
-            note.contains("93.0 % of the points the map covers"),
-            "{note}"
-        );
-        let (kept, held, note) = pick_run(off_map(), partial(0.85));
-        assert!(!held && kept.is_err(), "{note}");
-        assert!(
-            note.contains("85.0 % of the points the map covers fit"),
-            "{note}"
-        );
-        // Against a first run that passed, like with like: covered fits.
-        let mut first = finished_run(3.4e-3, 0.004, 0.03, 0.36);
-        first.report.covered_fit_share = Some(0.91);
-        first.report.partial_map = true;
-        let (kept, held, note) = pick_run(Ok(first), partial(0.93));
-        assert!(held && kept.is_ok(), "{note}");
-    }
-
-    /// The retry schedule, each run's outcome given by the options it was
-    /// called with (which of the three runs it is): the run as configured
-    /// (initial image held for its first 8 registrations), free from the
-    /// start, held throughout.
-    #[test]
-    fn a_failed_early_held_run_is_mapped_free_then_held() {
-        const N: usize = 24;
-        let options = MapperOptions::default();
-        assert!(options.bundle.fix_initial_for > 0 && options.bundle.fix_initial_for < N);
-        // A held run the map agrees with (see `pick_run`).
-        let settled = || {
-            let mut out = finished_run(0.02, 0.0, 0.0, 0.94);
-            out.report.alignment = Some(AlignmentRecord {
-                scale: 1.00001,
-                rotation_deg: 0.001,
-                translation_m: 0.001,
-                ..Default::default()
-            });
-            Ok(out)
-        };
-        #[derive(Clone, Copy, Debug, PartialEq)]
-        enum Which {
-            First,
-            Free,
-            Held,
-        }
-        let which = |o: &MapperOptions| match (
-            o.bundle.fix_initial_for,
-            o.bundle.hold_initial_in_final_rounds,
-        ) {
-            (0, false) => Which::Free,
-            (n, true) if n == N => Which::Held,
-            (n, false) if n == options.bundle.fix_initial_for => Which::First,
-            other => panic!("unexpected run {other:?}"),
-        };
-        // Runs the schedule; each run takes (its index + 1) seconds.
-        let schedule =
-            |options: &MapperOptions,
-             outcome: &dyn Fn(Which) -> Result<MapperOutput, MapperError>| {
-                let mut calls = Vec::new();
-                let mut run = |o: &MapperOptions| {
-                    calls.push(which(o));
-                    (outcome(which(o)), calls.len() as f64)
-                };
-                let first = run(options);
-                let result = run_with_retries(options, N, first, run);
-                (result, calls)
-            };
-
-        // A good first run is all.
-        let (kept, calls) = schedule(&options, &|_| Ok(finished_run(0.02, 0.0, 0.0, 0.9)));
-        assert_eq!(calls, [Which::First]);
-        assert!(kept.unwrap().report.retry.is_none());
-
-        // The first off the map, the free run right: the free run, and no held run.
-        let (kept, calls) = schedule(&options, &|w| match w {
-            Which::Free => Ok(finished_run(0.02, 0.0, 0.0, 0.88)),
-            _ => off_map(),
-        });
-        assert_eq!(calls, [Which::First, Which::Free]);
-        let report = kept.unwrap().report;
-        assert_eq!(report.fit_share, Some(0.88));
-        let retry = report.retry.unwrap();
-        assert!(retry.free_kept && !retry.held_kept, "{retry:?}");
-        assert!(
-            retry.reason.contains("does not fit the map"),
-            "{}",
-            retry.reason
-        );
-        assert_eq!(
-            (retry.first_run_s, retry.free_run_s, retry.held_run_s),
-            (1.0, Some(2.0), None)
-        );
-
-        // The free run fails too, on the map or with an error holding cannot
-        // mend: the held run, which the map agrees with, is kept.
-        let empty_map = || Err(MapperError::EmptyMap);
-        for free_error in [
-            off_map as fn() -> Result<MapperOutput, MapperError>,
-            empty_map,
-        ] {
-            let free_message = free_error().err().unwrap().to_string();
-            let (kept, calls) = schedule(&options, &|w| match w {
-                Which::Held => settled(),
-                Which::Free => free_error(),
-                Which::First => off_map(),
-            });
-            assert_eq!(calls, [Which::First, Which::Free, Which::Held]);
-            let report = kept.unwrap().report;
-            assert_eq!(report.fit_share, Some(0.94));
-            let retry = report.retry.unwrap();
-            assert!(retry.held_kept && !retry.free_kept, "{retry:?}");
-            assert_eq!(
-                (retry.first_run_s, retry.free_run_s, retry.held_run_s),
-                (1.0, Some(2.0), Some(3.0))
-            );
-            assert!(
-                retry.outcome.starts_with(&format!("the run free from the start: {free_message}; kept the run with the initial image held")),
-                "{}",
-                retry.outcome
-            );
-        }
-
-        // The held run fails as well: both errors, the free run's first.
-        let (kept, calls) = schedule(&options, &|w| match w {
-            Which::Free => Err(MapperError::EmptyMap),
-            _ => off_map(),
-        });
-        assert_eq!(calls, [Which::First, Which::Free, Which::Held]);
-        let Err(MapperError::RetryFailed { first, held }) = kept else {
-            panic!("not both failures: {:?}", kept.err())
-        };
-        assert!(matches!(*first, MapperError::EmptyMap), "{first}");
-        assert!(matches!(*held, MapperError::OffMap { .. }), "{held}");
-
-        // Without the early hold there is no free rerun: straight to held.
-        let mut free_from_start = options.clone();
-        free_from_start.bundle.fix_initial_for = 0;
-        let (kept, calls) = schedule(&free_from_start, &|w| match w {
-            Which::Held => settled(),
-            _ => off_map(),
-        });
-        assert_eq!(calls, [Which::Free, Which::Held]);
-        let retry = kept.unwrap().report.retry.unwrap();
-        assert!(retry.held_kept && retry.free_run_s.is_none(), "{retry:?}");
-
-        // Already held throughout, or the retry off: the first outcome stands.
-        let mut no_retry = options.clone();
-        no_retry.bundle.retry_holding_initial = false;
-        let (kept, calls) = schedule(&no_retry, &|_| off_map());
-        assert_eq!(calls, [Which::First]);
-        assert!(matches!(kept, Err(MapperError::OffMap { .. })));
-        let mut held = options.clone();
-        held.bundle.fix_initial_for = N;
-        held.bundle.hold_initial_in_final_rounds = true;
-        let (kept, calls) = schedule(&held, &|_| off_map());
-        assert_eq!(calls, [Which::Held]);
-        assert!(matches!(kept, Err(MapperError::OffMap { .. })));
     }
 
     /// The whole-model alignment of a model 1 % large, 0.5 deg turned and

@@ -1,7 +1,8 @@
 //! Incremental structure-from-motion inside a LiDAR map (method.md section 4),
 //! in GLOMAP-like stages: each stage is one module with one options struct
-//! ([`options`]) and one entry point; [`mapper::run_mapper`] runs them as
-//! numbered, timed, logged stages.
+//! ([`options`]) and one entry point; [`mapper`] runs them as numbered,
+//! timed, logged stages, and [`runs`] wraps that run in the early look, the
+//! retries, the restart and the search that a rough initial pose calls for.
 //!
 //! * [`state`]: the reconstruction under construction (tracks, next-best-view
 //!   book-keeping);
@@ -28,11 +29,10 @@ pub mod mapper;
 pub mod options;
 pub mod register;
 pub mod report;
+pub mod runs;
 pub mod state;
 pub mod triangulate;
 
-pub use mapper::{
-    extend_model, run_mapper, run_mapper_from_pose, run_mapper_searching, run_mapper_with_priors,
-    KnownPose, MapperError, MapperInputs, MapperOutput,
-};
+pub use mapper::{extend_model, KnownPose, MapperError, MapperInputs, MapperOutput};
 pub use options::MapperOptions;
+pub use runs::{run_mapper, run_mapper_from_pose, run_mapper_searching, run_mapper_with_priors};

@@ -5,8 +5,9 @@
 //! * [`scenes`]: the built-in scenes (yard, room, corridor) and trajectories.
 //! * [`generate`]: [`generate_scene`] writes images, LiDAR maps, the true
 //!   cameras and the initial pose.
-//! * [`pose`]: body pose (x forward, y left, z up; roll/pitch/yaw) <->
-//!   `cam_from_world`, the map convention of method.md section 2.
+//! * [`BodyPose`] (in `scene`): body pose (x forward, y left, z up;
+//!   roll/pitch/yaw) <-> `cam_from_world`, the map convention of method.md
+//!   section 2.
 //! * [`colmap_harness`]: [`make_database`] runs `colmap feature_extractor` and
 //!   `exhaustive_matcher` headless.
 use std::path::{Path, PathBuf};
