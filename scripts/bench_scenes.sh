@@ -9,7 +9,8 @@
 # env:   SCENES (default "corridor room yard"), SEEDS (default "0 1 2"),
 #        IMAGES (default 24), POSES (default "exact perturbed"),
 #        MAP_ARGS (extra arguments for map, e.g. "--options opts.toml"),
-#        SYNTH_ARGS (extra arguments for synth when a database is made, e.g.
+#        SYNTH_ARGS (extra arguments for synth when a database is made; scenes
+#        already in OUT_DIR are kept, so use a new OUT_DIR to change them; e.g.
 #        "--offset 500000,4400000,200" or "--width 1024 --height 768"),
 #        TAG (default "default": each run's folder is TAG-POSE), ORACLE (1: run
 #        colmap mapper once per database, 0: skip), COLMAP_LIDAR (default:

@@ -7,6 +7,10 @@
 //!    filtering, track completion; periodic global BA; re-triangulation when
 //!    registration stalls.
 //! 5. Final global BA and filtering.
+//!
+//! This module holds that single run (`map_until`, [`extend_model`]), its
+//! inputs ([`MapperInputs`]) and errors ([`MapperError`]); the runs around it
+//! (early look, retries, restart, search) are in [`super::runs`].
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
 
@@ -142,7 +146,8 @@ pub enum MapperError {
     },
     /// `--init-search`: the model mapped from the search's placement fits
     /// the map loosely and the map holds it only weakly in one direction,
-    /// so the placement may be wrong along it (see [`loose_searched_model`](super::runs::loose_searched_model)).
+    /// so the placement may be wrong along it (see
+    /// [`loose_searched_model`](super::runs::loose_searched_model)).
     #[error(
         "searching the map for the initial pose (--init-search): the model mapped from one of its placements, which ended with the initial camera at ({:.2}, {:.2}, {:.2}), has {:.0} % of its points on the surfaces their images see (below the {:.0} % of a model that fits well) and the map's planes hold it only weakly in one direction (similarity-constraint ratio {ratio:.2e}, below the {SEARCH_MIN_CONSTRAINT:.0e} a searched placement needs; weakest [rotation, translation, scale] {weakest:?}): a placement found by the search may be wrong along that direction (a uniform corridor) and the map cannot correct it; give a closer rough pose, or the exact one",
         centre[0], centre[1], centre[2], share * 100.0, GOOD_FIT_SHARE * 100.0
@@ -205,8 +210,8 @@ pub struct FitSummary {
 
 /// Below this similarity-constraint ratio a model mapped from a placement
 /// of `--init-search` that fits the map below [`GOOD_FIT_SHARE`] is an
-/// error ([`loose_searched_model`](super::runs::loose_searched_model)): the seed-0 corridor from 1.56 m /
-/// 19 deg off gave such a model 1.63 m off at 1.5 times the true scale,
+/// error ([`loose_searched_model`](super::runs::loose_searched_model)): the
+/// seed-0 corridor from 1.56 m / 19 deg off gave such a model 1.63 m off at 1.5 times the true scale,
 /// fit 82 % with a ratio of 4.96e-3 (the wrong models of earlier sweeps:
 /// 2.2e-3 to 4.6e-3), where right models of the 24-image scenes measured
 /// at least 0.019 (session 37's sweep: corridor 0.032 at 86 %), the right
@@ -510,9 +515,9 @@ pub struct MapperInputs<'a> {
 
 /// At the early look, the initial image must have moved farther than this
 /// from its given pose (metres, degrees) for the run to stop there. More
-/// than at the end ([`RESTART_MIN_CHANGE`](super::runs::RESTART_MIN_CHANGE)): once released, the image
-/// slides along a corridor and turns a little, and comes back as the model
-/// grows. At 17 images, from exact poses (seed 0): the 100-image corridor's
+/// than at the end ([`super::runs::RESTART_MIN_CHANGE`]): once released,
+/// the image slides along a corridor and turns a little, and comes back as
+/// the model grows. At 17 images, from exact poses (seed 0): the 100-image corridor's
 /// 3.4 cm and 0.04 deg off (0.9 mm at the end), the 60-image yard's 3.2 cm
 /// and 0.26 deg; from 0.3 m / 3 deg off: 0.30-0.33 m and 2.95-3.25 deg
 /// (corridor, room, yard).
@@ -526,8 +531,8 @@ pub(super) fn beyond(change: &PoseChangeRecord, limit: (f64, f64)) -> bool {
 /// Extends `model` (an earlier model of the same database in the map's
 /// frame, see [`ExistingModel`]) with the database's other images: its
 /// images and points are taken as they are, the others registered into it
-/// as in [`super::runs::run_mapper_with_priors`], then the whole model solved with the
-/// map; with `model.hold` its images keep their poses and intrinsics
+/// as in [`run_mapper_with_priors`](super::runs::run_mapper_with_priors),
+/// then the whole model solved with the map; with `model.hold` its images keep their poses and intrinsics
 /// throughout. One run: with no initial pose to hold, there is no retry.
 pub fn extend_model(
     inputs: MapperInputs<'_>,
@@ -645,7 +650,8 @@ pub(super) enum Start<'a> {
     InitialPose {
         image: ImageId,
         cam_from_world: Rigid3,
-        /// The pose is only rough ([`super::runs::run_mapper_searching`]'s run without
+        /// The pose is only rough
+        /// ([`run_mapper_searching`](super::runs::run_mapper_searching)'s run without
         /// the map's planes): the second image is not held with the initial
         /// one (that would keep the pair's relative pose as PnP found it
         /// against the map seen from the wrong place, and the whole model

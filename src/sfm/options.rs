@@ -354,7 +354,7 @@ pub struct BundleOptions {
     /// throughout, and keep that run if it passes the checks (and, when the
     /// first passed too, fits the map at least as well; where its planes
     /// fix the whole model, only if its alignment trial finds nothing to
-    /// move: see `mapper::pick_run`). On the seed-0 yard
+    /// move: see `runs::pick_run`). On the seed-0 yard
     /// changed since the scan (`synth --changes 3`; the map shows only the
     /// ground and two facades through one corner) the model slid 0.98 m and
     /// failed the fit check; held, it ended 1.4 mm off (fit 80 %); from the

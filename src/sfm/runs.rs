@@ -49,8 +49,8 @@ pub fn run_mapper(
     run_mapper_with_priors(inputs, init_image, init_cam_from_world, options, progress)
 }
 
-/// Runs the whole mapper. `known_poses` become soft prior residuals in every
-/// solve (weights `bundle.prior_position_weight`, `bundle.prior_rotation_weight`);
+/// Runs the whole mapper. `inputs.known_poses` become soft prior residuals
+/// in every solve (weights `bundle.prior_position_weight`, `bundle.prior_rotation_weight`);
 /// an image with a full known pose that PnP could not register is placed at
 /// it at the end (flagged `placed_by_prior` in the report) and refined by the
 /// final bundle adjustments. When the map did not hold the model, the run is
@@ -359,7 +359,8 @@ const SEARCH_SAME_FIT: f64 = 0.02;
 /// Runs the whole mapper from an initial pose known only to within `region`
 /// ([`super::localise`]): the database mapped without the map's planes from
 /// the rough pose (the initial pair from its essential matrix, the map's
-/// depths there giving only its scale: [`initialize_from_pair`](super::initialize::initialize_from_pair)), that
+/// depths there giving only its scale:
+/// [`initialize_from_pair`](super::initialize::initialize_from_pair)), that
 /// model placed on the map by [`search_placement`], and then
 /// [`run_mapper_with_priors`] from the initial image's pose there. When
 /// other placements come close, the database is mapped from each and the
@@ -578,7 +579,8 @@ pub fn run_mapper_searching(
 /// weakly in one direction (similarity-constraint ratio below
 /// [`SEARCH_MIN_CONSTRAINT`]): the search may have put it off along that
 /// direction, and the run from there cannot tell (it starts where the
-/// search put it, so [`check_initial_pose`](super::mapper::check_initial_pose) sees no move).
+/// search put it, so [`check_initial_pose`](super::mapper::check_initial_pose)
+/// sees no move).
 pub(super) fn loose_searched_model(out: &MapperOutput, init_image: ImageId) -> Option<MapperError> {
     let share = judged_fit(out, out.report.partial_map)?;
     // No ratio: no map terms (`--no-lidar-constraints`), or too few points
