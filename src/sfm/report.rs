@@ -158,6 +158,10 @@ pub struct MapReport {
     /// called for the held retry: `second_error` says why) and the first run
     /// was mapped again from the given pose to its end.
     pub early_restart: Option<RestartRecord>,
+    /// The early look of this run (`bundle.restart_early_at_images`), when
+    /// it happened: where the initial image was, and whether the model had
+    /// settled there.
+    pub early_look: Option<EarlyLookRecord>,
     /// The alignment of the initial pair's model to the map, when run.
     pub initial_alignment: Option<AlignmentRecord>,
     /// The whole-model alignment to the map before the final rounds, when run.
@@ -214,6 +218,23 @@ pub struct MapReport {
 pub struct PoseChangeRecord {
     pub moved_m: f64,
     pub turned_deg: f64,
+}
+
+/// The early look at the initial image during a run.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct EarlyLookRecord {
+    /// Images registered at the look.
+    pub registered: usize,
+    /// The initial image's change from its given pose there.
+    pub change: PoseChangeRecord,
+    /// How far the whole model's alignment to the map (stage 5's, as a
+    /// trial) would move the initial image from there; `None` with
+    /// `bundle.align_to_map` off.
+    pub alignment_would_move: Option<PoseChangeRecord>,
+    /// Whether the model had settled (the alignment would move the image
+    /// less than 2 cm and 0.2 deg): only then may the run stop to map again
+    /// from there.
+    pub settled: bool,
 }
 
 /// A second run started from where the first run's initial image ended,

@@ -128,6 +128,7 @@ pub fn run_mapper_with_priors(
                 record.second_kept = true;
                 record.first_retry = first.report.retry.take().map(Box::new);
                 out.report.early_restart = first.report.early_restart.take();
+                out.report.early_look = first.report.early_look.take();
                 out.report.restart = Some(record);
                 out
             }
