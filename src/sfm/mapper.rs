@@ -679,12 +679,12 @@ pub(super) fn map_once(
 /// How a run that may stop early ([`map_until`]) ended.
 pub(super) enum RunEnd {
     Finished(Box<MapperOutput>),
-    /// Stopped once `registered` images were registered: the initial image
-    /// had moved `change` from its given pose, to `cam_from_world`.
+    /// Stopped at the early look (`look`: how many images were registered,
+    /// how far the initial image had moved from its given pose), with the
+    /// initial image at `cam_from_world`.
     Moved {
         cam_from_world: Rigid3,
-        change: PoseChangeRecord,
-        registered: usize,
+        look: EarlyLookRecord,
     },
 }
 
@@ -1240,12 +1240,13 @@ pub(super) fn map_until(
                         None
                     };
                     let settled = !would_move.is_some_and(|m| beyond(&m, EARLY_LOOK_SETTLED));
-                    report.early_look = Some(EarlyLookRecord {
+                    let record = EarlyLookRecord {
                         registered,
                         change,
                         alignment_would_move: would_move,
                         settled,
-                    });
+                    };
+                    report.early_look = Some(record);
                     if !settled {
                         let m = would_move.expect("only a trial finds a model unsettled");
                         log::info!(
@@ -1260,8 +1261,7 @@ pub(super) fn map_until(
                     {
                         return Ok(RunEnd::Moved {
                             cam_from_world: pose,
-                            change,
-                            registered,
+                            look: record,
                         });
                     }
                 }

@@ -158,9 +158,10 @@ pub struct MapReport {
     /// called for the held retry: `second_error` says why) and the first run
     /// was mapped again from the given pose to its end.
     pub early_restart: Option<RestartRecord>,
-    /// The early look of this run (`bundle.restart_early_at_images`), when
+    /// The first run's early look (`bundle.restart_early_at_images`), when
     /// it happened: where the initial image was, and whether the model had
-    /// settled there.
+    /// settled there (when it had and the image had moved far enough, the
+    /// run stopped there: `early_restart`).
     pub early_look: Option<EarlyLookRecord>,
     /// The alignment of the initial pair's model to the map, when run.
     pub initial_alignment: Option<AlignmentRecord>,

@@ -26,7 +26,7 @@ use super::mapper::{
     SEARCH_MIN_CONSTRAINT,
 };
 use super::options::{AssociationKind, MapperOptions};
-use super::report::{PoseChangeRecord, RestartRecord, RetryRecord};
+use super::report::{EarlyLookRecord, PoseChangeRecord, RestartRecord, RetryRecord};
 use crate::io::database::DatabaseSnapshot;
 use crate::map::index::MapIndex;
 use crate::map::PointCloud;
@@ -157,9 +157,11 @@ pub fn run_mapper_with_priors(
     let (first_outcome, failed_early) = match early {
         Ok(RunEnd::Moved {
             cam_from_world,
-            change,
-            registered,
+            look,
         }) => {
+            let EarlyLookRecord {
+                registered, change, ..
+            } = look;
             log::info!(
                 "at {registered} images the initial image is {:.3} m and {:.2} deg from its given pose: mapping again from there (options bundle.restart_from_refined_pose, restart_early_at_images)",
                 change.moved_m,
@@ -214,6 +216,7 @@ pub fn run_mapper_with_priors(
                     record.second_fit_share = out.report.fit_share;
                     record.second_kept = true;
                     out.report.early_restart = Some(record);
+                    out.report.early_look = Some(look);
                     return Ok(out);
                 }
                 Err(e) => {
@@ -221,7 +224,7 @@ pub fn run_mapper_with_priors(
                         "the run from where the initial image was at {registered} images failed: {e}\nmapping from the given pose to the end"
                     );
                     record.second_error = Some(e);
-                    (None, Some(record))
+                    (None, Some((record, look)))
                 }
             }
         }
@@ -242,7 +245,10 @@ pub fn run_mapper_with_priors(
     let first_outcome = first_outcome.unwrap_or_else(|| run(options));
     let mut first = run_with_retries(options, db.images.len(), first_outcome, run)?;
     let first_run_s = finished_s + started.elapsed().as_secs_f64();
-    first.report.early_restart = failed_early;
+    if let Some((record, look)) = failed_early {
+        first.report.early_restart = Some(record);
+        first.report.early_look = Some(look);
+    }
     Ok(match restart_reason(&first, options) {
         Some(change) => restart_from_end(first, change, first_run_s, &mut *progress),
         None => first,

@@ -334,6 +334,15 @@ fn a_run_whose_initial_image_moved_early_is_mapped_again_from_there() {
     );
     assert!(record.first_fit_share.is_none());
     assert!(record.first_change.moved_m > 0.1, "{record:?}");
+    // The look that stopped it, in the kept run's report: without the
+    // alignment to the map there is no trial to tell an unsettled model.
+    let look = early.report.early_look.expect("the look is reported");
+    assert_eq!(look.registered, at);
+    assert_eq!(look.change.moved_m, record.first_change.moved_m);
+    assert!(
+        look.settled && look.alignment_would_move.is_none(),
+        "{look:?}"
+    );
     assert_eq!(early.report.num_registered, 30);
     // Measured from the given pose, as without the restart.
     let change = early.report.initial_pose_change.expect("measured");
@@ -346,7 +355,7 @@ fn a_run_whose_initial_image_moved_early_is_mapped_again_from_there() {
     assert!(full_err < 0.02, "{full_err}");
     // 30 images are fewer than three times 11: no early look.
     let (late, _) = run(11);
-    assert!(late.report.early_restart.is_none());
+    assert!(late.report.early_restart.is_none() && late.report.early_look.is_none());
     assert_eq!(
         late.reconstruction.pose(ImageId(1)),
         full.reconstruction.pose(ImageId(1))
