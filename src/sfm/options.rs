@@ -376,22 +376,22 @@ pub struct BundleOptions {
     /// With `restart_from_refined_pose`, the run looks at its initial image
     /// once, at the first sphere solve with at least this many images
     /// registered and the image released (`fix_initial_for`): when it has
-    /// already moved more than 10 cm or 1 deg from its given pose (and
-    /// within the accepted change), the run stops there and maps again from
-    /// that pose, instead of finishing first and mapping again from where
-    /// it ended. A run from there that moves the image as far again (the
-    /// model had not settled at the look) counts as failed, and the first
-    /// run is mapped from the given pose to its end as without the look
-    /// (session 40: the seed-2 60-image corridor, looked at mid-slide, ended
-    /// 0.63 m off along the corridor without an error when that run was
-    /// mapped once more from its end). Only in databases of at least three times this many
-    /// images: below, the run saved is short and the model may not have
-    /// seen enough yet. The seed-0 100-image corridor from 0.3 m / 3 deg
-    /// off had its initial image 0.316 m from the given pose at 17 images
-    /// and 0.300 m at the end (the release at 9 slides it up to 0.2 m along
-    /// the corridor, back by 15-17; from the exact pose it was 3.4 cm off at
-    /// 17, the 60-image yard's 0.26 deg). 0 looks only at the end.
-    /// Default 16.
+    /// already turned more than 1 deg from its given pose (within the
+    /// accepted change) and the model has settled (its alignment to the map,
+    /// tried there, would not move the image 2 cm / 0.2 deg), the run stops
+    /// there and maps again from that pose, instead of finishing first and
+    /// mapping again from where it ended. Only a turn counts: the map's
+    /// normals fix the rotation early, while a move may be a slide along a
+    /// corridor that the growing model undoes (the seed-0 100-image corridor
+    /// from its exact pose: 0.149 m and 0.04 deg at 17 images, back at the
+    /// end). A run from there that moves the image 10 cm or 1 deg again
+    /// counts as failed, and the first run is mapped from the given pose to
+    /// its end as without the look (session 40: the seed-2 60-image
+    /// corridor, looked at mid-slide, ended 0.63 m off along the corridor
+    /// without an error when that run was mapped once more from its end).
+    /// Only in databases of at least three times this many images: below,
+    /// the run saved is short and the model may not have seen enough yet.
+    /// 0 looks only at the end. Default 16.
     pub restart_early_at_images: usize,
     /// When the run from the given initial pose failed as if that pose were
     /// off (the fit check, the initial pose's limit, the slid-along check,
