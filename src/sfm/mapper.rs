@@ -515,7 +515,8 @@ pub struct MapperInputs<'a> {
 
 /// A run from the early look must leave the initial image within this of
 /// where the look put it (metres, degrees), or the model had not settled at
-/// the look and that run counts as failed (see `runs::run_mapper_with_priors`).
+/// the look and that run counts as failed, unless it slid back from a look
+/// taken mid-slide (`runs::slid_back`; see `runs::run_mapper_with_priors`).
 /// More than at the end ([`super::runs::RESTART_MIN_CHANGE`]): once
 /// released, the image slides along a corridor and turns a little, and
 /// comes back as the model grows. At 17 images, from exact poses (seed 0):
@@ -694,8 +695,8 @@ pub(super) fn map_once(
 pub(super) enum RunEnd {
     Finished(Box<MapperOutput>),
     /// Stopped at the early look (`look`: how many images were registered,
-    /// how far the initial image had moved from its given pose), with the
-    /// initial image at `cam_from_world`.
+    /// how far the initial image had moved and turned from its given pose),
+    /// with the initial image at `cam_from_world`.
     Moved {
         cam_from_world: Rigid3,
         look: EarlyLookRecord,
@@ -1277,7 +1278,9 @@ pub(super) fn map_until(
                             cam_from_world: pose,
                             look: record,
                         });
-                    } else if beyond(&change, EARLY_LOOK_MIN_CHANGE) {
+                    } else if change.turned_deg <= EARLY_LOOK_MIN_TURN_DEG
+                        && change.moved_m > EARLY_LOOK_MIN_CHANGE.0
+                    {
                         log::info!(
                             "at {registered} images the initial image is {:.3} m from its given pose but turned only {:.2} deg (a slide the growing model may undo): the run goes on to its end",
                             change.moved_m,

@@ -388,7 +388,11 @@ pub struct BundleOptions {
     /// counts as failed, and the first run is mapped from the given pose to
     /// its end as without the look (session 40: the seed-2 60-image
     /// corridor, looked at mid-slide, ended 0.63 m off along the corridor
-    /// without an error when that run was mapped once more from its end).
+    /// without an error when that run was mapped once more from its end),
+    /// unless it kept the look's rotation and fits the map (fit at least
+    /// 0.9): then it slid back from a look taken mid-slide and is mapped
+    /// again from where it ended (the seed-0 100-image corridor from 0.3 m /
+    /// 3 deg off: three runs instead of four).
     /// Only in databases of at least three times this many images: below,
     /// the run saved is short and the model may not have seen enough yet.
     /// 0 looks only at the end. Default 16.

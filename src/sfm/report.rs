@@ -152,7 +152,8 @@ pub struct MapReport {
     /// `initial_pose_change` is from the given pose.
     pub restart: Option<RestartRecord>,
     /// When the first run stopped early to map again from where its initial
-    /// image was (`bundle.restart_early_at_images`): how far it had moved,
+    /// image was (`bundle.restart_early_at_images`; it had turned more than
+    /// 1 deg there, within the accepted change): how far it had moved,
     /// and whether this model comes from that run (`second_kept`; then a
     /// `restart` after it is from where that run ended) or it failed (or
     /// called for the held retry: `second_error` says why) and the first run
@@ -160,8 +161,8 @@ pub struct MapReport {
     pub early_restart: Option<RestartRecord>,
     /// The first run's early look (`bundle.restart_early_at_images`), when
     /// it happened: where the initial image was, and whether the model had
-    /// settled there (when it had and the image had moved far enough, the
-    /// run stopped there: `early_restart`).
+    /// settled there (when it had and the image had turned more than 1 deg,
+    /// within the accepted change, the run stopped there: `early_restart`).
     pub early_look: Option<EarlyLookRecord>,
     /// The alignment of the initial pair's model to the map, when run.
     pub initial_alignment: Option<AlignmentRecord>,
@@ -260,7 +261,9 @@ pub struct RestartRecord {
     /// When the first run came from the retry (its run free from the start
     /// kept) and the second is kept: the retry's record.
     pub first_retry: Option<Box<RetryRecord>>,
-    /// Wall time of each run, seconds (the first's with its retry).
+    /// Wall time of each run, seconds (the first's with its retry). A
+    /// `restart` after a kept `early_restart` has that record's second run
+    /// as its first: the two fields are the same run, counted once.
     pub first_run_s: f64,
     pub second_run_s: f64,
 }

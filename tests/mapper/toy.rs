@@ -360,6 +360,9 @@ fn a_run_whose_initial_image_turned_early_is_mapped_again_from_there() {
         "{look:?}"
     );
     assert_eq!(early.report.num_registered, 30);
+    // The run from the look kept the image where the look put it: kept as
+    // it is, not mapped again from its end.
+    assert!(early.report.restart.is_none());
     // Measured from the given pose, as without the restart.
     let change = early.report.initial_pose_change.expect("measured");
     assert!((change.moved_m - 0.15).abs() < 0.02, "{change:?}");
