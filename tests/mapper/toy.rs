@@ -382,6 +382,40 @@ fn a_run_whose_initial_image_turned_early_is_mapped_again_from_there() {
     );
 }
 
+/// The initial image given 40 cm and 2 deg off: at the early look (10
+/// images) it has turned back but moved only part of the way (0.28 m),
+/// and the run from there moves it the rest (0.12 m, 0.06 deg) without
+/// turning it and fits the map: the look came mid-slide, so that run is
+/// mapped again from where it ended (`runs::slid_back`), not thrown away
+/// for the first run to its end.
+#[test]
+fn a_run_from_the_look_that_slid_back_is_mapped_again_from_its_end() {
+    let scene = toy(30, 0.3, 0.03, 1);
+    let given = initial_pose_off(&scene, Vector3::new(0.4, 0.0, 0.0), 2.0);
+    let (out, err) = map_toy_looking_at(&scene, &given, 10);
+    let early = out.report.early_restart.as_ref().expect("an early restart");
+    let restart = out.report.restart.as_ref().expect("a restart");
+    eprintln!("slid back: max error {err:.4} m; early {early:?}; restart {restart:?}");
+    assert!(early.first_stopped_at_images.is_some() && early.second_kept);
+    assert!(early.first_change.turned_deg > 1.0, "{early:?}");
+    // The restart's first run is the run from the look: moved from the
+    // look's pose, beyond the look's bar, without a turn.
+    assert!(restart.first_stopped_at_images.is_none() && restart.second_kept);
+    assert!(
+        restart.first_change.moved_m > 0.1 && restart.first_change.turned_deg < 1.0,
+        "{restart:?}"
+    );
+    assert_eq!(restart.first_fit_share, early.second_fit_share);
+    assert_eq!(restart.first_run_s, early.second_run_s);
+    assert!(out.report.early_look.is_some_and(|l| l.settled));
+    // Measured from the given pose.
+    let change = out.report.initial_pose_change.expect("measured");
+    assert!((change.moved_m - 0.4).abs() < 0.02, "{change:?}");
+    assert!((change.turned_deg - 2.0).abs() < 0.2, "{change:?}");
+    assert_eq!(out.report.num_registered, 30);
+    assert!(err < 0.02, "{err}");
+}
+
 /// The initial image given 15 cm off and not turned: at the early look it
 /// has moved (more than the 10 cm a run from there must keep it within) but
 /// not turned, which may be a slide that the growing model undoes, so the
