@@ -2228,8 +2228,6 @@ fn global_ba(
 pub(crate) mod tests {
     use super::*;
 
-    /// Images 1..=6 registered with centres at x = 0, 1, 2, 3, 10, 50 m
-    /// (image 7 is not registered).
     /// A misplacement of a room's model: 1 % large, 0.5 deg turned, 5 cm off.
     fn misplaced() -> crate::estimators::similarity::Sim3 {
         crate::estimators::similarity::Sim3 {
@@ -2239,6 +2237,8 @@ pub(crate) mod tests {
         }
     }
 
+    /// Images 1..=6 registered with centres at x = 0, 1, 2, 3, 10, 50 m
+    /// (image 7 is not registered).
     pub(crate) fn line_of_images() -> MapState {
         use crate::io::database::DatabaseSnapshot;
         use crate::scene::CameraId;

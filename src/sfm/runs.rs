@@ -205,14 +205,13 @@ pub fn run_mapper_with_priors(
                     .filter(|c| beyond(c, EARLY_LOOK_MIN_CHANGE))
             });
             let second = match (second, moved) {
-                (Ok(out), Some(c)) if slid_back(&c, &out) => {
+                (Ok(mut out), Some(c)) if slid_back(&c, &out) => {
                     log::info!(
                         "the run from where the initial image was at {registered} images moved it {:.3} m and {:.2} deg again and fits the map (fit {:.3}): the look was taken mid-slide, so it is mapped again from where that run ended",
                         c.moved_m,
                         c.turned_deg,
                         out.report.fit_share.unwrap_or(f64::NAN)
                     );
-                    let mut out = out;
                     record.second_fit_share = out.report.fit_share;
                     record.second_kept = true;
                     out.report.early_restart = Some(record);
