@@ -838,14 +838,17 @@ fn yard_with_colmap_database() {
     })
     .unwrap_err();
     let msg = format!("{err:#}");
-    // Any of the others may be named first: the check goes in database id
-    // order, and COLMAP's feature extractor on two threads does not always
-    // give the images their ids in name order (a CI run named frame_0002).
-    let named_missing = std::fs::read_dir(scene.join("images"))
+    // The check goes in database id order, and COLMAP's feature extractor
+    // on two threads does not always give the images their ids in name
+    // order (a CI run named frame_0002): the first missing one by id.
+    let first_missing = read_database(&scene.join("database.db"))
         .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .filter(|name| *name != image_name(0))
-        .any(|name| msg.contains(&format!("`{name}`")));
+        .images
+        .into_values()
+        .map(|img| img.name)
+        .find(|name| *name != image_name(0))
+        .unwrap();
+    let named_missing = msg.contains(&format!("`{first_missing}`"));
     assert!(
         named_missing && msg.contains("not in the image folder"),
         "{msg}"
