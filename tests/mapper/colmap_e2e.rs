@@ -841,12 +841,11 @@ fn yard_with_colmap_database() {
     // The check goes in database id order, and COLMAP's feature extractor
     // on two threads does not always give the images their ids in name
     // order (a CI run named frame_0002): the first missing one by id.
-    let first_missing = read_database(&scene.join("database.db"))
-        .unwrap()
+    let first_missing = db
         .images
-        .into_values()
-        .map(|img| img.name)
-        .find(|name| *name != image_name(0))
+        .values()
+        .map(|img| &img.name)
+        .find(|name| **name != image_name(0))
         .unwrap();
     let named_missing = msg.contains(&format!("`{first_missing}`"));
     assert!(
