@@ -703,17 +703,48 @@ pub(super) enum RunEnd {
     },
 }
 
-/// One run of the mapper with `options` as they are; with `look_at` (an
-/// image count), it looks at the initial image once, at the first sphere
-/// solve with at least that many images registered and the image released
-/// (`bundle.fix_initial_for`), and stops there when the image turned far
-/// enough to map again from where it is ([`EARLY_LOOK_MIN_TURN_DEG`]) and within
-/// the accepted change (`bundle.max_initial_pose_change_m`, `_deg`).
+/// When a run looks at its initial image early ([`map_until`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) struct LookPlan {
+    /// At the first sphere solve with at least this many images registered
+    /// and the initial image released (`bundle.fix_initial_for`) ...
+    pub from: usize,
+    /// ... and, when set, only once that solve moved the initial image less
+    /// than [`EARLY_LOOK_STEADY`] from where the one before left it and the
+    /// map holds the model along every direction (similarity-constraint
+    /// ratio at least [`WEAK_SIMILARITY_CONSTRAINT`]), with at most
+    /// `steady_until` images registered (no look after that). The seed-0
+    /// 24-image corridor from 0.3 m / 3 deg off rested at 10-17 images with
+    /// its initial image 0.56 m from its given pose (ratio 2.1e-3 to
+    /// 3.9e-3), 0.26 m along the corridor from where it ended: looked at 11,
+    /// its run from there slid back 0.33 m and failed (63 s where two full
+    /// runs take 37-44 s). The looks that were right had 0.029-0.045.
+    pub steady_until: Option<usize>,
+}
+
+/// With [`LookPlan::steady_until`], the look waits for a sphere solve that
+/// moved the initial image less than this (metres, degrees) from where the
+/// one before left it. On the 24-image scenes from 0.3 m / 3 deg off
+/// (session 45) the sphere solve at 10 images, the second after the
+/// image's release, still moved it 1.4-6.3 cm and 0.17-0.38 deg where it
+/// then came to rest within 1 cm of where it ended (rooms 0 and 1; yard 0
+/// at 15); the seed-2 room's image moved more than this at every sphere
+/// solve up to 24 images and ended about 0.1 m from where it was at 17.
+/// Looked at at 9 images (the first sphere solve after the release) that
+/// room was 0.17 m and 1.65 deg from its given pose, half way, and its run
+/// from there failed: 128 s where two full runs take 81 s.
+pub(super) const EARLY_LOOK_STEADY: (f64, f64) = (0.01, 0.1);
+
+/// One run of the mapper with `options` as they are; with `look` it looks
+/// at the initial image once, as [`LookPlan`] says, and stops there when
+/// the image turned far enough to map again from where it is
+/// ([`EARLY_LOOK_MIN_TURN_DEG`]) and within the accepted change
+/// (`bundle.max_initial_pose_change_m`, `_deg`).
 pub(super) fn map_until(
     inputs: MapperInputs<'_>,
     start: &Start<'_>,
     options: &MapperOptions,
-    look_at: Option<usize>,
+    look: Option<LookPlan>,
     progress: Progress<'_>,
 ) -> Result<RunEnd, MapperError> {
     let MapperInputs {
@@ -1101,8 +1132,10 @@ pub(super) fn map_until(
     let mut last_global_size = state.num_registered();
     let mut since_global = 0usize;
     let mut retriangulated = false;
-    // The early look, until it happened.
-    let mut look_at = look_at;
+    // The early look, until it happened; the initial image's pose at the
+    // sphere solve before.
+    let mut look_at = look;
+    let mut previous_init_pose: Option<Rigid3> = None;
     loop {
         let candidates = next_best_images(&state, &failed, &options.register);
         let mut registered = None;
@@ -1240,8 +1273,27 @@ pub(super) fn map_until(
                     change.turned_deg,
                     similarity_constraint(&state).map(|c| c.ratio)
                 );
-                let look = look_at.is_some_and(|n| {
-                    registered >= n && registered > options.bundle.fix_initial_for
+                let step = previous_init_pose.map(|before| pose_change(&pose, &before));
+                previous_init_pose = Some(pose);
+                if let Some(until) = look_at.and_then(|plan| plan.steady_until) {
+                    if registered > until {
+                        log::info!(
+                            "no early look: the initial image was not steady by {until} images"
+                        );
+                        look_at = None;
+                    }
+                }
+                // Steady, and held by the map along every direction (a
+                // model that rests part way along a corridor may slide on).
+                let ready = || {
+                    step.is_some_and(|s| !beyond(&s, EARLY_LOOK_STEADY))
+                        && similarity_constraint(&state)
+                            .is_some_and(|c| c.ratio >= WEAK_SIMILARITY_CONSTRAINT)
+                };
+                let look = look_at.is_some_and(|plan| {
+                    registered >= plan.from
+                        && registered > options.bundle.fix_initial_for
+                        && (plan.steady_until.is_none() || ready())
                 });
                 if look {
                     look_at = None;
@@ -1258,6 +1310,7 @@ pub(super) fn map_until(
                     let record = EarlyLookRecord {
                         registered,
                         change,
+                        step,
                         alignment_would_move: would_move,
                         settled,
                     };

@@ -393,9 +393,10 @@ pub struct BundleOptions {
     /// 0.9): then it slid back from a look taken mid-slide and is mapped
     /// again from where it ended (the seed-0 100-image corridor from 0.3 m /
     /// 3 deg off: three runs instead of four).
-    /// Only in databases of at least three times this many images: below,
-    /// the run saved is short and the model may not have seen enough yet.
-    /// 0 looks only at the end. Default 16.
+    /// In a database of fewer than three times this many images the look
+    /// comes at a third of them (at 9 of 24: the image is held for its
+    /// first 8), and not at all in one of fewer than 18
+    /// (`runs::early_look_at`). 0 looks only at the end. Default 16.
     pub restart_early_at_images: usize,
     /// When the run from the given initial pose failed as if that pose were
     /// off (the fit check, the initial pose's limit, the slid-along check,

@@ -216,19 +216,24 @@ pub struct MapReport {
 }
 
 /// A pose's change: its centre's move and its rotation's angle.
-#[derive(Clone, Copy, Debug, Default, Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct PoseChangeRecord {
     pub moved_m: f64,
     pub turned_deg: f64,
 }
 
 /// The early look at the initial image during a run.
-#[derive(Clone, Copy, Debug, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct EarlyLookRecord {
     /// Images registered at the look.
     pub registered: usize,
     /// The initial image's change from its given pose there.
     pub change: PoseChangeRecord,
+    /// Its change from where the sphere solve before left it (`None` at
+    /// the first sphere solve); in a database of fewer than three times
+    /// `bundle.restart_early_at_images` images the look waits for it to be
+    /// less than 1 cm and 0.1 deg.
+    pub step: Option<PoseChangeRecord>,
     /// How far the whole model's alignment to the map (stage 5's, as a
     /// trial) would move the initial image from there; `None` with
     /// `bundle.align_to_map` off.
