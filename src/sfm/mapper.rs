@@ -709,30 +709,72 @@ pub(super) struct LookPlan {
     /// At the first sphere solve with at least this many images registered
     /// and the initial image released (`bundle.fix_initial_for`) ...
     pub from: usize,
-    /// ... and, when set, only once that solve moved the initial image less
-    /// than [`EARLY_LOOK_STEADY`] from where the one before left it and the
-    /// map holds the model along every direction (similarity-constraint
-    /// ratio at least [`WEAK_SIMILARITY_CONSTRAINT`]), with at most
-    /// `steady_until` images registered (no look after that). The seed-0
-    /// 24-image corridor from 0.3 m / 3 deg off rested at 10-17 images with
-    /// its initial image 0.56 m from its given pose (ratio 2.1e-3 to
-    /// 3.9e-3), 0.26 m along the corridor from where it ended: looked at 11,
-    /// its run from there slid back 0.33 m and failed (63 s where two full
-    /// runs take 37-44 s). The looks that were right had 0.029-0.045.
+    /// ... and, when set, only once that solve moved the initial image at
+    /// most [`EARLY_LOOK_STEADY`] from where the one before left it (so not
+    /// at the first solve after the release) and the map holds the model
+    /// along every direction (similarity-constraint ratio at least
+    /// [`WEAK_SIMILARITY_CONSTRAINT`]), with at most `steady_until` images
+    /// registered (no look after that). The seed-0 24-image corridor from
+    /// 0.3 m / 3 deg off rested at 10-17 images with its initial image 0.56 m
+    /// from its given pose (ratio 2.1e-3 to 3.9e-3), 0.26 m along the
+    /// corridor from where it ended: looked at at 11, its run from there
+    /// slid back 0.33 m and failed (63 s where two full runs take 37-44 s).
+    /// The looks that were right had 0.014-0.045.
     pub steady_until: Option<usize>,
 }
 
+/// What the early look does at a sphere solve ([`LookPlan::decide`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum LookNow {
+    Look,
+    /// Not yet.
+    Wait,
+    /// Not in this run: past [`LookPlan::steady_until`].
+    Never,
+}
+
+impl LookPlan {
+    /// The look at a sphere solve with `registered` images, the initial
+    /// image `released` (past `bundle.fix_initial_for`), `step` its change
+    /// since the sphere solve before (`None` at the first one after its
+    /// release) and `ratio` the similarity-constraint ratio (asked only
+    /// when the rest allows the look).
+    pub(super) fn decide(
+        &self,
+        registered: usize,
+        released: bool,
+        step: Option<PoseChangeRecord>,
+        ratio: impl FnOnce() -> Option<f64>,
+    ) -> LookNow {
+        if self.steady_until.is_some_and(|until| registered > until) {
+            return LookNow::Never;
+        }
+        let due = registered >= self.from && released;
+        let ready = || {
+            step.is_some_and(|s| !beyond(&s, EARLY_LOOK_STEADY))
+                && ratio().is_some_and(|r| r >= WEAK_SIMILARITY_CONSTRAINT)
+        };
+        if due && (self.steady_until.is_none() || ready()) {
+            LookNow::Look
+        } else {
+            LookNow::Wait
+        }
+    }
+}
+
 /// With [`LookPlan::steady_until`], the look waits for a sphere solve that
-/// moved the initial image less than this (metres, degrees) from where the
+/// moved the initial image at most this (metres, degrees) from where the
 /// one before left it. On the 24-image scenes from 0.3 m / 3 deg off
 /// (session 45) the sphere solve at 10 images, the second after the
-/// image's release, still moved it 1.4-6.3 cm and 0.17-0.38 deg where it
-/// then came to rest within 1 cm of where it ended (rooms 0 and 1; yard 0
-/// at 15); the seed-2 room's image moved more than this at every sphere
-/// solve up to 24 images and ended about 0.1 m from where it was at 17.
-/// Looked at at 9 images (the first sphere solve after the release) that
-/// room was 0.17 m and 1.65 deg from its given pose, half way, and its run
-/// from there failed: 128 s where two full runs take 81 s.
+/// image's release, still moved it by at least 1.4-6.3 cm and 0.17-0.38
+/// deg (the change of its distance and angle from the given pose) on the
+/// scenes where it then came to rest (rooms 0 and 1 at 11, within 5 mm and
+/// 0.03 deg of where they ended; yard 0 at 15, 1.4 cm and 0.11 deg); the
+/// seed-2 room's image moved more than this at every sphere solve up to 24
+/// images and ended about 0.1 m from where it was at 17. Looked at at 9
+/// images (the first sphere solve after the release) that room was 0.17 m
+/// and 1.65 deg from its given pose, half way, and its run from there
+/// failed: 128 s where two full runs take 81 s.
 pub(super) const EARLY_LOOK_STEADY: (f64, f64) = (0.01, 0.1);
 
 /// One run of the mapper with `options` as they are; with `look` it looks
@@ -1273,29 +1315,23 @@ pub(super) fn map_until(
                     change.turned_deg,
                     similarity_constraint(&state).map(|c| c.ratio)
                 );
+                // The step since the sphere solve before, once the image is
+                // released (none at the first solve after its release).
+                let released = registered > options.bundle.fix_initial_for;
                 let step = previous_init_pose.map(|before| pose_change(&pose, &before));
-                previous_init_pose = Some(pose);
-                if let Some(until) = look_at.and_then(|plan| plan.steady_until) {
-                    if registered > until {
-                        log::info!(
-                            "no early look: the initial image was not steady by {until} images"
-                        );
-                        look_at = None;
-                    }
-                }
-                // Steady, and held by the map along every direction (a
-                // model that rests part way along a corridor may slide on).
-                let ready = || {
-                    step.is_some_and(|s| !beyond(&s, EARLY_LOOK_STEADY))
-                        && similarity_constraint(&state)
-                            .is_some_and(|c| c.ratio >= WEAK_SIMILARITY_CONSTRAINT)
-                };
-                let look = look_at.is_some_and(|plan| {
-                    registered >= plan.from
-                        && registered > options.bundle.fix_initial_for
-                        && (plan.steady_until.is_none() || ready())
+                previous_init_pose = released.then_some(pose);
+                let now = look_at.map(|plan| {
+                    plan.decide(registered, released, step, || {
+                        similarity_constraint(&state).map(|c| c.ratio)
+                    })
                 });
-                if look {
+                if now == Some(LookNow::Never) {
+                    log::info!(
+                        "no early look: the initial image was not steady and firmly held by the map by {registered} images"
+                    );
+                    look_at = None;
+                }
+                if now == Some(LookNow::Look) {
                     look_at = None;
                     // Where the end of the run would put the image: the
                     // whole model's alignment to the map, as in stage 5.
@@ -1311,6 +1347,7 @@ pub(super) fn map_until(
                         registered,
                         change,
                         step,
+                        similarity_ratio: similarity_constraint(&state).map(|c| c.ratio),
                         alignment_would_move: would_move,
                         settled,
                     };
@@ -2280,6 +2317,62 @@ fn global_ba(
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+
+    /// The early look's decision at a sphere solve: a large database's plan
+    /// looks at the first solve from `from` on after the release; a small
+    /// database's waits for a step of at most 1 cm and 0.1 deg and a ratio
+    /// of at least 5e-3, and gives up past `steady_until`.
+    #[test]
+    fn the_early_look_decides_by_the_step_and_the_ratio() {
+        let step = |moved_m, turned_deg| {
+            Some(PoseChangeRecord {
+                moved_m,
+                turned_deg,
+            })
+        };
+        let firm = || Some(0.03);
+        let large = LookPlan {
+            from: 16,
+            steady_until: None,
+        };
+        assert_eq!(large.decide(15, true, None, firm), LookNow::Wait);
+        assert_eq!(large.decide(17, false, None, firm), LookNow::Wait);
+        // Neither the step nor the ratio counts, and the ratio is not asked.
+        let unasked = || -> Option<f64> { panic!("the ratio was asked") };
+        assert_eq!(
+            large.decide(17, true, step(0.3, 3.0), unasked),
+            LookNow::Look
+        );
+        assert_eq!(large.decide(60, true, None, unasked), LookNow::Look);
+
+        let small = LookPlan {
+            from: 8,
+            steady_until: Some(16),
+        };
+        let look = |registered, released, s, ratio: Option<f64>| {
+            small.decide(registered, released, s, || ratio)
+        };
+        // Steady and firmly held: looks from 8 on, once released, up to 16.
+        assert_eq!(look(11, true, step(0.004, 0.05), firm()), LookNow::Look);
+        assert_eq!(look(16, true, step(0.01, 0.1), firm()), LookNow::Look);
+        assert_eq!(look(7, true, step(0.0, 0.0), firm()), LookNow::Wait);
+        assert_eq!(look(9, false, step(0.0, 0.0), firm()), LookNow::Wait);
+        assert_eq!(look(17, true, step(0.0, 0.0), firm()), LookNow::Never);
+        // The first solve after the release has no step.
+        assert_eq!(look(9, true, None, firm()), LookNow::Wait);
+        // Moved or turned too much since the solve before.
+        assert_eq!(look(11, true, step(0.011, 0.0), firm()), LookNow::Wait);
+        assert_eq!(look(11, true, step(0.0, 0.11), firm()), LookNow::Wait);
+        // Held loosely (the seed-0 corridor resting part way: 2.2e-3).
+        assert_eq!(
+            look(11, true, step(0.007, 0.04), Some(2.2e-3)),
+            LookNow::Wait
+        );
+        assert_eq!(look(11, true, step(0.007, 0.04), Some(5e-3)), LookNow::Look);
+        assert_eq!(look(11, true, step(0.007, 0.04), None), LookNow::Wait);
+        // Past two thirds, not even a steady, firm model.
+        assert_eq!(look(19, true, step(0.0, 0.0), firm()), LookNow::Never);
+    }
 
     /// A misplacement of a room's model: 1 % large, 0.5 deg turned, 5 cm off.
     fn misplaced() -> crate::estimators::similarity::Sim3 {

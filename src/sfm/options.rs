@@ -394,11 +394,12 @@ pub struct BundleOptions {
     /// again from where it ended (the seed-0 100-image corridor from 0.3 m /
     /// 3 deg off: three runs instead of four).
     /// In a database of fewer than three times this many images the look
-    /// comes from a third of them on, at the first sphere solve that moved
-    /// the image less than 1 cm and 0.1 deg while the map holds the model
-    /// along every direction, and not after two thirds of them; not at all
-    /// in a database of fewer than 15 (`runs::early_look_at`). 0 looks only
-    /// at the end. Default 16.
+    /// comes from a third of them on (after the release), at the first
+    /// sphere solve that moved the image at most 1 cm and 0.1 deg from where
+    /// the one before left it while the map holds the model along every
+    /// direction, and not after two thirds of them; with the defaults not
+    /// at all in a database of fewer than 15 (`runs::early_look_at`). 0
+    /// looks only at the end. Default 16.
     pub restart_early_at_images: usize,
     /// When the run from the given initial pose failed as if that pose were
     /// off (the fit check, the initial pose's limit, the slid-along check,

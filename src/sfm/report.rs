@@ -230,10 +230,14 @@ pub struct EarlyLookRecord {
     /// The initial image's change from its given pose there.
     pub change: PoseChangeRecord,
     /// Its change from where the sphere solve before left it (`None` at
-    /// the first sphere solve); in a database of fewer than three times
-    /// `bundle.restart_early_at_images` images the look waits for it to be
-    /// less than 1 cm and 0.1 deg.
+    /// the first sphere solve after its release); in a database of fewer
+    /// than three times `bundle.restart_early_at_images` images the look
+    /// waits for it to be at most 1 cm and 0.1 deg, with the map holding
+    /// the model along every direction (`similarity_ratio` at least 5e-3).
     pub step: Option<PoseChangeRecord>,
+    /// The similarity-constraint ratio of the model there (how firmly the
+    /// map's planes hold it along its weakest direction).
+    pub similarity_ratio: Option<f64>,
     /// How far the whole model's alignment to the map (stage 5's, as a
     /// trial) would move the initial image from there; `None` with
     /// `bundle.align_to_map` off.

@@ -287,18 +287,24 @@ fn slid_back(change: &PoseChangeRecord, out: &MapperOutput) -> bool {
 /// `restart_early_at_images` (16) images on in a database of at least three
 /// times that many, at the first sphere solve after the image's release
 /// (`bundle.fix_initial_for`). In a smaller database from a third of its
-/// images on, and only once a sphere solve moved the image less than
-/// [`super::mapper::EARLY_LOOK_STEADY`] (it converges over the first few
-/// images after its release), and not after two thirds of the database (the
-/// partial run would save little). `None` without the map's planes, with
-/// the look or the restart turned off, or when the database is too small
-/// for a sphere solve after the release to come before two thirds of it.
+/// images on (and after the release), and only at a sphere solve that moved
+/// the image at most [`super::mapper::EARLY_LOOK_STEADY`] from where the
+/// one before left it (it converges over the first few images after its
+/// release, so never at the first solve after it) while the map holds the
+/// model firmly ([`LookPlan`]), and not after two thirds of the database
+/// (the partial run would save little). With `restart_early_at_images`
+/// raised above 16 a database of 48 images or more may take this rule too,
+/// and past 30 images sphere solves come only every
+/// `bundle.global_every_images`, so its window holds few of them. `None`
+/// without the map's planes, with the look or the restart turned off, or
+/// when the database is too small for the second sphere solve after the
+/// release to come before two thirds of it.
 ///
 /// Session 45, the nine 24-image scenes from 0.3 m / 3 deg off: see
-/// `docs/results.md`. Before the settled check (session 41) and the turn
-/// rule (session 42) the look was kept out of databases under three times
-/// its image count, because at 17 of 24 images the corridor's initial image
-/// was still 0.2 m from where it ended.
+/// `docs/results.md`. Until then the look was kept out of databases under
+/// three times its image count, because (session 39, before the settled
+/// check of session 41 and the turn rule of session 42) at 17 of 24 images
+/// the corridor's initial image was still 0.2 m from where it ended.
 pub(super) fn early_look_at(num_images: usize, options: &MapperOptions) -> Option<LookPlan> {
     let b = &options.bundle;
     if !b.restart_from_refined_pose
