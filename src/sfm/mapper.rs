@@ -1320,11 +1320,11 @@ pub(super) fn map_until(
                 let released = registered > options.bundle.fix_initial_for;
                 let step = previous_init_pose.map(|before| pose_change(&pose, &before));
                 previous_init_pose = released.then_some(pose);
-                let now = look_at.map(|plan| {
-                    plan.decide(registered, released, step, || {
-                        similarity_constraint(&state).map(|c| c.ratio)
-                    })
-                });
+                // Computed at most once here: for the decision and the record.
+                let ratio = std::cell::OnceCell::new();
+                let ratio_now =
+                    || *ratio.get_or_init(|| similarity_constraint(&state).map(|c| c.ratio));
+                let now = look_at.map(|plan| plan.decide(registered, released, step, ratio_now));
                 if now == Some(LookNow::Never) {
                     log::info!(
                         "no early look: the initial image was not steady and firmly held by the map by {registered} images"
@@ -1347,7 +1347,7 @@ pub(super) fn map_until(
                         registered,
                         change,
                         step,
-                        similarity_ratio: similarity_constraint(&state).map(|c| c.ratio),
+                        similarity_ratio: ratio_now(),
                         alignment_would_move: would_move,
                         settled,
                     };
