@@ -131,7 +131,7 @@ pub enum MapperError {
     /// the map loosely: it may have slid along that direction (see
     /// [`check_initial_pose`]).
     #[error(
-        "the initial image ended {moved_m:.2} m and {turned_deg:.1} deg from its given pose (over half of the {} accepted, options bundle.max_initial_pose_change_m and _deg), the map's planes hold the model only weakly in one direction (similarity-constraint ratio {ratio:.2e}, below {WEAK_SIMILARITY_CONSTRAINT:.0e}) and {:.0} % of its points lie on the surfaces their images see (below the {:.0} % of a model that fits well): the model may have slid along that direction to a wrong place; give the initial pose to within about half those limits",
+        "the initial image ended {moved_m:.2} m and {turned_deg:.1} deg from its given pose (over half of the {} accepted, options bundle.max_initial_pose_change_m and _deg), the map's planes hold the model only weakly in one direction (similarity-constraint ratio {ratio:.2e}, below {SLID_SIMILARITY_CONSTRAINT:.0e}) and {:.0} % of its points lie on the surfaces their images see (below the {:.0} % of a model that fits well): the model may have slid along that direction to a wrong place; give the initial pose to within about half those limits",
         pose_change_limits(.max_m, .max_deg),
         share * 100.0,
         GOOD_FIT_SHARE * 100.0
@@ -226,6 +226,19 @@ pub(super) const SEARCH_MIN_CONSTRAINT: f64 = 7e-3;
 /// 0.78-0.97 (the seed-7 yard from poses 1.1-1.8 m off: 0.92-0.96), the
 /// wrong ones measured 0.01-0.79 (see `docs/results.md`, session 25).
 pub(super) const GOOD_FIT_SHARE: f64 = 0.9;
+
+/// A model whose initial image moved over half the accepted change, that
+/// fits the map below [`GOOD_FIT_SHARE`] and that the map holds with a
+/// similarity-constraint ratio below this may have slid along its weakest
+/// direction ([`check_initial_pose`]). It was [`WEAK_SIMILARITY_CONSTRAINT`]
+/// (5e-3) until session 46, when a fresh seed-2 100-image corridor from
+/// 0.3 m / 3 deg off slid 0.77 m along the corridor in its first run (ratio
+/// 7.5e-3, fit 0.876) and, mapped again from there, came out 0.63 m off
+/// without an error; from the exact pose it is right with 9.9e-3 and fit
+/// 0.935. Right models that moved that far measured 0.019 and more on the
+/// 24-image scenes, 0.0103 on the 100-image corridor, and the 400-image
+/// corridor (3.4e-3) passes by its fit of 93.7 %.
+pub(super) const SLID_SIMILARITY_CONSTRAINT: f64 = 1e-2;
 
 /// A model below `min_points_on_map_share` is still accepted as one the
 /// map covers only in part when at least this share of the points where
@@ -373,7 +386,7 @@ fn partly_mapped(
 /// `bundle.max_initial_pose_change_m` / `_deg` (0: no limit), a warning
 /// beyond half of either (see [`initial_pose_moved_far`]). Beyond half, a
 /// model the map holds only weakly in one direction (similarity-constraint
-/// ratio below [`WEAK_SIMILARITY_CONSTRAINT`]) that fits the map below
+/// ratio below [`SLID_SIMILARITY_CONSTRAINT`]) that fits the map below
 /// [`GOOD_FIT_SHARE`] is an error too: on the seed-0 corridor from poses
 /// 0.9 m off, such models ended 0.93-1.5 m off (fit 73-75 %, ratios
 /// 1.5-3.3e-3; session 24's from 0.75 m: 1.57 m, 79 %, 2.2e-3) with only
@@ -411,7 +424,7 @@ pub(super) fn check_initial_pose(
         {
             // No ratio: too few points on planes to hold anything.
             let ratio = constraint_ratio.unwrap_or(0.0);
-            if share < GOOD_FIT_SHARE && ratio < WEAK_SIMILARITY_CONSTRAINT {
+            if share < GOOD_FIT_SHARE && ratio < SLID_SIMILARITY_CONSTRAINT {
                 return Err(MapperError::SlidAlongWeakDirection {
                     moved_m,
                     turned_deg,
@@ -2614,7 +2627,7 @@ pub(crate) mod tests {
             Err(MapperError::InitialPoseFarOff { .. })
         ));
         // Moved over half the limit: an error only when the map holds the
-        // model weakly (ratio below 5e-3) and it fits loosely (below 90 %);
+        // model weakly (ratio below 1e-2) and it fits loosely (below 90 %);
         // the figures of the seed-0 corridor from 0.9 m / 6 deg off (wrong,
         // 0.93 m) and of the right 400-image corridor.
         let fit = |share, ratio| {
@@ -2636,13 +2649,30 @@ pub(crate) mod tests {
         let message = slid.to_string();
         for part in [
             "0.60 m",
-            "ratio 1.50e-3, below 5e-3",
+            "ratio 1.50e-3, below 1e-2",
             "74 %",
             "max_initial_pose_change_m",
         ] {
             assert!(message.contains(part), "{part}: {message}");
         }
-        for ok in [fit(0.937, 3.4e-3), fit(0.736, 0.02), None] {
+        // The seed-2 100-image corridor's slide of session 46 (0.82 m).
+        assert!(matches!(
+            check_initial_pose(
+                &state,
+                ImageId(1),
+                &given(0.6),
+                &options,
+                fit(0.876, 7.5e-3),
+                false
+            ),
+            Err(MapperError::SlidAlongWeakDirection { .. })
+        ));
+        for ok in [
+            fit(0.937, 3.4e-3),
+            fit(0.736, 0.02),
+            fit(0.876, 0.0103),
+            None,
+        ] {
             assert!(
                 check_initial_pose(&state, ImageId(1), &given(0.6), &options, ok, false).is_ok()
             );
