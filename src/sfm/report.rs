@@ -233,7 +233,7 @@ pub struct EarlyLookRecord {
     /// the first sphere solve after its release); in a database of fewer
     /// than three times `bundle.restart_early_at_images` images the look
     /// waits for it to be at most 1 cm and 0.1 deg, with the map holding
-    /// the model along every direction (`similarity_ratio` at least 5e-3).
+    /// the model along every direction (`similarity_ratio` at least 1e-2).
     pub step: Option<PoseChangeRecord>,
     /// The similarity-constraint ratio of the model there (how firmly the
     /// map's planes hold it along its weakest direction).
