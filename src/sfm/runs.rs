@@ -903,7 +903,8 @@ fn retry_reason(
         Err(
             e @ (MapperError::OffMap { .. }
             | MapperError::InitialPoseFarOff { .. }
-            | MapperError::SlidAlongWeakDirection { .. }),
+            | MapperError::SlidAlongWeakDirection { .. }
+            | MapperError::SlidMidRun { .. }),
         ) => Some(e.to_string()),
         Err(_) => None,
         Ok(out) => {
