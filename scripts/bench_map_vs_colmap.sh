@@ -13,7 +13,10 @@
 #        default exact), INIT_POSE (x,y,z,roll,pitch,yaw in degrees: this pose
 #        instead, e.g. a rough one with MAP_ARGS="--init-search 2,30"),
 #        MAP_ARGS (extra arguments for colmap-lidar map),
-#        ABLATION (default 1: also run map --no-lidar-constraints).
+#        ABLATION (default 1: also run map --no-lidar-constraints),
+#        REPEAT (default 1: time each tool this many times, alternating which
+#        goes first, and print the median ratio; later models of ours must be
+#        byte-identical to the first).
 set -euo pipefail
 scene=${1:?usage: bench_map_vs_colmap.sh SCENE_DIR [OUT_DIR]}
 out=${2:-$(mktemp -d)}
@@ -31,34 +34,81 @@ mkdir -p "$out"
 
 now() { date +%s.%N; }
 
-echo "== colmap-lidar map ($scene)"
-t0=$(now)
-# Both tools read the images to colour the points (colmap mapper always does).
-# shellcheck disable=SC2086
-if ! "$tool" map --database "$db" --lidar "$scene/lidar.ply" --output "$out/map" \
-    --image-path "$scene/images" \
-    --init-image "${INIT_IMAGE:-frame_0000.jpg}" --init-pose "$pose" ${MAP_ARGS:-} 2>"$out/map.log"; then
-  echo "error: colmap-lidar map failed; last lines:" >&2
-  tail -n 5 "$out/map.log" >&2
-  exit 1
-fi
-t1=$(now)
-ours=$(echo "$t1 - $t0" | bc -l)
+# One timed run of a tool into the folder $1, its log in $2; prints the seconds.
+run_ours() {
+  local dest=$1 log=$2 t0 t1
+  t0=$(now)
+  # Both tools read the images to colour the points (colmap mapper always does).
+  # shellcheck disable=SC2086
+  if ! "$tool" map --database "$db" --lidar "$scene/lidar.ply" --output "$dest" \
+      --image-path "$scene/images" \
+      --init-image "${INIT_IMAGE:-frame_0000.jpg}" --init-pose "$pose" ${MAP_ARGS:-} >&2 2>"$log"; then
+    echo "error: colmap-lidar map failed; last lines:" >&2
+    tail -n 5 "$log" >&2
+    exit 1
+  fi
+  t1=$(now)
+  echo "$t1 - $t0" | bc -l
+}
+run_colmap() {
+  local dest=$1 log=$2 t0 t1
+  rm -rf "$dest" && mkdir -p "$dest"
+  t0=$(now)
+  if ! "$colmap" mapper --database_path "$db" --image_path "$scene/images" --output_path "$dest" \
+      --Mapper.num_threads "${NUM_THREADS:-2}" >"$log" 2>&1; then
+    echo "error: colmap mapper failed; last lines:" >&2
+    tail -n 25 "$log" >&2
+    exit 1
+  fi
+  t1=$(now)
+  echo "$t1 - $t0" | bc -l
+}
 
-echo "== colmap mapper"
-rm -rf "$out/colmap" && mkdir -p "$out/colmap"
-t0=$(now)
-if ! "$colmap" mapper --database_path "$db" --image_path "$scene/images" --output_path "$out/colmap" \
-    --Mapper.num_threads "${NUM_THREADS:-2}" >"$out/colmap.log" 2>&1; then
-  echo "error: colmap mapper failed; last lines:" >&2
-  tail -n 25 "$out/colmap.log" >&2
-  exit 1
+# REPEAT=N times each tool N times, alternating which goes first (times on a
+# shared or virtual machine vary by a quarter from run to run), and prints
+# each pair's ratio and their median. The first pair's outputs are kept and
+# evaluated; every later model of ours must be byte-identical to the first.
+repeat=${REPEAT:-1}
+[[ "$repeat" =~ ^[1-9][0-9]*$ ]] || { echo "error: REPEAT must be a positive integer, not '$repeat'" >&2; exit 2; }
+ratios=()
+for ((i = 1; i <= repeat; i++)); do
+  if ((i == 1)); then
+    map_out=$out/map map_log=$out/map.log col_out=$out/colmap col_log=$out/colmap.log
+  else
+    map_out=$out/map.$i map_log=$out/map.$i.log col_out=$out/colmap.$i col_log=$out/colmap.$i.log
+  fi
+  tag=""
+  ((repeat == 1)) || tag=" [$i/$repeat]"
+  if ((i % 2 == 1)); then
+    echo "== colmap-lidar map ($scene)$tag"
+    ours=$(run_ours "$map_out" "$map_log")
+    echo "== colmap mapper$tag"
+    theirs=$(run_colmap "$col_out" "$col_log")
+  else
+    echo "== colmap mapper$tag"
+    theirs=$(run_colmap "$col_out" "$col_log")
+    echo "== colmap-lidar map ($scene)$tag"
+    ours=$(run_ours "$map_out" "$map_log")
+  fi
+  ratio=$(echo "$ours / $theirs" | bc -l)
+  ratios+=("$ratio")
+  printf 'colmap-lidar map: %.1f s\ncolmap mapper:    %.1f s\nratio (ours / colmap): %.2f\n' \
+    "$ours" "$theirs" "$ratio"
+  if ((i > 1)); then
+    for f in cameras images points3D; do
+      if ! cmp -s "$out/map/$f.txt" "$map_out/$f.txt" && ! cmp -s "$out/map/$f.bin" "$map_out/$f.bin"; then
+        echo "error: run $i's model differs from the first ($f; kept in $map_out)" >&2
+        exit 1
+      fi
+    done
+    rm -rf "$map_out" "$col_out"
+  fi
+done
+if ((repeat > 1)); then
+  printf 'ratios: %s\nmedian ratio (ours / colmap) over %d pairs: %.2f\n' \
+    "$(printf '%.2f ' "${ratios[@]}")" "$repeat" \
+    "$(printf '%s\n' "${ratios[@]}" | sort -g | awk '{a[NR] = $1} END {print (NR % 2) ? a[(NR + 1) / 2] : (a[NR / 2] + a[NR / 2 + 1]) / 2}')"
 fi
-t1=$(now)
-theirs=$(echo "$t1 - $t0" | bc -l)
-
-printf 'colmap-lidar map: %.1f s\ncolmap mapper:    %.1f s\nratio (ours / colmap): %.2f\n' \
-  "$ours" "$theirs" "$(echo "$ours / $theirs" | bc -l)"
 
 if [ -d "$scene/gt" ] && "$tool" evaluate --help >/dev/null 2>&1; then
   echo "== evaluation of colmap-lidar map (no alignment)"
