@@ -69,6 +69,10 @@ run_colmap() {
 # each pair's ratio and their median. The first pair's outputs are kept and
 # evaluated; every later model of ours must be byte-identical to the first.
 repeat=${REPEAT:-1}
+# Both tools read the same files: read them once first, so that neither pays
+# for a cold file cache (6.5 s of a 95 s run on the 100-image corridor).
+cat "$db" "$scene/lidar.ply" >/dev/null
+find "$scene/images" -type f -exec cat {} + >/dev/null
 [[ "$repeat" =~ ^[1-9][0-9]*$ ]] || { echo "error: REPEAT must be a positive integer, not '$repeat'" >&2; exit 2; }
 ratios=()
 for ((i = 1; i <= repeat; i++)); do
