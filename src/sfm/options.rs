@@ -398,8 +398,18 @@ pub struct BundleOptions {
     /// sphere solve that moved the image at most 1 cm and 0.1 deg from where
     /// the one before left it while the map holds the model along every
     /// direction, and not after two thirds of them; with the defaults not
-    /// at all in a database of fewer than 15 (`runs::early_look_at`). 0
-    /// looks only at the end. Default 16.
+    /// at all in a database of fewer than 15 (`runs::early_look_at`).
+    /// A first run that did not stop there looks once more at the end of its
+    /// registration: when the image has turned more than 1 deg from its
+    /// given pose (the run would be mapped again from where it ends), it
+    /// stops before its final stage and is mapped again from where the whole
+    /// model's alignment to the map puts the image, if that is still more
+    /// than 2 cm or 0.2 deg from the given pose, under half the accepted
+    /// change, and at least 80 % of the points lie on the surfaces their
+    /// images see there; the run from a look stops at the end of its own
+    /// registration when it moved the image 10 cm or 1 deg again (the
+    /// rule above, without its final stage). 0 looks only at the end of
+    /// the finished run. Default 16.
     pub restart_early_at_images: usize,
     /// When the run from the given initial pose failed as if that pose were
     /// off (the fit check, the initial pose's limit, the slid-along check,

@@ -246,6 +246,17 @@ pub struct EarlyLookRecord {
     /// less than 2 cm and 0.2 deg): only then may the run stop to map again
     /// from there.
     pub settled: bool,
+    /// Whether the look came at the end of registration, before the final
+    /// stage, and not at a sphere solve (see `bundle.restart_early_at_images`).
+    /// Then `change` is where the whole model's alignment to the map puts
+    /// the image (`alignment_would_move` from where registration left it),
+    /// which is where the run is mapped again from when it stops there, and
+    /// `settled` says only whether that alignment moves it.
+    pub end_of_registration: bool,
+    /// At the end of registration: the share of the points on the surfaces
+    /// their images see, after that alignment (the run stops there only at
+    /// 0.8 or more).
+    pub seen_share: Option<f64>,
 }
 
 /// A second run started from where the first run's initial image ended,
@@ -256,8 +267,9 @@ pub struct RestartRecord {
     /// early) from where that run started it: the given pose, or, for a
     /// `restart` after a kept `early_restart`, the early look's pose.
     pub first_change: PoseChangeRecord,
-    /// When the first run stopped early (`bundle.restart_early_at_images`):
-    /// the number of images it had registered.
+    /// When the first run stopped early (`bundle.restart_early_at_images`),
+    /// at a sphere solve or at the end of its registration (before its final
+    /// stage): the number of images it had registered.
     pub first_stopped_at_images: Option<usize>,
     /// The first run's `fit_share` (none when it stopped early), and the
     /// second's when it finished.

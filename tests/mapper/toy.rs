@@ -393,12 +393,65 @@ fn a_run_whose_initial_image_turned_early_is_mapped_again_from_there() {
     assert!(steady_err < 0.02, "{steady_err}");
 }
 
+/// The initial image given 15 cm and 2 deg off and held for its first 20
+/// registrations (no alignment to the map), so that 30 images leave no
+/// room for the early look: the first run looks at the end of its
+/// registration, sees the image turned back, and is mapped again from there
+/// without its final stage; as right as the whole first run and its
+/// restart (`bundle.restart_early_at_images = 0`).
+#[test]
+fn a_run_whose_initial_image_turned_stops_at_the_end_of_registration() {
+    let scene = toy(30, 0.3, 0.03, 1);
+    let given = initial_pose_off(&scene, Vector3::new(0.15, 0.0, 0.0), 2.0);
+    let run = |look_at: usize| {
+        let mut options = MapperOptions::default();
+        options.bundle.align_to_map = false;
+        options.bundle.fix_initial_for = 20;
+        options.bundle.restart_early_at_images = look_at;
+        map_toy_from(&scene, &given, &options)
+    };
+    let (stopped, err) = run(16);
+    let look = stopped.report.early_look.expect("the look is reported");
+    eprintln!(
+        "stopped: max error {err:.4} m, {look:?}, {:?}",
+        stopped.report.early_restart
+    );
+    assert!(
+        look.end_of_registration && look.registered == 30,
+        "{look:?}"
+    );
+    assert!(look.step.is_none() && look.alignment_would_move.is_none());
+    assert!(look.change.turned_deg > 1.0, "{look:?}");
+    assert!(look.seen_share.is_some_and(|s| s >= 0.8), "{look:?}");
+    let record = stopped
+        .report
+        .early_restart
+        .as_ref()
+        .expect("mapped again from there");
+    assert_eq!(record.first_stopped_at_images, Some(30));
+    assert_eq!(record.first_change.turned_deg, look.change.turned_deg);
+    assert!(record.second_kept && record.first_fit_share.is_none());
+    // The run from there kept the image where the look put it.
+    assert!(stopped.report.restart.is_none());
+    let change = stopped.report.initial_pose_change.expect("measured");
+    assert!((change.moved_m - 0.15).abs() < 0.02, "{change:?}");
+    assert!((change.turned_deg - 2.0).abs() < 0.2, "{change:?}");
+    assert!(err < 0.02, "{err}");
+    // Without the look: the whole first run, then the restart.
+    let (full, full_err) = run(0);
+    assert!(full.report.early_look.is_none() && full.report.early_restart.is_none());
+    let restart = full.report.restart.as_ref().expect("a restart");
+    assert!(restart.first_fit_share.is_some() && restart.second_kept);
+    assert!(full_err < 0.02, "{full_err}");
+}
+
 /// The initial image given 40 cm and 2 deg off: at the early look (10
 /// images) it has turned back but moved only part of the way (0.28 m),
 /// and the run from there moves it the rest (0.12 m, 0.06 deg) without
 /// turning it and fits the map: the look came mid-slide, so that run is
 /// mapped again from where it ended (`runs::slid_back`), not thrown away
-/// for the first run to its end.
+/// for the first run to its end. It has moved the image that far by the
+/// end of its registration, so it stops there, before its final stage.
 #[test]
 fn a_run_from_the_look_that_slid_back_is_mapped_again_from_its_end() {
     let scene = toy(30, 0.3, 0.03, 1);
@@ -410,13 +463,15 @@ fn a_run_from_the_look_that_slid_back_is_mapped_again_from_its_end() {
     assert!(early.first_stopped_at_images.is_some() && early.second_kept);
     assert!(early.first_change.turned_deg > 1.0, "{early:?}");
     // The restart's first run is the run from the look: moved from the
-    // look's pose, beyond the look's bar, without a turn.
-    assert!(restart.first_stopped_at_images.is_none() && restart.second_kept);
+    // look's pose, beyond the look's bar, without a turn, by the end of its
+    // registration, where it stopped (so no fit share of a finished run).
+    assert_eq!(restart.first_stopped_at_images, Some(30));
+    assert!(restart.second_kept, "{restart:?}");
     assert!(
         restart.first_change.moved_m > 0.1 && restart.first_change.turned_deg < 1.0,
         "{restart:?}"
     );
-    assert_eq!(restart.first_fit_share, early.second_fit_share);
+    assert!(restart.first_fit_share.is_none() && early.second_fit_share.is_none());
     assert_eq!(restart.first_run_s, early.second_run_s);
     assert!(out.report.early_look.is_some_and(|l| l.settled));
     // Measured from the given pose.
