@@ -1540,7 +1540,7 @@ pub(super) fn map_until(
                 });
             }
             log::info!(
-                "at the end of registration the initial image would be {:.3} m and {:.2} deg from where the run started it, but the model does not fit the map yet ({:.1} % of the points on the surfaces their images see, similarity-constraint ratio {}): the run goes on to its final stage",
+                "at the end of registration the initial image is {:.3} m and {:.2} deg from where the run started it (after the whole model's alignment to the map), {:.1} % of the points on the surfaces their images see, similarity-constraint ratio {}: not far enough off, or not fitting the map well enough, to map again from there; the run goes on to its final stage",
                 record.change.moved_m,
                 record.change.turned_deg,
                 record.seen_share.unwrap_or(0.0) * 100.0,
@@ -2034,7 +2034,6 @@ fn aligned_pose(
 /// alignment would put it and the record, with the change from `given`
 /// measured there and the share of points on the surfaces their images see
 /// after that alignment ([`EarlyLookRecord::stops`] decides).
-#[allow(clippy::too_many_arguments)]
 fn look_at_end(
     state: &MapState,
     init_image: ImageId,
