@@ -344,11 +344,15 @@ pub fn run_mapper_with_priors(
 /// counts, as at the early look: the final stage brings back what moved
 /// less. From exact poses the seed-0 yard's image had turned 0.24 deg at
 /// the end of registration and ended 0.02 deg from its given pose; from
-/// 0.3 m / 3 deg off the images had turned 2.9-3.5 deg there.
+/// 0.3 m / 3 deg off the images had turned 2.9-3.5 deg there. Not with
+/// `bundle.hold_initial_in_final_rounds`.
 fn first_run_end_look(options: &MapperOptions) -> Option<EndLook> {
     let b = &options.bundle;
+    // With `hold_initial_in_final_rounds` the run ends with the image at its
+    // given pose and is not mapped again.
     (b.restart_from_refined_pose
         && b.restart_early_at_images != 0
+        && !b.hold_initial_in_final_rounds
         && options.association.kind != AssociationKind::None)
         .then_some(EndLook {
             beyond: RESTART_MIN_CHANGE,
@@ -1202,6 +1206,7 @@ mod tests {
         };
         assert_eq!(off(|o| o.bundle.restart_from_refined_pose = false), None);
         assert_eq!(off(|o| o.bundle.restart_early_at_images = 0), None);
+        assert_eq!(off(|o| o.bundle.hold_initial_in_final_rounds = true), None);
         assert_eq!(off(|o| o.association.kind = AssociationKind::None), None);
         assert!(off(|o| o.association.kind = AssociationKind::Projection).is_some());
     }
