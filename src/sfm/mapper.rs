@@ -1916,15 +1916,21 @@ fn points_the_map_covers(
     options: &MapperOptions,
 ) -> Result<Option<BTreeSet<Point3DId>>, MapperError> {
     let (covered, count) = seen_surface(state, nearest, grid, options)?;
+    Ok(covered_only(covered, &count))
+}
+
+/// [`points_the_map_covers`] from a model's seen-surface count: `covered`
+/// when the map covers under [`ALIGN_ALL_POINTS_MIN_COVERAGE`] of it.
+fn covered_only(covered: BTreeSet<Point3DId>, count: &SurfaceCount) -> Option<BTreeSet<Point3DId>> {
     let share = count.covered_share();
     if share >= ALIGN_ALL_POINTS_MIN_COVERAGE {
-        return Ok(None);
+        return None;
     }
     log::info!(
         "the map shows a surface at the features of {:.1} % of the model's points: the alignment to the map uses only those",
         share * 100.0
     );
-    Ok(Some(covered))
+    Some(covered)
 }
 
 /// The initial pair's alignment is applied only when it puts at least this
@@ -2021,10 +2027,17 @@ fn aligned_pose(
     only: Option<&BTreeSet<Point3DId>>,
     pose: &Rigid3,
 ) -> Rigid3 {
-    match align_to_map(state, nearest, &whole_model_alignment(), only) {
-        Some(a) if alignment_moves(&a, 1.0) => a.sim3.transform_pose(pose),
-        _ => *pose,
-    }
+    whole_model_trial(state, nearest, only).map_or(*pose, |a| a.sim3.transform_pose(pose))
+}
+
+/// Stage 5's whole-model alignment as a trial: the alignment when it would
+/// move the model (over the points `only` when given), else `None`.
+fn whole_model_trial(
+    state: &MapState,
+    nearest: &NearestNeighbourAssociator,
+    only: Option<&BTreeSet<Point3DId>>,
+) -> Option<Alignment> {
+    align_to_map(state, nearest, &whole_model_alignment(), only).filter(|a| alignment_moves(a, 1.0))
 }
 
 /// The look at the end of registration ([`EndLook`]): `None` when the
@@ -2056,13 +2069,12 @@ fn look_at_end(
         return Ok(None);
     }
     let (covered, count) = seen_surface(state, nearest, grid, options)?;
-    let only = (count.covered_share() < ALIGN_ALL_POINTS_MIN_COVERAGE).then_some(covered);
+    let only = covered_only(covered, &count);
     let alignment = options
         .bundle
         .align_to_map
-        .then(|| align_to_map(state, nearest, &whole_model_alignment(), only.as_ref()))
-        .flatten()
-        .filter(|a| alignment_moves(a, 1.0));
+        .then(|| whole_model_trial(state, nearest, only.as_ref()))
+        .flatten();
     let (aligned, seen_share) = match &alignment {
         Some(a) => {
             let mut moved = state.clone();

@@ -190,14 +190,6 @@ pub fn run_mapper_with_priors(
             // decides then. It stops at the end of its registration when it
             // moved the image as far again ([`LOOK_RUN_END_LOOK`]).
             let second = from_refined_until(&cam_from_world, LOOK_RUN_END_LOOK, &mut *progress);
-            let (second, stopped) = match second {
-                Ok(RunEnd::Moved {
-                    cam_from_world,
-                    look,
-                }) => (Err(String::new()), Some((cam_from_world, look))),
-                Ok(RunEnd::Finished(out)) => (checked_look_run(Ok(*out), options), None),
-                Err(e) => (checked_look_run(Err(e), options), None),
-            };
             let second_run_s = started.elapsed().as_secs_f64();
             let mut record = RestartRecord {
                 first_change: change,
@@ -222,8 +214,11 @@ pub fn run_mapper_with_priors(
             // The run from the look stopped at the end of its registration
             // having moved the image that far again ([`LOOK_RUN_END_LOOK`]:
             // it fits the map there): the same, before its final stage.
-            let second = match stopped {
-                Some((moved_to, again)) if again.change.turned_deg < EARLY_LOOK_MIN_TURN_DEG => {
+            let second = match second {
+                Ok(RunEnd::Moved {
+                    cam_from_world: moved_to,
+                    look: again,
+                }) if again.change.turned_deg < EARLY_LOOK_MIN_TURN_DEG => {
                     log::info!(
                         "the run from where the initial image was at {registered} images moved it {:.3} m and {:.2} deg again by the end of its registration and fits the map ({:.1} % of the points on the surfaces their images see): the look was taken mid-slide, so it is mapped again from there",
                         again.change.moved_m,
@@ -256,11 +251,12 @@ pub fn run_mapper_with_priors(
                         }
                     }
                 }
-                Some((_, again)) => Err(format!(
+                Ok(RunEnd::Moved { look: again, .. }) => Err(format!(
                     "its initial image moved {:.3} m and {:.2} deg again from where the look put it by the end of its registration: the model had not settled",
                     again.change.moved_m, again.change.turned_deg
                 )),
-                None => second,
+                Ok(RunEnd::Finished(out)) => checked_look_run(Ok(*out), options),
+                Err(e) => checked_look_run(Err(e), options),
             };
             let moved = second.as_ref().ok().and_then(|out| {
                 out.reconstruction
