@@ -797,6 +797,12 @@ pub(super) struct LookPlan {
     /// [`EARLY_LOOK_FIRM`]), with at most `steady_until` images registered
     /// (no look after that).
     pub steady_until: Option<usize>,
+    /// The run from an early look ([`super::runs`]): at the look it also
+    /// stops when the image slid farther than [`LOOK_RUN_SLIDE_M`] from
+    /// where the run started it, turned less than
+    /// [`EARLY_LOOK_MIN_TURN_DEG`], and the model fits the map there
+    /// ([`GOOD_FIT_SHARE`] of the points on the surfaces their images see).
+    pub slide: bool,
 }
 
 /// What the early look does at a sphere solve ([`LookPlan::decide`]).
@@ -864,6 +870,18 @@ pub(super) const EARLY_LOOK_STEADY: (f64, f64) = (0.01, 0.1);
 /// 5.6e-3 and ended at 1.28 mm where its two full runs give 1.13 mm (the
 /// oracle 0.78 mm). The 24-image looks that were right had 0.014-0.045.
 pub(super) const EARLY_LOOK_FIRM: f64 = 1e-2;
+
+/// With [`LookPlan::slide`], a run from an early look stops at its own
+/// look when its initial image slid farther than this (metres) from where
+/// the run started it. The look came mid-slide: the seed-3 100-image
+/// corridor from 0.3 m / 3 deg off was looked at at 17 images with the image
+/// still moving 7.4 cm a sphere solve; its run from there moved the image
+/// 0.43-0.45 m at the solves after its release (9-17 images) and 0.386 m by
+/// the end of its registration (session 50). From where a registration
+/// ends, the next run's image strays up to 0.115 m along that corridor while
+/// its model is small and comes back (the seed-0 24-image corridor's
+/// 0.207 m at 10 images, from a look that was right to 5 mm).
+pub(super) const LOOK_RUN_SLIDE_M: f64 = 0.3;
 
 /// The look at the initial image at the end of registration ([`map_until`],
 /// [`look_at_end`]): when the image moved or turned beyond `beyond`
@@ -1444,6 +1462,7 @@ pub(super) fn map_until(
                     look_at = None;
                 }
                 if now == Some(LookNow::Look) {
+                    let slide = look_at.is_some_and(|plan| plan.slide);
                     look_at = None;
                     // Where the end of the run would put the image: the
                     // whole model's alignment to the map, as in stage 5.
@@ -1455,6 +1474,12 @@ pub(super) fn map_until(
                         None
                     };
                     let settled = !would_move.is_some_and(|m| beyond(&m, EARLY_LOOK_SETTLED));
+                    // The slide look asks whether the model fits the map.
+                    let seen_share = if slide {
+                        Some(seen_surface(&state, &nearest, &grid, options)?.1.on_share())
+                    } else {
+                        None
+                    };
                     let record = EarlyLookRecord {
                         registered,
                         change,
@@ -1463,7 +1488,7 @@ pub(super) fn map_until(
                         alignment_would_move: would_move,
                         settled,
                         end_of_registration: false,
-                        seen_share: None,
+                        seen_share,
                     };
                     report.early_look = Some(record);
                     if !settled {
@@ -1475,13 +1500,21 @@ pub(super) fn map_until(
                             m.moved_m,
                             m.turned_deg
                         );
-                    } else if change.turned_deg > EARLY_LOOK_MIN_TURN_DEG
-                        && !pose_change_beyond(&change, &options.bundle, 1.0)
+                    } else if (change.turned_deg > EARLY_LOOK_MIN_TURN_DEG
+                        && !pose_change_beyond(&change, &options.bundle, 1.0))
+                        || (slide && record.slid(&options.bundle))
                     {
                         return Ok(RunEnd::Moved {
                             cam_from_world: pose,
                             look: record,
                         });
+                    } else if slide && change.moved_m > LOOK_RUN_SLIDE_M {
+                        log::info!(
+                            "at {registered} images the initial image slid {:.3} m and turned {:.2} deg from where the run started it, but the model does not fit the map there ({:.1} % of the points on the surfaces their images see): the run goes on",
+                            change.moved_m,
+                            change.turned_deg,
+                            record.seen_share.unwrap_or(f64::NAN) * 100.0
+                        );
                     } else if change.turned_deg <= EARLY_LOOK_MIN_TURN_DEG
                         && change.moved_m > EARLY_LOOK_MIN_CHANGE.0
                     {
@@ -2113,6 +2146,19 @@ fn look_at_end(
 const END_LOOK_MIN_SHARE: f64 = 0.8;
 
 impl EarlyLookRecord {
+    /// Whether a run from an early look stops at its own look
+    /// ([`LookPlan::slide`]): the image slid farther than
+    /// [`LOOK_RUN_SLIDE_M`] from where the run started it, turned at most
+    /// [`EARLY_LOOK_MIN_TURN_DEG`], within the accepted change, and the model
+    /// fits the map there ([`GOOD_FIT_SHARE`] of the points on the surfaces
+    /// their images see).
+    pub(super) fn slid(&self, options: &BundleOptions) -> bool {
+        self.change.moved_m > LOOK_RUN_SLIDE_M
+            && self.change.turned_deg <= EARLY_LOOK_MIN_TURN_DEG
+            && !pose_change_beyond(&self.change, options, 1.0)
+            && self.seen_share.is_some_and(|s| s >= GOOD_FIT_SHARE)
+    }
+
     /// Whether a run stops at this look at the end of registration: the
     /// image (where the alignment puts it) is still beyond `end` and within
     /// half the accepted change, the map holds the model (similarity-constraint
@@ -2568,6 +2614,36 @@ fn global_ba(
 pub(crate) mod tests {
     use super::*;
 
+    #[test]
+    fn a_run_from_a_look_taken_mid_slide_stops_when_it_slid() {
+        let bundle = BundleOptions::default();
+        let look = |moved_m, turned_deg, share| EarlyLookRecord {
+            registered: 11,
+            change: PoseChangeRecord {
+                moved_m,
+                turned_deg,
+            },
+            step: None,
+            similarity_ratio: Some(1.1e-2),
+            alignment_would_move: None,
+            settled: true,
+            end_of_registration: false,
+            seen_share: share,
+        };
+        // The seed-3 100-image corridor's run from its look at 17 images.
+        assert!(look(0.447, 0.02, Some(0.966)).slid(&bundle));
+        // Strayed along the corridor, as a run from the right pose does
+        // while its model is small.
+        assert!(!look(0.207, 0.12, Some(0.985)).slid(&bundle));
+        // Turned: the look's rotation did not hold.
+        assert!(!look(0.447, 1.2, Some(0.966)).slid(&bundle));
+        // Not fitting the map there, or not measured.
+        assert!(!look(0.447, 0.02, Some(0.85)).slid(&bundle));
+        assert!(!look(0.447, 0.02, None).slid(&bundle));
+        // Beyond the accepted change (1 m).
+        assert!(!look(1.2, 0.02, Some(0.966)).slid(&bundle));
+    }
+
     /// The look at the end of registration stops the run where the image,
     /// after the alignment, is still beyond the bar, within half the
     /// accepted change, held by the map and fitting it (the session-49
@@ -2625,6 +2701,7 @@ pub(crate) mod tests {
         let large = LookPlan {
             from: 16,
             steady_until: None,
+            slide: false,
         };
         assert_eq!(large.decide(15, true, None, firm), LookNow::Wait);
         assert_eq!(large.decide(17, false, None, firm), LookNow::Wait);
@@ -2639,6 +2716,7 @@ pub(crate) mod tests {
         let small = LookPlan {
             from: 8,
             steady_until: Some(16),
+            slide: false,
         };
         let look = |registered, released, s, ratio: Option<f64>| {
             small.decide(registered, released, s, || ratio)

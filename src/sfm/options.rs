@@ -408,7 +408,13 @@ pub struct BundleOptions {
     /// change, and at least 80 % of the points lie on the surfaces their
     /// images see there; the run from a look stops at the end of its own
     /// registration when it moved the image 10 cm or 1 deg again (the
-    /// rule above, without its final stage). 0 looks only at the end of
+    /// rule above, without its final stage). A run from a look taken while
+    /// the image was still moving (more than 1 cm or 0.1 deg since the
+    /// sphere solve before) looks once more, at its first such steady and
+    /// firm sphere solve after the image's release (up to 32 images): when
+    /// the image slid more than 0.3 m from the look's pose without turning
+    /// and 90 % of the points lie on the surfaces their images see, it stops
+    /// there and is mapped again from that pose. 0 looks only at the end of
     /// the finished run. Default 16.
     pub restart_early_at_images: usize,
     /// When the run from the given initial pose failed as if that pose were

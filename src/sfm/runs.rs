@@ -23,7 +23,7 @@ use super::localise::{
 use super::mapper::{
     beyond, map_once, map_until, pose_change, pose_change_beyond, EndLook, LookPlan, MapperError,
     MapperInputs, MapperOutput, Progress, RunEnd, Start, EARLY_LOOK_MIN_CHANGE,
-    EARLY_LOOK_MIN_TURN_DEG, GOOD_FIT_SHARE, SEARCH_MIN_CONSTRAINT,
+    EARLY_LOOK_MIN_TURN_DEG, EARLY_LOOK_STEADY, GOOD_FIT_SHARE, SEARCH_MIN_CONSTRAINT,
 };
 use super::options::{AssociationKind, MapperOptions};
 use super::report::{EarlyLookRecord, PoseChangeRecord, RestartRecord, RetryRecord};
@@ -76,6 +76,7 @@ pub fn run_mapper_with_priors(
     // user gave, as the first run is, and its change measured from there.
     // With `end`, it may stop at the end of its registration ([`EndLook`]).
     let from_refined_until = |refined: &Rigid3,
+                              look: Option<LookPlan>,
                               end: Option<EndLook>,
                               progress: &mut dyn FnMut(usize, usize)|
      -> Result<RunEnd, MapperError> {
@@ -84,7 +85,7 @@ pub fn run_mapper_with_priors(
             cam_from_world: *refined,
             rough: false,
         };
-        let mut out = match map_until(inputs, &start, options, None, end, progress)? {
+        let mut out = match map_until(inputs, &start, options, look, end, progress)? {
             RunEnd::Finished(out) => out,
             moved => return Ok(moved),
         };
@@ -107,7 +108,7 @@ pub fn run_mapper_with_priors(
     let from_refined = |refined: &Rigid3,
                         progress: &mut dyn FnMut(usize, usize)|
      -> Result<MapperOutput, MapperError> {
-        match from_refined_until(refined, None, progress)? {
+        match from_refined_until(refined, None, None, progress)? {
             RunEnd::Finished(out) => Ok(*out),
             RunEnd::Moved { .. } => unreachable!("a run without a look finishes"),
         }
@@ -189,7 +190,12 @@ pub fn run_mapper_with_priors(
             // here: the first run from the given pose, with the retries,
             // decides then. It stops at the end of its registration when it
             // moved the image as far again ([`LOOK_RUN_END_LOOK`]).
-            let second = from_refined_until(&cam_from_world, LOOK_RUN_END_LOOK, &mut *progress);
+            let second = from_refined_until(
+                &cam_from_world,
+                look_run_plan(db.images.len(), &look, options),
+                LOOK_RUN_END_LOOK,
+                &mut *progress,
+            );
             let second_run_s = started.elapsed().as_secs_f64();
             let mut record = RestartRecord {
                 first_change: change,
@@ -220,9 +226,10 @@ pub fn run_mapper_with_priors(
                     look: again,
                 }) if again.change.turned_deg < EARLY_LOOK_MIN_TURN_DEG => {
                     log::info!(
-                        "the run from where the initial image was at {registered} images moved it {:.3} m and {:.2} deg again by the end of its registration and fits the map ({:.1} % of the points on the surfaces their images see): the look was taken mid-slide, so it is mapped again from there",
+                        "the run from where the initial image was at {registered} images moved it {:.3} m and {:.2} deg again by {} and fits the map ({:.1} % of the points on the surfaces their images see): the look was taken mid-slide, so it is mapped again from there",
                         again.change.moved_m,
                         again.change.turned_deg,
+                        stopped_at(&again),
                         again.seen_share.unwrap_or(f64::NAN) * 100.0
                     );
                     record.second_kept = true;
@@ -252,8 +259,10 @@ pub fn run_mapper_with_priors(
                     }
                 }
                 Ok(RunEnd::Moved { look: again, .. }) => Err(format!(
-                    "its initial image moved {:.3} m and {:.2} deg again from where the look put it by the end of its registration: the model had not settled",
-                    again.change.moved_m, again.change.turned_deg
+                    "its initial image moved {:.3} m and {:.2} deg again from where the look put it by {}: the model had not settled",
+                    again.change.moved_m,
+                    again.change.turned_deg,
+                    stopped_at(&again)
                 )),
                 Ok(RunEnd::Finished(out)) => checked_look_run(Ok(*out), options),
                 Err(e) => checked_look_run(Err(e), options),
@@ -365,6 +374,16 @@ const LOOK_RUN_END_LOOK: Option<EndLook> = Some(EndLook {
     min_turn_deg: 0.0,
 });
 
+/// Where a run stopped at `look`, for the log: "the end of its
+/// registration" or "N images".
+fn stopped_at(look: &EarlyLookRecord) -> String {
+    if look.end_of_registration {
+        "the end of its registration".to_string()
+    } else {
+        format!("{} images", look.registered)
+    }
+}
+
 /// A finished run from the early look, or its error, as the look's
 /// outcome: a run the retry would follow ([`retry_reason`]) counts as
 /// failed.
@@ -430,6 +449,7 @@ pub(super) fn early_look_at(num_images: usize, options: &MapperOptions) -> Optio
         return Some(LookPlan {
             from: b.restart_early_at_images,
             steady_until: None,
+            slide: false,
         });
     }
     let until = 2 * num_images / 3;
@@ -437,6 +457,44 @@ pub(super) fn early_look_at(num_images: usize, options: &MapperOptions) -> Optio
     (b.fix_initial_for + 2 <= until).then_some(LookPlan {
         from: num_images / 3,
         steady_until: Some(until),
+        slide: false,
+    })
+}
+
+/// The look of the run from an early look taken while the initial image
+/// was still moving: the look (`look`, at a sphere solve, not at the end
+/// of registration) had moved it more than
+/// [`super::mapper::EARLY_LOOK_STEADY`] since the sphere solve before (only
+/// the look of a large database may come then: [`early_look_at`]). That run
+/// looks at the first sphere solve after the image's release
+/// (`bundle.fix_initial_for`) that moved it at most `EARLY_LOOK_STEADY`
+/// from where the one before left it while the map holds the model firmly,
+/// as in a small database, up to twice `bundle.restart_early_at_images`
+/// images and two thirds of the database, and stops when the image slid
+/// farther than [`super::mapper::LOOK_RUN_SLIDE_M`] from the look's pose
+/// ([`LookPlan::slide`]): the look came mid-slide, and the run is mapped
+/// again from there, as it is when it moved the image that far by the end
+/// of its registration ([`LOOK_RUN_END_LOOK`]), without the rest of its
+/// registration. After a steady look, or one at the end of registration,
+/// `None`: while its model is small a run's image strays along a corridor
+/// (0.207 m at 10 images on the seed-0 24-image corridor, from a look at
+/// the end of registration that was right to 5 mm), and a run started from
+/// there is no better.
+fn look_run_plan(
+    num_images: usize,
+    look: &EarlyLookRecord,
+    options: &MapperOptions,
+) -> Option<LookPlan> {
+    let moving = look.step.is_some_and(|s| beyond(&s, EARLY_LOOK_STEADY));
+    if !moving || look.end_of_registration {
+        return None;
+    }
+    let b = &options.bundle;
+    let until = (2 * b.restart_early_at_images).min(2 * num_images / 3);
+    (b.fix_initial_for + 2 <= until).then_some(LookPlan {
+        from: b.fix_initial_for + 1,
+        steady_until: Some(until),
+        slide: true,
     })
 }
 
@@ -1054,7 +1112,13 @@ mod tests {
         let options = MapperOptions::default();
         assert_eq!(options.bundle.restart_early_at_images, 16);
         assert_eq!(options.bundle.fix_initial_for, 8);
-        let plan = |from, steady_until| Some(LookPlan { from, steady_until });
+        let plan = |from, steady_until| {
+            Some(LookPlan {
+                from,
+                steady_until,
+                slide: false,
+            })
+        };
         let at = |n: usize| early_look_at(n, &options);
         assert_eq!(at(100), plan(16, None));
         assert_eq!(at(48), plan(16, None));
@@ -1205,6 +1269,55 @@ mod tests {
         assert_eq!(off(|o| o.bundle.hold_initial_in_final_rounds = true), None);
         assert_eq!(off(|o| o.association.kind = AssociationKind::None), None);
         assert!(off(|o| o.association.kind = AssociationKind::Projection).is_some());
+    }
+
+    /// The seed-3 100-image corridor from 0.3 m / 3 deg off: its look at 17
+    /// images came with the image still moving 7.4 cm a sphere solve, so
+    /// the run from there looks again once the image is steady after its
+    /// release; looks that were steady, or at the end of registration, do
+    /// not (the seed-1 corridor's look had moved 7 mm).
+    #[test]
+    fn the_run_from_a_look_taken_mid_slide_looks_again() {
+        let options = MapperOptions::default();
+        let look = |step: Option<(f64, f64)>, end_of_registration| EarlyLookRecord {
+            registered: 17,
+            change: PoseChangeRecord {
+                moved_m: 0.543,
+                turned_deg: 3.01,
+            },
+            step: step.map(|(moved_m, turned_deg)| PoseChangeRecord {
+                moved_m,
+                turned_deg,
+            }),
+            similarity_ratio: Some(4.1e-3),
+            alignment_would_move: None,
+            settled: true,
+            end_of_registration,
+            seen_share: None,
+        };
+        let moving = look(Some((0.074, 0.007)), false);
+        assert_eq!(
+            look_run_plan(100, &moving, &options),
+            Some(LookPlan {
+                from: 9,
+                steady_until: Some(32),
+                slide: true,
+            })
+        );
+        // Turning counts as moving too; a small database stops earlier.
+        let turning = look(Some((0.005, 0.3)), false);
+        assert_eq!(
+            look_run_plan(36, &turning, &options).and_then(|p| p.steady_until),
+            Some(24)
+        );
+        assert_eq!(
+            look_run_plan(100, &look(Some((0.007, 0.012)), false), &options),
+            None
+        );
+        assert_eq!(look_run_plan(100, &look(None, false), &options), None);
+        assert_eq!(look_run_plan(100, &look(None, true), &options), None);
+        // No room for a steady solve after the release.
+        assert_eq!(look_run_plan(14, &moving, &options), None);
     }
 
     #[test]
