@@ -2149,13 +2149,14 @@ impl EarlyLookRecord {
     /// Whether a run from an early look stops at its own look
     /// ([`LookPlan::slide`]): the image slid farther than
     /// [`LOOK_RUN_SLIDE_M`] from where the run started it, turned at most
-    /// [`EARLY_LOOK_MIN_TURN_DEG`], within the accepted change, and the model
-    /// fits the map there ([`GOOD_FIT_SHARE`] of the points on the surfaces
-    /// their images see).
+    /// [`EARLY_LOOK_MIN_TURN_DEG`], within half the accepted change (as the
+    /// look at the end of registration: [`EarlyLookRecord::stops`]), and the
+    /// model fits the map there ([`GOOD_FIT_SHARE`] of the points on the
+    /// surfaces their images see).
     pub(super) fn slid(&self, options: &BundleOptions) -> bool {
         self.change.moved_m > LOOK_RUN_SLIDE_M
             && self.change.turned_deg <= EARLY_LOOK_MIN_TURN_DEG
-            && !pose_change_beyond(&self.change, options, 1.0)
+            && !initial_pose_moved_far(&self.change, options)
             && self.seen_share.is_some_and(|s| s >= GOOD_FIT_SHARE)
     }
 
@@ -2640,8 +2641,8 @@ pub(crate) mod tests {
         // Not fitting the map there, or not measured.
         assert!(!look(0.447, 0.02, Some(0.85)).slid(&bundle));
         assert!(!look(0.447, 0.02, None).slid(&bundle));
-        // Beyond the accepted change (1 m).
-        assert!(!look(1.2, 0.02, Some(0.966)).slid(&bundle));
+        // Beyond half the accepted change (1 m).
+        assert!(!look(0.55, 0.02, Some(0.966)).slid(&bundle));
     }
 
     /// The look at the end of registration stops the run where the image,

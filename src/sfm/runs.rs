@@ -219,12 +219,23 @@ pub fn run_mapper_with_priors(
             // from where it ended, as a first run that moved the image is.
             // The run from the look stopped at the end of its registration
             // having moved the image that far again ([`LOOK_RUN_END_LOOK`]:
-            // it fits the map there): the same, before its final stage.
+            // it fits the map there), or once it slid after a look taken
+            // while the image was moving ([`look_run_plan`]): the same,
+            // before the rest of that run, if the image is still within half
+            // the accepted change of the given pose (each look measures from
+            // where its own run started; two looks must not add up to a
+            // place the first run would not have been allowed to go).
             let second = match second {
                 Ok(RunEnd::Moved {
                     cam_from_world: moved_to,
                     look: again,
-                }) if again.change.turned_deg < EARLY_LOOK_MIN_TURN_DEG => {
+                }) if again.change.turned_deg < EARLY_LOOK_MIN_TURN_DEG
+                    && !pose_change_beyond(
+                        &pose_change(&moved_to, init_cam_from_world),
+                        &options.bundle,
+                        0.5,
+                    ) =>
+                {
                     log::info!(
                         "the run from where the initial image was at {registered} images moved it {:.3} m and {:.2} deg again by {} and fits the map ({:.1} % of the points on the surfaces their images see): the look was taken mid-slide, so it is mapped again from there",
                         again.change.moved_m,
@@ -258,12 +269,20 @@ pub fn run_mapper_with_priors(
                         }
                     }
                 }
-                Ok(RunEnd::Moved { look: again, .. }) => Err(format!(
-                    "its initial image moved {:.3} m and {:.2} deg again from where the look put it by {}: the model had not settled",
-                    again.change.moved_m,
-                    again.change.turned_deg,
-                    stopped_at(&again)
-                )),
+                Ok(RunEnd::Moved {
+                    cam_from_world: moved_to,
+                    look: again,
+                }) => {
+                    let from_given = pose_change(&moved_to, init_cam_from_world);
+                    Err(format!(
+                        "its initial image moved {:.3} m and {:.2} deg again from where the look put it by {} ({:.3} m and {:.2} deg from the given pose): the model had not settled",
+                        again.change.moved_m,
+                        again.change.turned_deg,
+                        stopped_at(&again),
+                        from_given.moved_m,
+                        from_given.turned_deg
+                    ))
+                }
                 Ok(RunEnd::Finished(out)) => checked_look_run(Ok(*out), options),
                 Err(e) => checked_look_run(Err(e), options),
             };
