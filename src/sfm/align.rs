@@ -28,6 +28,7 @@
 use std::collections::BTreeSet;
 
 use nalgebra::{SMatrix, SVector, UnitQuaternion, Vector3};
+use rayon::prelude::*;
 
 use super::associate::NearestNeighbourAssociator;
 use super::state::MapState;
@@ -146,14 +147,15 @@ pub fn is_on_map(nearest: &NearestNeighbourAssociator, x: &Vector3<f64>, radius_
         .is_some_and(|(n, d)| (n.dot(x) - d).abs() <= INLIER_M)
 }
 
-/// Points on the map ([`is_on_map`]) among `points`.
+/// Points on the map ([`is_on_map`]) among `points` (searched on every
+/// core).
 pub fn count_points_on_map(
     nearest: &NearestNeighbourAssociator,
     points: &[Vector3<f64>],
     radius_m: f64,
 ) -> usize {
     points
-        .iter()
+        .par_iter()
         .filter(|x| is_on_map(nearest, x, radius_m))
         .count()
 }
@@ -245,8 +247,14 @@ pub(crate) fn fit_similarity(
             let mut h = SMatrix::<f64, 7, 7>::zeros();
             let mut g = SVector::<f64, 7>::zeros();
             let mut used = 0usize;
-            for y in &current {
-                let Some((n, d)) = nearest_tangent_plane(nearest, y, radius) else {
+            // The map's searches on every core; the sums in the points'
+            // order, as on one (the same result on any number of threads).
+            let planes: Vec<Option<(Vector3<f64>, f64)>> = current
+                .par_iter()
+                .map(|y| nearest_tangent_plane(nearest, y, radius))
+                .collect();
+            for (y, plane) in current.iter().zip(planes) {
+                let Some((n, d)) = plane else {
                     continue;
                 };
                 let e = n.dot(y) - d;
