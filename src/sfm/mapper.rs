@@ -797,11 +797,9 @@ pub(super) struct LookPlan {
     /// [`EARLY_LOOK_FIRM`]), with at most `steady_until` images registered
     /// (no look after that).
     pub steady_until: Option<usize>,
-    /// The run from an early look ([`super::runs`]): at the look it also
-    /// stops when the image slid farther than [`LOOK_RUN_SLIDE_M`] from
-    /// where the run started it, turned less than
-    /// [`EARLY_LOOK_MIN_TURN_DEG`], and the model fits the map there
-    /// ([`GOOD_FIT_SHARE`] of the points on the surfaces their images see).
+    /// The run from an early look taken mid-slide (`runs::look_run_plan`):
+    /// at the look it also stops when the image slid without turning and
+    /// the model fits the map there ([`EarlyLookRecord::slid`]).
     pub slide: bool,
 }
 
