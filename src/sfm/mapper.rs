@@ -553,7 +553,7 @@ pub(super) fn pose_change_beyond(
 /// perturbed pose (0.3 m, 3 deg) moves back less; on a scene whose movable
 /// objects changed since the scan (`synth --changes 3`, seed-0 yard), the
 /// model slid and the initial image, given its exact pose, ended 0.92 m off.
-fn initial_pose_moved_far(change: &PoseChangeRecord, options: &BundleOptions) -> bool {
+pub(super) fn initial_pose_moved_far(change: &PoseChangeRecord, options: &BundleOptions) -> bool {
     pose_change_beyond(change, options, 0.5)
 }
 
@@ -1472,8 +1472,9 @@ pub(super) fn map_until(
                         None
                     };
                     let settled = !would_move.is_some_and(|m| beyond(&m, EARLY_LOOK_SETTLED));
-                    // The slide look asks whether the model fits the map.
-                    let seen_share = if slide {
+                    // The slide look asks whether the model fits the map,
+                    // once the image slid far enough to stop for it.
+                    let seen_share = if slide && change.moved_m > LOOK_RUN_SLIDE_M {
                         Some(seen_surface(&state, &nearest, &grid, options)?.1.on_share())
                     } else {
                         None

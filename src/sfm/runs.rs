@@ -21,9 +21,10 @@ use super::localise::{
     search_placement, Search, SearchError, SearchOptions, SearchRegion, SAME_PLACE_M,
 };
 use super::mapper::{
-    beyond, map_once, map_until, pose_change, pose_change_beyond, EndLook, LookPlan, MapperError,
-    MapperInputs, MapperOutput, Progress, RunEnd, Start, EARLY_LOOK_MIN_CHANGE,
-    EARLY_LOOK_MIN_TURN_DEG, EARLY_LOOK_STEADY, GOOD_FIT_SHARE, SEARCH_MIN_CONSTRAINT,
+    beyond, initial_pose_moved_far, map_once, map_until, pose_change, pose_change_beyond, EndLook,
+    LookPlan, MapperError, MapperInputs, MapperOutput, Progress, RunEnd, Start,
+    EARLY_LOOK_MIN_CHANGE, EARLY_LOOK_MIN_TURN_DEG, EARLY_LOOK_STEADY, GOOD_FIT_SHARE,
+    SEARCH_MIN_CONSTRAINT,
 };
 use super::options::{AssociationKind, MapperOptions};
 use super::report::{EarlyLookRecord, PoseChangeRecord, RestartRecord, RetryRecord};
@@ -230,10 +231,9 @@ pub fn run_mapper_with_priors(
                     cam_from_world: moved_to,
                     look: again,
                 }) if again.change.turned_deg < EARLY_LOOK_MIN_TURN_DEG
-                    && !pose_change_beyond(
+                    && !initial_pose_moved_far(
                         &pose_change(&moved_to, init_cam_from_world),
                         &options.bundle,
-                        0.5,
                     ) =>
                 {
                     log::info!(
