@@ -279,6 +279,11 @@ pub struct RestartRecord {
     /// (`second_error`) and the first run is kept.
     pub second_kept: bool,
     pub second_error: Option<String>,
+    /// In an `early_restart`: the look the run from the early look took
+    /// itself, whether it stopped that run or the run went on (the slide
+    /// look of a run from a look taken mid-slide, or the look at the end of
+    /// its registration). The top-level `early_look` is the first run's.
+    pub second_look: Option<EarlyLookRecord>,
     /// When the first run came from the retry (its run free from the start
     /// kept) and the second is kept: the retry's record.
     pub first_retry: Option<Box<RetryRecord>>,

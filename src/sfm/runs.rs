@@ -244,6 +244,7 @@ pub fn run_mapper_with_priors(
                         again.seen_share.unwrap_or(f64::NAN) * 100.0
                     );
                     record.second_kept = true;
+                    record.second_look = Some(again);
                     let started = Instant::now();
                     match from_refined(&moved_to, &mut *progress) {
                         Ok(mut out) => {
@@ -274,6 +275,7 @@ pub fn run_mapper_with_priors(
                     look: again,
                 }) => {
                     let from_given = pose_change(&moved_to, init_cam_from_world);
+                    record.second_look = Some(again);
                     Err(format!(
                         "its initial image moved {:.3} m and {:.2} deg again from where the look put it by {} ({:.3} m and {:.2} deg from the given pose): the model had not settled",
                         again.change.moved_m,
@@ -302,6 +304,7 @@ pub fn run_mapper_with_priors(
                     );
                     record.second_fit_share = out.report.fit_share;
                     record.second_kept = true;
+                    record.second_look = out.report.early_look.take();
                     out.report.early_restart = Some(record);
                     out.report.early_look = Some(look);
                     return Ok(restart_from_end(out, c, second_run_s, &mut *progress));
@@ -318,6 +321,7 @@ pub fn run_mapper_with_priors(
                 Ok(mut out) => {
                     record.second_fit_share = out.report.fit_share;
                     record.second_kept = true;
+                    record.second_look = out.report.early_look.take();
                     out.report.early_restart = Some(record);
                     out.report.early_look = Some(look);
                     return Ok(out);

@@ -361,8 +361,9 @@ fn a_run_whose_initial_image_turned_early_is_mapped_again_from_there() {
     );
     assert_eq!(early.report.num_registered, 30);
     // The run from the look kept the image where the look put it: kept as
-    // it is, not mapped again from its end.
+    // it is, not mapped again from its end, and no look of its own.
     assert!(early.report.restart.is_none());
+    assert!(record.second_look.is_none(), "{record:?}");
     // Measured from the given pose, as without the restart.
     let change = early.report.initial_pose_change.expect("measured");
     assert!((change.moved_m - 0.15).abs() < 0.02, "{change:?}");
@@ -474,6 +475,11 @@ fn a_run_from_the_look_that_slid_back_is_mapped_again_from_its_end() {
     assert!(restart.first_fit_share.is_none() && early.second_fit_share.is_none());
     assert_eq!(restart.first_run_s, early.second_run_s);
     assert!(out.report.early_look.is_some_and(|l| l.settled));
+    // That run's own look, which stopped it, in the early restart's record
+    // (the top-level look is the first run's, at 10 images).
+    let own = early.second_look.expect("the run from the look looked");
+    assert!(own.end_of_registration && own.registered == 30, "{own:?}");
+    assert_eq!(own.change.moved_m, restart.first_change.moved_m);
     // Measured from the given pose.
     let change = out.report.initial_pose_change.expect("measured");
     assert!((change.moved_m - 0.4).abs() < 0.02, "{change:?}");
