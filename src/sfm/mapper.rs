@@ -814,6 +814,24 @@ pub(super) enum LookNow {
 }
 
 impl LookPlan {
+    /// A look at the first steady, firmly held sphere solve from `from`
+    /// images on, up to `until` ([`LookPlan::steady_until`]); `None` when
+    /// the second sphere solve after the image's release
+    /// (`fix_initial_for`), the first that can be steady, cannot come by
+    /// `until`.
+    pub(super) fn steady(
+        from: usize,
+        until: usize,
+        fix_initial_for: usize,
+        slide: bool,
+    ) -> Option<Self> {
+        (fix_initial_for + 2 <= until).then_some(LookPlan {
+            from,
+            steady_until: Some(until),
+            slide,
+        })
+    }
+
     /// The look at a sphere solve with `registered` images, the initial
     /// image `released` (past `bundle.fix_initial_for`), `step` its change
     /// since the sphere solve before (`None` at the first one after its

@@ -475,13 +475,7 @@ pub(super) fn early_look_at(num_images: usize, options: &MapperOptions) -> Optio
             slide: false,
         });
     }
-    let until = 2 * num_images / 3;
-    // The first look can come at the second sphere solve after the release.
-    (b.fix_initial_for + 2 <= until).then_some(LookPlan {
-        from: num_images / 3,
-        steady_until: Some(until),
-        slide: false,
-    })
+    LookPlan::steady(num_images / 3, 2 * num_images / 3, b.fix_initial_for, false)
 }
 
 /// The look of the run from an early look taken while the initial image
@@ -514,11 +508,7 @@ fn look_run_plan(
     }
     let b = &options.bundle;
     let until = (2 * b.restart_early_at_images).min(2 * num_images / 3);
-    (b.fix_initial_for + 2 <= until).then_some(LookPlan {
-        from: b.fix_initial_for + 1,
-        steady_until: Some(until),
-        slide: true,
-    })
+    LookPlan::steady(b.fix_initial_for + 1, until, b.fix_initial_for, true)
 }
 
 /// A run whose initial image ended farther than this from its given pose
