@@ -18,13 +18,13 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 const MI_OPTION_PURGE_DELAY: libmimalloc_sys::mi_option_t = 15;
 
 /// Tells mimalloc to keep the memory a run frees instead of handing it back
-/// to the system a second later (unless `MIMALLOC_PURGE_DELAY` says otherwise).
-/// Every solve frees its problem and the next one allocates it again: on a
-/// machine with transparent huge pages each such page came back as a fault
-/// that zeroes 2 MB (about 120 000 faults and 3 s of system time on the
-/// 100-image corridor). Kept, the run takes 3-5 s less (of about 70 s),
-/// peaks about 7 % higher, and writes the same model (`docs/results.md`,
-/// session 51).
+/// to the system (after about a second; unless `MIMALLOC_PURGE_DELAY` says
+/// otherwise). Every solve frees its problem and the next one allocates it
+/// again: on a machine with transparent huge pages each such page came back
+/// as a fault that zeroes 2 MB (100-160 k faults and about 2.5 s of system
+/// time on the 100-image corridor). Kept: about 1.4 k faults, peak memory
+/// 4-7 % higher, the same model; the wall-time gain was within the test
+/// machine's noise (`docs/results.md`, session 51).
 fn keep_freed_memory() {
     if std::env::var_os("MIMALLOC_PURGE_DELAY").is_none() {
         // SAFETY: sets one of mimalloc's options; any value is valid for it.
