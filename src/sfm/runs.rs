@@ -203,6 +203,13 @@ pub fn run_mapper_with_priors(
                 first_stopped_at_images: Some(registered),
                 first_run_s: early_s,
                 second_run_s,
+                // That run's own look, stopped there or not (every kept
+                // result below gets the first run's look as `early_look`).
+                second_look: match &second {
+                    Ok(RunEnd::Moved { look: again, .. }) => Some(*again),
+                    Ok(RunEnd::Finished(out)) => out.report.early_look,
+                    Err(_) => None,
+                },
                 ..Default::default()
             };
             // The run from there must leave the image where the look put it
@@ -244,7 +251,6 @@ pub fn run_mapper_with_priors(
                         again.seen_share.unwrap_or(f64::NAN) * 100.0
                     );
                     record.second_kept = true;
-                    record.second_look = Some(again);
                     let started = Instant::now();
                     match from_refined(&moved_to, &mut *progress) {
                         Ok(mut out) => {
@@ -275,7 +281,6 @@ pub fn run_mapper_with_priors(
                     look: again,
                 }) => {
                     let from_given = pose_change(&moved_to, init_cam_from_world);
-                    record.second_look = Some(again);
                     Err(format!(
                         "its initial image moved {:.3} m and {:.2} deg again from where the look put it by {} ({:.3} m and {:.2} deg from the given pose): the model had not settled",
                         again.change.moved_m,
@@ -304,7 +309,6 @@ pub fn run_mapper_with_priors(
                     );
                     record.second_fit_share = out.report.fit_share;
                     record.second_kept = true;
-                    record.second_look = out.report.early_look.take();
                     out.report.early_restart = Some(record);
                     out.report.early_look = Some(look);
                     return Ok(restart_from_end(out, c, second_run_s, &mut *progress));
@@ -321,7 +325,6 @@ pub fn run_mapper_with_priors(
                 Ok(mut out) => {
                     record.second_fit_share = out.report.fit_share;
                     record.second_kept = true;
-                    record.second_look = out.report.early_look.take();
                     out.report.early_restart = Some(record);
                     out.report.early_look = Some(look);
                     return Ok(out);
