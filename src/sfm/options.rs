@@ -410,7 +410,10 @@ pub struct BundleOptions {
     /// registration when it moved the image 10 cm or 1 deg again (the
     /// rule above, without its final stage). A run from a look taken while
     /// the image was still moving (more than 1 cm or 0.1 deg since the
-    /// sphere solve before) looks once more, at its first such steady and
+    /// sphere solve before) or while the map held the model loosely
+    /// (similarity-constraint ratio below 1e-2, or none: only the look of a
+    /// database of three times this many images or more can be either)
+    /// looks once more, at its first such steady and
     /// firm sphere solve after the image's release (up to 32 images): when
     /// the image slid more than 0.3 m from the look's pose without turning
     /// and 90 % of the points lie on the surfaces their images see, it stops

@@ -228,7 +228,8 @@ pub fn run_mapper_with_priors(
             // The run from the look stopped at the end of its registration
             // having moved the image that far again ([`LOOK_RUN_END_LOOK`]:
             // it fits the map there), or once it slid after a look taken
-            // while the image was moving ([`look_run_plan`]): the same,
+            // while the image was moving or loosely held
+            // ([`look_run_plan`]): the same,
             // before the rest of that run, if the image is still within half
             // the accepted change of the given pose (each look measures from
             // where its own run started; two looks must not add up to a
@@ -504,7 +505,10 @@ pub(super) fn early_look_at(num_images: usize, options: &MapperOptions) -> Optio
 /// with the image 0.602 m from its given pose, steady (8 mm since the solve
 /// before) but loosely held (ratio 4.4e-3); its run from there moved the
 /// image 0.444-0.484 m back at every sphere solve from 10 images on and was
-/// stopped only at the end of its registration, 35 s later. After a steady,
+/// stopped only at the end of its registration (a 34.6 s run). At the slide
+/// look, as at any early look, an image that turned more than
+/// [`EARLY_LOOK_MIN_TURN_DEG`] stops the run too, and that counts as failed
+/// (the first run goes to its end from the given pose). After a steady,
 /// firmly held look, or one at the end of registration, `None`: while its
 /// model is small a run's image strays along a corridor (0.207 m at 10
 /// images on the seed-0 24-image corridor, from a look at the end of
@@ -1336,8 +1340,9 @@ mod tests {
                 slide: true,
             })
         );
-        // Turning counts as moving too; a small database stops earlier.
-        let turning = look(Some((0.005, 0.3)), false);
+        // Turning counts as moving too (firmly held); a small database stops
+        // earlier.
+        let turning = firm(look(Some((0.005, 0.3)), false));
         assert_eq!(
             look_run_plan(36, &turning, &options).and_then(|p| p.steady_until),
             Some(24)
@@ -1351,8 +1356,12 @@ mod tests {
         let mut unknown = steady;
         unknown.similarity_ratio = None;
         assert!(look_run_plan(100, &unknown, &options).is_some());
-        // Steady and firmly held, or at the end of registration: no.
+        // Steady and firmly held (at the bar itself too), or at the end of
+        // registration: no.
         assert_eq!(look_run_plan(100, &firm(steady), &options), None);
+        let mut at_bar = steady;
+        at_bar.similarity_ratio = Some(EARLY_LOOK_FIRM);
+        assert_eq!(look_run_plan(100, &at_bar, &options), None);
         assert_eq!(look_run_plan(100, &firm(look(None, false)), &options), None);
         assert!(look_run_plan(100, &firm(moving), &options).is_some());
         assert_eq!(look_run_plan(100, &look(None, true), &options), None);
