@@ -848,10 +848,7 @@ impl LookPlan {
             return LookNow::Never;
         }
         let due = registered >= self.from && released;
-        let ready = || {
-            step.is_some_and(|s| !beyond(&s, EARLY_LOOK_STEADY))
-                && ratio().is_some_and(|r| r >= EARLY_LOOK_FIRM)
-        };
+        let ready = || step.is_some_and(|s| !beyond(&s, EARLY_LOOK_STEADY)) && firmly_held(ratio());
         if due && (self.steady_until.is_none() || ready()) {
             LookNow::Look
         } else {
@@ -886,6 +883,14 @@ pub(super) const EARLY_LOOK_STEADY: (f64, f64) = (0.01, 0.1);
 /// 5.6e-3 and ended at 1.28 mm where its two full runs give 1.13 mm (the
 /// oracle 0.78 mm). The 24-image looks that were right had 0.014-0.045.
 pub(super) const EARLY_LOOK_FIRM: f64 = 1e-2;
+
+/// Whether the map holds the model firmly: a similarity-constraint ratio of
+/// at least [`EARLY_LOOK_FIRM`] (none, or NaN, is not firm). The steady look
+/// waits for it ([`LookPlan::decide`]); a look without it may have come
+/// mid-slide (`runs::look_run_plan`).
+pub(super) fn firmly_held(ratio: Option<f64>) -> bool {
+    ratio.is_some_and(|r| r >= EARLY_LOOK_FIRM)
+}
 
 /// With [`LookPlan::slide`], a run from an early look stops at its own
 /// look when its initial image slid farther than this (metres) from where

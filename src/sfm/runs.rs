@@ -21,10 +21,10 @@ use super::localise::{
     search_placement, Search, SearchError, SearchOptions, SearchRegion, SAME_PLACE_M,
 };
 use super::mapper::{
-    beyond, initial_pose_moved_far, map_once, map_until, pose_change, pose_change_beyond, EndLook,
-    LookPlan, MapperError, MapperInputs, MapperOutput, Progress, RunEnd, Start, EARLY_LOOK_FIRM,
-    EARLY_LOOK_MIN_CHANGE, EARLY_LOOK_MIN_TURN_DEG, EARLY_LOOK_STEADY, GOOD_FIT_SHARE,
-    SEARCH_MIN_CONSTRAINT,
+    beyond, firmly_held, initial_pose_moved_far, map_once, map_until, pose_change,
+    pose_change_beyond, EndLook, LookPlan, MapperError, MapperInputs, MapperOutput, Progress,
+    RunEnd, Start, EARLY_LOOK_MIN_CHANGE, EARLY_LOOK_MIN_TURN_DEG, EARLY_LOOK_STEADY,
+    GOOD_FIT_SHARE, SEARCH_MIN_CONSTRAINT,
 };
 use super::options::{AssociationKind, MapperOptions};
 use super::report::{EarlyLookRecord, PoseChangeRecord, RestartRecord, RetryRecord};
@@ -486,7 +486,8 @@ pub(super) fn early_look_at(num_images: usize, options: &MapperOptions) -> Optio
 /// the look (`look`, at a sphere solve, not at the end of registration)
 /// had moved the image more than [`super::mapper::EARLY_LOOK_STEADY`] since
 /// the sphere solve before, or came while the map held the model loosely
-/// (similarity-constraint ratio below [`EARLY_LOOK_FIRM`], or unknown).
+/// (not [`firmly_held`]: similarity-constraint ratio below
+/// [`super::mapper::EARLY_LOOK_FIRM`], or unknown).
 /// Only the look of a large database may come then ([`early_look_at`]: the
 /// small database's look waits for a steady, firmly held solve). That run
 /// looks at the first sphere solve after the image's release
@@ -520,8 +521,7 @@ fn look_run_plan(
     options: &MapperOptions,
 ) -> Option<LookPlan> {
     let moving = look.step.is_some_and(|s| beyond(&s, EARLY_LOOK_STEADY));
-    let loose = look.similarity_ratio.is_none_or(|r| r < EARLY_LOOK_FIRM);
-    if look.end_of_registration || !(moving || loose) {
+    if look.end_of_registration || (!moving && firmly_held(look.similarity_ratio)) {
         return None;
     }
     let b = &options.bundle;
@@ -1360,7 +1360,7 @@ mod tests {
         // registration: no.
         assert_eq!(look_run_plan(100, &firm(steady), &options), None);
         let mut at_bar = steady;
-        at_bar.similarity_ratio = Some(EARLY_LOOK_FIRM);
+        at_bar.similarity_ratio = Some(super::super::mapper::EARLY_LOOK_FIRM);
         assert_eq!(look_run_plan(100, &at_bar, &options), None);
         assert_eq!(look_run_plan(100, &firm(look(None, false)), &options), None);
         assert!(look_run_plan(100, &firm(moving), &options).is_some());
