@@ -346,14 +346,57 @@ pub fn run_mapper_with_priors(
     // The first run to its end (as it finished, or again after a failed
     // early restart), with the retries.
     let started = Instant::now();
-    let mut run = |options: &MapperOptions| {
-        let started = Instant::now();
-        let outcome = map_once(inputs, &start, options, &mut *progress);
-        (outcome, started.elapsed().as_secs_f64())
-    };
     // A run that finished at once was timed then.
     let finished_s = first_outcome.as_ref().map_or(0.0, |(_, s)| *s);
-    let first_outcome = first_outcome.unwrap_or_else(|| run(options));
+    let first_outcome = first_outcome.unwrap_or_else(|| {
+        let outcome = map_once(inputs, &start, options, &mut *progress);
+        (outcome, started.elapsed().as_secs_f64())
+    });
+    let run = |which: RetryRun, run_options: &MapperOptions| {
+        let started = Instant::now();
+        let outcome = match which {
+            RetryRun::Held => map_once(inputs, &start, run_options, &mut *progress),
+            RetryRun::Free => {
+                let look = free_run_look(db.images.len(), run_options);
+                let end = first_run_end_look(run_options);
+                match map_until(inputs, &start, run_options, look, end, &mut *progress) {
+                    Ok(RunEnd::Finished(out)) => Ok(*out),
+                    Err(e) => Err(e),
+                    Ok(RunEnd::Moved {
+                        cam_from_world,
+                        look,
+                    }) => {
+                        let look_s = started.elapsed().as_secs_f64();
+                        log::info!(
+                            "the run free from the start: at {} the initial image is {:.3} m and {:.2} deg from its given pose: mapping again from there",
+                            stopped_at(&look),
+                            look.change.moved_m,
+                            look.change.turned_deg
+                        );
+                        let from_look = Instant::now();
+                        match from_refined(&cam_from_world, &mut *progress) {
+                            Ok(out) => Ok(kept_run_from_free_look(
+                                out,
+                                init_image,
+                                &cam_from_world,
+                                (look, look_s, from_look.elapsed().as_secs_f64()),
+                                |out, change, first_run_s| {
+                                    restart_from_end(out, change, first_run_s, &mut *progress)
+                                },
+                            )),
+                            Err(e) => {
+                                log::warn!(
+                                    "the run from where the run free from the start put the initial image failed: {e}\nthe run free from the start to its end"
+                                );
+                                map_once(inputs, &start, run_options, &mut *progress)
+                            }
+                        }
+                    }
+                }
+            }
+        };
+        (outcome, started.elapsed().as_secs_f64())
+    };
     let mut first = run_with_retries(options, db.images.len(), first_outcome, run)?;
     let first_run_s = finished_s + started.elapsed().as_secs_f64();
     if let Some((record, look)) = failed_early {
@@ -538,14 +581,17 @@ pub(super) const RESTART_MIN_CHANGE: (f64, f64) = (0.02, 0.2);
 
 /// How far a finished run's initial image ended from its given pose, when
 /// far enough to map again from there (see [`RESTART_MIN_CHANGE`]): not
-/// without LiDAR constraints (the image stays where it was given), and not
-/// when the retry's held run is kept (held at the given pose). The run the
+/// without LiDAR constraints (the image stays where it was given), not
+/// when the retry's held run is kept (held at the given pose), and not for
+/// a run that was already mapped again from where an earlier one put the
+/// image (`restart` set: [`kept_run_from_free_look`]). The run the
 /// retry freed from the start is (the seed-0 corridor from 0.9 m / 8 deg
 /// off: 3.4 mm, its initial image 0.90 m from the given pose).
 fn restart_reason(out: &MapperOutput, options: &MapperOptions) -> Option<PoseChangeRecord> {
     if !options.bundle.restart_from_refined_pose
         || options.association.kind == AssociationKind::None
         || out.report.retry.as_ref().is_some_and(|r| r.held_kept)
+        || out.report.restart.is_some()
     {
         return None;
     }
@@ -877,6 +923,74 @@ pub(super) fn loose_searched_model(out: &MapperOutput, init_image: ImageId) -> O
     })
 }
 
+/// Which run of the retry schedule ([`run_with_retries`]) is asked for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum RetryRun {
+    /// The initial image free from the start (`fix_initial_for` 0); it may
+    /// stop at its look ([`free_run_look`]) and be mapped again from there.
+    Free,
+    /// The initial image held at its given pose throughout.
+    Held,
+}
+
+/// The look of the retry's run free from the start: as a small database's
+/// early look ([`early_look_at`]), at the first sphere solve from
+/// `restart_early_at_images` images (16; a third of a smaller database) on
+/// that moved the initial image at most
+/// [`super::mapper::EARLY_LOOK_STEADY`] while the map holds the model
+/// firmly, up to two thirds of the database; `None` where the first run
+/// has no early look. That run follows a first run that slid or did not
+/// fit; to its end, and mapped again from where it ended, it cost two full
+/// runs: on the fresh seed-2 100-image corridor from 0.3 m / 3 deg off
+/// (session 53) its image was 0.295-0.300 m and 2.99 deg from the given
+/// pose at every sphere solve from 15 images on (the truth: 0.30 m, 3.0
+/// deg), steady and held at ratios 1.4e-2 to 1.8e-2.
+fn free_run_look(num_images: usize, options: &MapperOptions) -> Option<LookPlan> {
+    let b = &options.bundle;
+    early_look_at(num_images, options)?;
+    LookPlan::steady(
+        b.restart_early_at_images.min(num_images / 3),
+        2 * num_images / 3,
+        b.fix_initial_for,
+        false,
+    )
+}
+
+/// The run from the look of the retry's run free from the start
+/// ([`free_run_look`]; `look_pose` the initial image's pose there, `look_s`
+/// the run to it, `run_s` the run from it), as that run's outcome. A run
+/// that moved the initial image again beyond [`EARLY_LOOK_MIN_CHANGE`] from
+/// where the look put it had started from a model that had not settled: it
+/// is mapped again from where it ended (`restart`), as the free run to its
+/// end would have been. Else it is kept, the look and the two runs in its
+/// `early_look` and `restart` (so [`restart_reason`] maps it no more).
+fn kept_run_from_free_look(
+    mut out: MapperOutput,
+    init_image: ImageId,
+    look_pose: &Rigid3,
+    (look, look_s, run_s): (EarlyLookRecord, f64, f64),
+    restart: impl FnOnce(MapperOutput, PoseChangeRecord, f64) -> MapperOutput,
+) -> MapperOutput {
+    out.report.early_look = Some(look);
+    let again = out
+        .reconstruction
+        .pose(init_image)
+        .map(|pose| pose_change(&pose, look_pose));
+    if let Some(change) = again.filter(|c| beyond(c, EARLY_LOOK_MIN_CHANGE)) {
+        return restart(out, change, run_s);
+    }
+    out.report.restart = Some(RestartRecord {
+        first_change: look.change,
+        first_stopped_at_images: Some(look.registered),
+        first_run_s: look_s,
+        second_run_s: run_s,
+        second_fit_share: out.report.fit_share,
+        second_kept: true,
+        ..Default::default()
+    });
+    out
+}
+
 /// The retry schedule of [`run_mapper_with_priors`] after `first` (the run
 /// as configured and its wall time, seconds), with `run` (one mapper run with
 /// the given options and its wall time) for a database of `num_images`
@@ -888,7 +1002,7 @@ fn run_with_retries(
     options: &MapperOptions,
     num_images: usize,
     (first, first_run_s): (Result<MapperOutput, MapperError>, f64),
-    mut run: impl FnMut(&MapperOptions) -> (Result<MapperOutput, MapperError>, f64),
+    mut run: impl FnMut(RetryRun, &MapperOptions) -> (Result<MapperOutput, MapperError>, f64),
 ) -> Result<MapperOutput, MapperError> {
     let holds_already =
         options.bundle.fix_initial_for >= num_images && options.bundle.hold_initial_in_final_rounds;
@@ -906,7 +1020,7 @@ fn run_with_retries(
         log::warn!("{reason}: mapping again with the initial image free from the start");
         let mut free = options.clone();
         free.bundle.fix_initial_for = 0;
-        let (mut free_run, free_run_s) = run(&free);
+        let (mut free_run, free_run_s) = run(RetryRun::Free, &free);
         // An error that holding cannot mend goes on to the held run too.
         let why = retry_reason(&free_run, &free)
             .or_else(|| free_run.as_ref().err().map(|e| e.to_string()));
@@ -936,7 +1050,7 @@ fn run_with_retries(
     let mut held = options.clone();
     held.bundle.fix_initial_for = num_images;
     held.bundle.hold_initial_in_final_rounds = true;
-    let (held_run, held_run_s) = run(&held);
+    let (held_run, held_run_s) = run(RetryRun::Held, &held);
     let (mut outcome, held_kept, note) = pick_run(first, held_run);
     log::warn!("{note}");
     if let Ok(out) = &mut outcome {
@@ -1132,6 +1246,7 @@ mod tests {
     use super::*;
     use crate::scene::Reconstruction;
     use crate::sfm::mapper::tests::line_of_images;
+    use crate::sfm::mapper::LookNow;
     use crate::sfm::report::{AlignmentRecord, MapReport};
 
     /// The early look: from `restart_early_at_images` (16) on in a database
@@ -1300,6 +1415,137 @@ mod tests {
         assert_eq!(off(|o| o.bundle.hold_initial_in_final_rounds = true), None);
         assert_eq!(off(|o| o.association.kind = AssociationKind::None), None);
         assert!(off(|o| o.association.kind = AssociationKind::Projection).is_some());
+    }
+
+    /// The retry's run free from the start looks at its steady, firmly held
+    /// initial image from 16 images on (a third of a smaller database) up to
+    /// two thirds of the database, released from the start; not where the
+    /// first run has no look.
+    #[test]
+    fn the_retrys_free_run_looks_once_the_image_is_steady() {
+        let mut free = MapperOptions::default();
+        free.bundle.fix_initial_for = 0;
+        let plan = |n, o: &MapperOptions| free_run_look(n, o);
+        assert_eq!(
+            plan(100, &free),
+            Some(LookPlan {
+                from: 16,
+                steady_until: Some(66),
+                slide: false,
+            })
+        );
+        assert_eq!(
+            plan(24, &free).map(|p| (p.from, p.steady_until)),
+            Some((8, Some(16)))
+        );
+        let steady = |moved_m| {
+            Some(PoseChangeRecord {
+                moved_m,
+                turned_deg: 0.0,
+            })
+        };
+        let p = plan(100, &free).unwrap();
+        // Released from the start: at 17 images steady and firm, it looks;
+        // moving, loosely held or too early, it waits; past 66, never.
+        for (registered, step_m, ratio, now) in [
+            (17, 0.005, 1.8e-2, LookNow::Look),
+            (17, 0.05, 1.8e-2, LookNow::Wait),
+            (17, 0.005, 8e-3, LookNow::Wait),
+            (15, 0.005, 1.8e-2, LookNow::Wait),
+            (67, 0.005, 1.8e-2, LookNow::Never),
+        ] {
+            assert_eq!(
+                p.decide(registered, true, steady(step_m), || Some(ratio)),
+                now,
+                "{registered} images, step {step_m} m, ratio {ratio}"
+            );
+        }
+        let off = |f: fn(&mut MapperOptions)| {
+            let mut o = free.clone();
+            f(&mut o);
+            plan(100, &o)
+        };
+        assert_eq!(off(|o| o.bundle.restart_early_at_images = 0), None);
+        assert_eq!(off(|o| o.bundle.restart_from_refined_pose = false), None);
+        assert_eq!(off(|o| o.association.kind = AssociationKind::None), None);
+    }
+
+    /// The run from the free run's look is kept as it is when it left the
+    /// initial image within the look's bar of where the look put it, and is
+    /// then not mapped again; one that moved it farther goes to `restart`.
+    #[test]
+    fn the_run_from_the_free_runs_look_is_kept_or_mapped_again() {
+        use nalgebra::{UnitQuaternion, Vector3};
+        let init = ImageId(1);
+        let at = |x: f64| {
+            Rigid3::from_rotation_and_center(UnitQuaternion::identity(), &Vector3::new(x, 0.0, 0.0))
+        };
+        let look_pose = at(0.0);
+        let run_ending_at = |x: f64| {
+            let mut out = finished_run(1.8e-2, 0.3, 3.0, 0.94);
+            out.reconstruction.images.insert(
+                init,
+                crate::scene::Image {
+                    id: init,
+                    name: "frame_0000.jpg".into(),
+                    camera_id: crate::scene::CameraId(1),
+                    cam_from_world: Some(at(x)),
+                    points2d: Vec::new(),
+                },
+            );
+            out
+        };
+        let look = EarlyLookRecord {
+            registered: 19,
+            change: PoseChangeRecord {
+                moved_m: 0.298,
+                turned_deg: 2.99,
+            },
+            step: None,
+            similarity_ratio: Some(1.8e-2),
+            alignment_would_move: None,
+            settled: true,
+            end_of_registration: false,
+            seen_share: None,
+        };
+        let options = MapperOptions::default();
+        // The kept run, and what was mapped again from where (the change
+        // from the look, the run's time), for a run ending `x` from the look.
+        let judged = |x: f64| {
+            let mut restarted = None;
+            let out = kept_run_from_free_look(
+                run_ending_at(x),
+                init,
+                &look_pose,
+                (look, 16.5, 60.0),
+                |out, c, s| {
+                    restarted = Some((c, s));
+                    out
+                },
+            );
+            (out, restarted)
+        };
+        // 5 cm from the look: kept, with the look and both runs recorded.
+        let (out, restarted) = judged(0.05);
+        assert!(restarted.is_none());
+        assert_eq!(out.report.early_look, Some(look));
+        let record = out.report.restart.as_ref().expect("recorded");
+        assert_eq!(record.first_stopped_at_images, Some(19));
+        assert_eq!((record.first_run_s, record.second_run_s), (16.5, 60.0));
+        assert!(record.second_kept);
+        assert_eq!(record.second_fit_share, Some(0.94));
+        // A run from an earlier run's end is not mapped once more.
+        assert!(restart_reason(&out, &options).is_none());
+        assert!(restart_reason(&finished_run(1.8e-2, 0.3, 3.0, 0.94), &options).is_some());
+        // 0.2 m from the look: mapped again from where it ended.
+        let (out, restarted) = judged(0.2);
+        let (c, s) = restarted.expect("mapped again");
+        assert!(
+            (c.moved_m - 0.2).abs() < 1e-9 && c.turned_deg < 1e-9,
+            "{c:?}"
+        );
+        assert_eq!(s, 60.0);
+        assert!(out.report.restart.is_none());
     }
 
     /// The seed-3 100-image corridor from 0.3 m / 3 deg off: its look at 17
@@ -1613,7 +1859,14 @@ mod tests {
                     (outcome(which(o)), calls.len() as f64)
                 };
                 let first = run(options);
-                let result = run_with_retries(options, N, first, run);
+                let result = run_with_retries(options, N, first, |asked, o: &MapperOptions| {
+                    let expected = match asked {
+                        RetryRun::Free => Which::Free,
+                        RetryRun::Held => Which::Held,
+                    };
+                    assert_eq!(which(o), expected, "asked for {asked:?}");
+                    run(o)
+                });
                 (result, calls)
             };
 
