@@ -149,7 +149,9 @@ pub struct MapReport {
     /// and whether this model is the second run's. The stages and solves
     /// are those of the kept run; the second run's solves record the
     /// initial image's change from where the first run ended, while
-    /// `initial_pose_change` is from the given pose.
+    /// `initial_pose_change` is from the given pose. Also when the retry's
+    /// run free from the start stopped at its look and was mapped again
+    /// from there (`first_stopped_at_images`; `retry.free_kept` then).
     pub restart: Option<RestartRecord>,
     /// When the first run stopped early to map again from where its initial
     /// image was (`bundle.restart_early_at_images`; it had turned more than
