@@ -352,48 +352,53 @@ pub fn run_mapper_with_priors(
         let outcome = map_once(inputs, &start, options, &mut *progress);
         (outcome, started.elapsed().as_secs_f64())
     });
+    // The retry's run free from the start, stopped at its look
+    // ([`free_run_look`]) and mapped again from there.
+    let free_run = |run_options: &MapperOptions,
+                    progress: &mut dyn FnMut(usize, usize)|
+     -> Result<MapperOutput, MapperError> {
+        let started = Instant::now();
+        let look = free_run_look(db.images.len(), run_options);
+        let end = first_run_end_look(run_options);
+        let (cam_from_world, look) =
+            match map_until(inputs, &start, run_options, look, end, &mut *progress)? {
+                RunEnd::Finished(out) => return Ok(*out),
+                RunEnd::Moved {
+                    cam_from_world,
+                    look,
+                } => (cam_from_world, look),
+            };
+        let look_s = started.elapsed().as_secs_f64();
+        log::info!(
+            "the run free from the start: at {} the initial image is {:.3} m and {:.2} deg from its given pose: mapping again from there",
+            stopped_at(&look),
+            look.change.moved_m,
+            look.change.turned_deg
+        );
+        let from_look = Instant::now();
+        match from_refined(&cam_from_world, &mut *progress) {
+            Ok(out) => Ok(kept_run_from_free_look(
+                out,
+                init_image,
+                &cam_from_world,
+                (look, look_s, from_look.elapsed().as_secs_f64()),
+                |out, change, first_run_s| {
+                    restart_from_end(out, change, first_run_s, &mut *progress)
+                },
+            )),
+            Err(e) => {
+                log::warn!(
+                    "the run from where the run free from the start put the initial image failed: {e}\nthe run free from the start to its end"
+                );
+                map_once(inputs, &start, run_options, progress)
+            }
+        }
+    };
     let run = |which: RetryRun, run_options: &MapperOptions| {
         let started = Instant::now();
         let outcome = match which {
             RetryRun::Held => map_once(inputs, &start, run_options, &mut *progress),
-            RetryRun::Free => {
-                let look = free_run_look(db.images.len(), run_options);
-                let end = first_run_end_look(run_options);
-                match map_until(inputs, &start, run_options, look, end, &mut *progress) {
-                    Ok(RunEnd::Finished(out)) => Ok(*out),
-                    Err(e) => Err(e),
-                    Ok(RunEnd::Moved {
-                        cam_from_world,
-                        look,
-                    }) => {
-                        let look_s = started.elapsed().as_secs_f64();
-                        log::info!(
-                            "the run free from the start: at {} the initial image is {:.3} m and {:.2} deg from its given pose: mapping again from there",
-                            stopped_at(&look),
-                            look.change.moved_m,
-                            look.change.turned_deg
-                        );
-                        let from_look = Instant::now();
-                        match from_refined(&cam_from_world, &mut *progress) {
-                            Ok(out) => Ok(kept_run_from_free_look(
-                                out,
-                                init_image,
-                                &cam_from_world,
-                                (look, look_s, from_look.elapsed().as_secs_f64()),
-                                |out, change, first_run_s| {
-                                    restart_from_end(out, change, first_run_s, &mut *progress)
-                                },
-                            )),
-                            Err(e) => {
-                                log::warn!(
-                                    "the run from where the run free from the start put the initial image failed: {e}\nthe run free from the start to its end"
-                                );
-                                map_once(inputs, &start, run_options, &mut *progress)
-                            }
-                        }
-                    }
-                }
-            }
+            RetryRun::Free => free_run(run_options, &mut *progress),
         };
         (outcome, started.elapsed().as_secs_f64())
     };
