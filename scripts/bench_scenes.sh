@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The accuracy table of the README: the synthetic scenes (corridor, room, yard;
+# The accuracy table of the README and docs/guide.md: the synthetic scenes (corridor, room, yard;
 # seeds 0-2; 24 images) mapped from the exact and the perturbed initial pose
 # (0.3 m, 3 deg), against `colmap mapper` on the same database given the true
 # similarity (the oracle). Databases are made once and kept in OUT_DIR, so a

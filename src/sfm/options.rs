@@ -300,7 +300,7 @@ pub struct BundleOptions {
     /// one camera per image unless `--ImageReader.single_camera 1`). Measured
     /// on the seed-0 corridor with 24 such cameras at COLMAP's guess (768 px
     /// for 512): refined one by one, one image's focal length fell to 58 px
-    /// and the run failed; shared, see the README. Default true.
+    /// and the run failed; shared, see docs/guide.md (Intrinsics). Default true.
     pub share_identical_intrinsics: bool,
     /// The initial image stays fixed for this many registrations (when LiDAR
     /// constraints hold the gauge), at its pose after the initial pair's
@@ -324,9 +324,9 @@ pub struct BundleOptions {
     /// map can correct the given pose. True with `fix_initial_for` at least
     /// the image count holds it throughout (the held retry's setting), for a
     /// pose trusted more than the map: from poses 0.3 m / 3 deg off four of
-    /// nine table scenes then end 0.22-0.30 m off without an error (see the
-    /// README). Default false (a run of at most `fix_initial_for` images is
-    /// held through registration only).
+    /// nine table scenes then end 0.22-0.30 m off without an error (see
+    /// docs/guide.md, Holding the initial image). Default false (a run of at
+    /// most `fix_initial_for` images is held through registration only).
     pub hold_initial_in_final_rounds: bool,
     /// The initial image has a soft prior at its given pose with this
     /// standard deviation of the position, metres: after `fix_initial_for`
