@@ -66,64 +66,145 @@ pub fn run_mapper_with_priors(
     options: &MapperOptions,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
-    let db = inputs.db;
-    let start = Start::InitialPose {
-        image: init_image,
-        cam_from_world: *init_cam_from_world,
-        rough: false,
+    let runs = PoseRuns {
+        inputs,
+        init_image,
+        given: *init_cam_from_world,
+        options,
     };
-    // A run from where the initial image ended (or was, when the first run
-    // stopped early): kept only within the accepted change from the pose the
-    // user gave, as the first run is, and its change measured from there.
-    // With `end`, it may stop at the end of its registration ([`EndLook`]).
-    let from_refined_until = |refined: &Rigid3,
-                              look: Option<LookPlan>,
-                              end: Option<EndLook>,
-                              progress: &mut dyn FnMut(usize, usize)|
-     -> Result<RunEnd, MapperError> {
+    let num_images = inputs.db.images.len();
+    let start = runs.start();
+
+    // The first run, which may stop early to map again from where the
+    // initial image is (`bundle.restart_early_at_images`).
+    let look_at = early_look_at(num_images, options);
+    let end_look = first_run_end_look(options);
+    let started = Instant::now();
+    let early = map_until(inputs, &start, options, look_at, end_look, &mut *progress);
+    let early_s = started.elapsed().as_secs_f64();
+    let (first_outcome, failed_early) = match early {
+        Ok(RunEnd::Moved {
+            cam_from_world,
+            look,
+        }) => match runs.run_from_first_look(cam_from_world, look, early_s, &mut *progress) {
+            Ok(out) => return Ok(out),
+            Err(failed) => (None, Some(*failed)),
+        },
+        Ok(RunEnd::Finished(out)) => (Some((Ok(*out), early_s)), None),
+        Err(e) => (Some((Err(e), early_s)), None),
+    };
+
+    // The first run to its end (as it finished, or again after a failed
+    // early restart), with the retries.
+    let started = Instant::now();
+    // A run that finished at once was timed then.
+    let finished_s = first_outcome.as_ref().map_or(0.0, |(_, s)| *s);
+    let first_outcome = first_outcome.unwrap_or_else(|| {
+        let outcome = map_once(inputs, &start, options, &mut *progress);
+        (outcome, started.elapsed().as_secs_f64())
+    });
+    let run = |which: RetryRun, run_options: &MapperOptions| {
+        let started = Instant::now();
+        let outcome = match which {
+            RetryRun::Held => map_once(inputs, &start, run_options, &mut *progress),
+            RetryRun::Free => runs.free_run(run_options, &mut *progress),
+        };
+        (outcome, started.elapsed().as_secs_f64())
+    };
+    let mut first = run_with_retries(options, num_images, first_outcome, run)?;
+    let first_run_s = finished_s + started.elapsed().as_secs_f64();
+    if let Some((record, look)) = failed_early {
+        first.report.early_restart = Some(record);
+        first.report.early_look = Some(look);
+    }
+    Ok(match restart_reason(&first, options) {
+        Some(change) => runs.restart_from_end(first, change, first_run_s, &mut *progress),
+        None => first,
+    })
+}
+
+/// The runs of [`run_mapper_with_priors`] from one given pose of the
+/// initial image (`given`, as the user gave it) and what they share.
+struct PoseRuns<'a> {
+    inputs: MapperInputs<'a>,
+    init_image: ImageId,
+    given: Rigid3,
+    options: &'a MapperOptions,
+}
+
+impl PoseRuns<'_> {
+    /// The run from the given pose.
+    fn start(&self) -> Start<'static> {
+        Start::InitialPose {
+            image: self.init_image,
+            cam_from_world: self.given,
+            rough: false,
+        }
+    }
+
+    /// A run from where the initial image ended (or was, when a run
+    /// stopped early): kept only within the accepted change from the pose
+    /// the user gave, as the first run is, and its change measured from
+    /// there. With `look` it may stop at its own look, with `end` at the end
+    /// of its registration ([`EndLook`]).
+    fn run_from_until(
+        &self,
+        refined: &Rigid3,
+        look: Option<LookPlan>,
+        end: Option<EndLook>,
+        progress: &mut dyn FnMut(usize, usize),
+    ) -> Result<RunEnd, MapperError> {
         let start = Start::InitialPose {
-            image: init_image,
+            image: self.init_image,
             cam_from_world: *refined,
             rough: false,
         };
-        let mut out = match map_until(inputs, &start, options, look, end, progress)? {
+        let mut out = match map_until(self.inputs, &start, self.options, look, end, progress)? {
             RunEnd::Finished(out) => out,
             moved => return Ok(moved),
         };
         let change = out
             .reconstruction
-            .pose(init_image)
-            .map(|pose| pose_change(&pose, init_cam_from_world));
-        if let Some(c) = change.filter(|c| pose_change_beyond(c, &options.bundle, 1.0)) {
+            .pose(self.init_image)
+            .map(|pose| pose_change(&pose, &self.given));
+        if let Some(c) = change.filter(|c| pose_change_beyond(c, &self.options.bundle, 1.0)) {
             return Err(MapperError::InitialPoseFarOff {
                 moved_m: c.moved_m,
                 turned_deg: c.turned_deg,
-                max_m: options.bundle.max_initial_pose_change_m,
-                max_deg: options.bundle.max_initial_pose_change_deg,
+                max_m: self.options.bundle.max_initial_pose_change_m,
+                max_deg: self.options.bundle.max_initial_pose_change_deg,
                 fit: None,
             });
         }
         out.report.initial_pose_change = change;
         Ok(RunEnd::Finished(out))
-    };
-    let from_refined = |refined: &Rigid3,
-                        progress: &mut dyn FnMut(usize, usize)|
-     -> Result<MapperOutput, MapperError> {
-        match from_refined_until(refined, None, None, progress)? {
+    }
+
+    /// [`Self::run_from_until`] without a look: to its end.
+    fn run_from(
+        &self,
+        refined: &Rigid3,
+        progress: &mut dyn FnMut(usize, usize),
+    ) -> Result<MapperOutput, MapperError> {
+        match self.run_from_until(refined, None, None, progress)? {
             RunEnd::Finished(out) => Ok(*out),
             RunEnd::Moved { .. } => unreachable!("a run without a look finishes"),
         }
-    };
-    // Maps `first` (`first_run_s` seconds) again from where its initial
-    // image ended, `change` from where it started; keeps `first` when that
-    // run fails.
-    let restart_from_end = |mut first: MapperOutput,
-                            change: PoseChangeRecord,
-                            first_run_s: f64,
-                            progress: &mut dyn FnMut(usize, usize)| {
+    }
+
+    /// Maps `first` (`first_run_s` seconds) again from where its initial
+    /// image ended, `change` from where it started; keeps `first` when that
+    /// run fails.
+    fn restart_from_end(
+        &self,
+        mut first: MapperOutput,
+        change: PoseChangeRecord,
+        first_run_s: f64,
+        progress: &mut dyn FnMut(usize, usize),
+    ) -> MapperOutput {
         let refined = first
             .reconstruction
-            .pose(init_image)
+            .pose(self.init_image)
             .expect("a run that moved the initial image has its pose");
         log::info!(
             "the initial image ended {:.3} m and {:.2} deg from where the run started it: mapping again from where it ended (option bundle.restart_from_refined_pose)",
@@ -131,7 +212,7 @@ pub fn run_mapper_with_priors(
             change.turned_deg
         );
         let started = Instant::now();
-        let second = from_refined(&refined, progress);
+        let second = self.run_from(&refined, progress);
         let mut record = RestartRecord {
             first_change: change,
             first_fit_share: first.report.fit_share,
@@ -158,216 +239,212 @@ pub fn run_mapper_with_priors(
                 first
             }
         }
-    };
+    }
 
-    // The first run, which may stop early to map again from where the
-    // initial image is (`bundle.restart_early_at_images`).
-    let look_at = early_look_at(db.images.len(), options);
-    let end_look = first_run_end_look(options);
-    let started = Instant::now();
-    let early = map_until(inputs, &start, options, look_at, end_look, &mut *progress);
-    let early_s = started.elapsed().as_secs_f64();
-    let (first_outcome, failed_early) = match early {
-        Ok(RunEnd::Moved {
-            cam_from_world,
-            look,
-        }) => {
-            let EarlyLookRecord {
-                registered, change, ..
-            } = look;
-            log::info!(
-                "{} the initial image is {:.3} m and {:.2} deg from its given pose: mapping again from there (options bundle.restart_from_refined_pose, restart_early_at_images)",
-                if look.end_of_registration {
-                    format!("at the end of registration ({registered} images, before the final stage)")
-                } else {
-                    format!("at {registered} images")
-                },
-                change.moved_m,
-                change.turned_deg
-            );
-            let started = Instant::now();
-            // A run the retry would follow ([`retry_reason`]: the map leaves
-            // the model nearly free and the image moved far) counts as failed
-            // here: the first run from the given pose, with the retries,
-            // decides then. It stops at the end of its registration when it
-            // moved the image as far again ([`LOOK_RUN_END_LOOK`]).
-            let second = from_refined_until(
-                &cam_from_world,
-                look_run_plan(db.images.len(), &look, options),
-                LOOK_RUN_END_LOOK,
-                &mut *progress,
-            );
-            let second_run_s = started.elapsed().as_secs_f64();
-            let mut record = RestartRecord {
-                first_change: change,
-                first_stopped_at_images: Some(registered),
-                first_run_s: early_s,
-                second_run_s,
-                // That run's own look, stopped there or not (every kept
-                // result below gets the first run's look as `early_look`).
-                second_look: match &second {
-                    Ok(RunEnd::Moved { look: again, .. }) => Some(*again),
-                    Ok(RunEnd::Finished(out)) => out.report.early_look,
-                    Err(_) => None,
-                },
-                ..Default::default()
-            };
-            // The run from there must leave the image where the look put it
-            // (within the look's own bar). One that moves it that far again
-            // was started from a model that had not settled, and counts as
-            // failed: the seed-2 60-image corridor from 0.3 m / 3 deg off was
-            // looked at at 17 images mid-slide along the corridor (0.38 m
-            // from the given pose), its run from there moved the image 0.55 m
-            // further, and mapped once more from that run's end it came out
-            // 0.63 m off along the corridor without an error (fit 0.85); its
-            // first run to the end had left the image 0.300 m / 3.00 deg from
-            // the given pose, right. Unless the look's rotation held and the
-            // run fits the map ([`slid_back`]): then the look was taken
-            // mid-slide and the run undid the slide, and it is mapped again
-            // from where it ended, as a first run that moved the image is.
-            // The run from the look stopped at the end of its registration
-            // having moved the image that far again ([`LOOK_RUN_END_LOOK`]:
-            // it fits the map there), or once it slid after a look taken
-            // while the image was moving or loosely held
-            // ([`look_run_plan`]): the same,
-            // before the rest of that run, if the image is still within half
-            // the accepted change of the given pose (each look measures from
-            // where its own run started; two looks must not add up to a
-            // place the first run would not have been allowed to go).
-            let second = match second {
-                Ok(RunEnd::Moved {
-                    cam_from_world: moved_to,
-                    look: again,
-                }) if again.change.turned_deg < EARLY_LOOK_MIN_TURN_DEG
-                    && !initial_pose_moved_far(
-                        &pose_change(&moved_to, init_cam_from_world),
-                        &options.bundle,
-                    ) =>
-                {
-                    log::info!(
-                        "the run from where the initial image was at {registered} images moved it {:.3} m and {:.2} deg again by {} and fits the map ({:.1} % of the points on the surfaces their images see): the look was taken mid-slide, so it is mapped again from there",
-                        again.change.moved_m,
-                        again.change.turned_deg,
-                        stopped_at(&again),
-                        again.seen_share.unwrap_or(f64::NAN) * 100.0
-                    );
-                    record.second_kept = true;
-                    let started = Instant::now();
-                    match from_refined(&moved_to, &mut *progress) {
-                        Ok(mut out) => {
-                            out.report.restart = Some(RestartRecord {
-                                first_change: again.change,
-                                first_stopped_at_images: Some(again.registered),
-                                first_run_s: second_run_s,
-                                second_run_s: started.elapsed().as_secs_f64(),
-                                second_fit_share: out.report.fit_share,
-                                second_kept: true,
-                                ..Default::default()
-                            });
-                            out.report.early_restart = Some(record);
-                            out.report.early_look = Some(look);
-                            return Ok(out);
-                        }
-                        Err(e) => {
-                            record.second_kept = false;
-                            Err(format!(
-                                "it moved the initial image {:.3} m and {:.2} deg again, and the run from there failed: {e}",
-                                again.change.moved_m, again.change.turned_deg
-                            ))
-                        }
+    /// The first run stopped at its look (`look`, after `early_s` seconds)
+    /// with the initial image at `cam_from_world`: the run from there, kept
+    /// or mapped once more, or, when it failed or had not settled, the
+    /// record of that (`early_restart`) and the look for the first run to
+    /// its end.
+    fn run_from_first_look(
+        &self,
+        cam_from_world: Rigid3,
+        look: EarlyLookRecord,
+        early_s: f64,
+        progress: &mut dyn FnMut(usize, usize),
+    ) -> Result<MapperOutput, Box<(RestartRecord, EarlyLookRecord)>> {
+        let EarlyLookRecord {
+            registered, change, ..
+        } = look;
+        log::info!(
+            "{} the initial image is {:.3} m and {:.2} deg from its given pose: mapping again from there (options bundle.restart_from_refined_pose, restart_early_at_images)",
+            if look.end_of_registration {
+                format!("at the end of registration ({registered} images, before the final stage)")
+            } else {
+                format!("at {registered} images")
+            },
+            change.moved_m,
+            change.turned_deg
+        );
+        let started = Instant::now();
+        // A run the retry would follow ([`retry_reason`]: the map leaves
+        // the model nearly free and the image moved far) counts as failed
+        // here: the first run from the given pose, with the retries,
+        // decides then. It stops at the end of its registration when it
+        // moved the image as far again ([`LOOK_RUN_END_LOOK`]).
+        let second = self.run_from_until(
+            &cam_from_world,
+            look_run_plan(self.inputs.db.images.len(), &look, self.options),
+            LOOK_RUN_END_LOOK,
+            &mut *progress,
+        );
+        let second_run_s = started.elapsed().as_secs_f64();
+        let mut record = RestartRecord {
+            first_change: change,
+            first_stopped_at_images: Some(registered),
+            first_run_s: early_s,
+            second_run_s,
+            // That run's own look, stopped there or not (every kept
+            // result below gets the first run's look as `early_look`).
+            second_look: match &second {
+                Ok(RunEnd::Moved { look: again, .. }) => Some(*again),
+                Ok(RunEnd::Finished(out)) => out.report.early_look,
+                Err(_) => None,
+            },
+            ..Default::default()
+        };
+        // The run from there must leave the image where the look put it
+        // (within the look's own bar). One that moves it that far again
+        // was started from a model that had not settled, and counts as
+        // failed: the seed-2 60-image corridor from 0.3 m / 3 deg off was
+        // looked at at 17 images mid-slide along the corridor (0.38 m
+        // from the given pose), its run from there moved the image 0.55 m
+        // further, and mapped once more from that run's end it came out
+        // 0.63 m off along the corridor without an error (fit 0.85); its
+        // first run to the end had left the image 0.300 m / 3.00 deg from
+        // the given pose, right. Unless the look's rotation held and the
+        // run fits the map ([`slid_back`]): then the look was taken
+        // mid-slide and the run undid the slide, and it is mapped again
+        // from where it ended, as a first run that moved the image is.
+        // The run from the look stopped at the end of its registration
+        // having moved the image that far again ([`LOOK_RUN_END_LOOK`]:
+        // it fits the map there), or once it slid after a look taken
+        // while the image was moving or loosely held
+        // ([`look_run_plan`]): the same,
+        // before the rest of that run, if the image is still within half
+        // the accepted change of the given pose (each look measures from
+        // where its own run started; two looks must not add up to a
+        // place the first run would not have been allowed to go).
+        let second = match second {
+            Ok(RunEnd::Moved {
+                cam_from_world: moved_to,
+                look: again,
+            }) if again.change.turned_deg < EARLY_LOOK_MIN_TURN_DEG
+                && !initial_pose_moved_far(
+                    &pose_change(&moved_to, &self.given),
+                    &self.options.bundle,
+                ) =>
+            {
+                log::info!(
+                    "the run from where the initial image was at {registered} images moved it {:.3} m and {:.2} deg again by {} and fits the map ({:.1} % of the points on the surfaces their images see): the look was taken mid-slide, so it is mapped again from there",
+                    again.change.moved_m,
+                    again.change.turned_deg,
+                    stopped_at(&again),
+                    again.seen_share.unwrap_or(f64::NAN) * 100.0
+                );
+                record.second_kept = true;
+                let started = Instant::now();
+                match self.run_from(&moved_to, &mut *progress) {
+                    Ok(mut out) => {
+                        out.report.restart = Some(RestartRecord {
+                            first_change: again.change,
+                            first_stopped_at_images: Some(again.registered),
+                            first_run_s: second_run_s,
+                            second_run_s: started.elapsed().as_secs_f64(),
+                            second_fit_share: out.report.fit_share,
+                            second_kept: true,
+                            ..Default::default()
+                        });
+                        out.report.early_restart = Some(record);
+                        out.report.early_look = Some(look);
+                        return Ok(out);
+                    }
+                    Err(e) => {
+                        record.second_kept = false;
+                        Err(format!(
+                            "it moved the initial image {:.3} m and {:.2} deg again, and the run from there failed: {e}",
+                            again.change.moved_m, again.change.turned_deg
+                        ))
                     }
                 }
-                Ok(RunEnd::Moved {
-                    cam_from_world: moved_to,
-                    look: again,
-                }) => {
-                    let from_given = pose_change(&moved_to, init_cam_from_world);
-                    Err(format!(
-                        "its initial image moved {:.3} m and {:.2} deg again from where the look put it by {} ({:.3} m and {:.2} deg from the given pose): the model had not settled",
-                        again.change.moved_m,
-                        again.change.turned_deg,
-                        stopped_at(&again),
-                        from_given.moved_m,
-                        from_given.turned_deg
-                    ))
-                }
-                Ok(RunEnd::Finished(out)) => checked_look_run(Ok(*out), options),
-                Err(e) => checked_look_run(Err(e), options),
-            };
-            let moved = second.as_ref().ok().and_then(|out| {
-                out.reconstruction
-                    .pose(init_image)
-                    .map(|pose| pose_change(&pose, &cam_from_world))
-                    .filter(|c| beyond(c, EARLY_LOOK_MIN_CHANGE))
-            });
-            let second = match (second, moved) {
-                (Ok(mut out), Some(c)) if slid_back(&c, &out) => {
-                    log::info!(
-                        "the run from where the initial image was at {registered} images moved it {:.3} m and {:.2} deg again and fits the map (fit {:.3}): the look was taken mid-slide, so it is mapped again from where that run ended",
-                        c.moved_m,
-                        c.turned_deg,
-                        out.report.fit_share.unwrap_or(f64::NAN)
-                    );
-                    record.second_fit_share = out.report.fit_share;
-                    record.second_kept = true;
-                    out.report.early_restart = Some(record);
-                    out.report.early_look = Some(look);
-                    return Ok(restart_from_end(out, c, second_run_s, &mut *progress));
-                }
-                (Ok(out), Some(c)) => Err(format!(
-                    "its initial image moved {:.3} m and {:.2} deg again from where the look put it (fit {:.3}): the model had not settled",
+            }
+            Ok(RunEnd::Moved {
+                cam_from_world: moved_to,
+                look: again,
+            }) => {
+                let from_given = pose_change(&moved_to, &self.given);
+                Err(format!(
+                    "its initial image moved {:.3} m and {:.2} deg again from where the look put it by {} ({:.3} m and {:.2} deg from the given pose): the model had not settled",
+                    again.change.moved_m,
+                    again.change.turned_deg,
+                    stopped_at(&again),
+                    from_given.moved_m,
+                    from_given.turned_deg
+                ))
+            }
+            Ok(RunEnd::Finished(out)) => checked_look_run(Ok(*out), self.options),
+            Err(e) => checked_look_run(Err(e), self.options),
+        };
+        let moved = second.as_ref().ok().and_then(|out| {
+            out.reconstruction
+                .pose(self.init_image)
+                .map(|pose| pose_change(&pose, &cam_from_world))
+                .filter(|c| beyond(c, EARLY_LOOK_MIN_CHANGE))
+        });
+        let second = match (second, moved) {
+            (Ok(mut out), Some(c)) if slid_back(&c, &out) => {
+                log::info!(
+                    "the run from where the initial image was at {registered} images moved it {:.3} m and {:.2} deg again and fits the map (fit {:.3}): the look was taken mid-slide, so it is mapped again from where that run ended",
                     c.moved_m,
                     c.turned_deg,
                     out.report.fit_share.unwrap_or(f64::NAN)
-                )),
-                (second, _) => second,
-            };
-            match second {
-                Ok(mut out) => {
-                    record.second_fit_share = out.report.fit_share;
-                    record.second_kept = true;
-                    out.report.early_restart = Some(record);
-                    out.report.early_look = Some(look);
-                    return Ok(out);
-                }
-                Err(e) => {
-                    log::warn!(
-                        "the run from where the initial image was at {registered} images failed: {e}\nmapping from the given pose to the end"
-                    );
-                    record.second_error = Some(e);
-                    (None, Some((record, look)))
-                }
+                );
+                record.second_fit_share = out.report.fit_share;
+                record.second_kept = true;
+                out.report.early_restart = Some(record);
+                out.report.early_look = Some(look);
+                return Ok(self.restart_from_end(out, c, second_run_s, &mut *progress));
+            }
+            (Ok(out), Some(c)) => Err(format!(
+                "its initial image moved {:.3} m and {:.2} deg again from where the look put it (fit {:.3}): the model had not settled",
+                c.moved_m,
+                c.turned_deg,
+                out.report.fit_share.unwrap_or(f64::NAN)
+            )),
+            (second, _) => second,
+        };
+        match second {
+            Ok(mut out) => {
+                record.second_fit_share = out.report.fit_share;
+                record.second_kept = true;
+                out.report.early_restart = Some(record);
+                out.report.early_look = Some(look);
+                Ok(out)
+            }
+            Err(e) => {
+                log::warn!(
+                    "the run from where the initial image was at {registered} images failed: {e}\nmapping from the given pose to the end"
+                );
+                record.second_error = Some(e);
+                Err(Box::new((record, look)))
             }
         }
-        Ok(RunEnd::Finished(out)) => (Some((Ok(*out), early_s)), None),
-        Err(e) => (Some((Err(e), early_s)), None),
-    };
+    }
 
-    // The first run to its end (as it finished, or again after a failed
-    // early restart), with the retries.
-    let started = Instant::now();
-    // A run that finished at once was timed then.
-    let finished_s = first_outcome.as_ref().map_or(0.0, |(_, s)| *s);
-    let first_outcome = first_outcome.unwrap_or_else(|| {
-        let outcome = map_once(inputs, &start, options, &mut *progress);
-        (outcome, started.elapsed().as_secs_f64())
-    });
-    // The retry's run free from the start, stopped at its look
-    // ([`free_run_look`]) and mapped again from there.
-    let free_run = |run_options: &MapperOptions,
-                    progress: &mut dyn FnMut(usize, usize)|
-     -> Result<MapperOutput, MapperError> {
+    /// The retry's run free from the start (`run_options`), stopped at its
+    /// look ([`free_run_look`]) and mapped again from there.
+    fn free_run(
+        &self,
+        run_options: &MapperOptions,
+        progress: &mut dyn FnMut(usize, usize),
+    ) -> Result<MapperOutput, MapperError> {
         let started = Instant::now();
-        let look = free_run_look(db.images.len(), run_options);
+        let look = free_run_look(self.inputs.db.images.len(), run_options);
         let end = first_run_end_look(run_options);
-        let (cam_from_world, look) =
-            match map_until(inputs, &start, run_options, look, end, &mut *progress)? {
-                RunEnd::Finished(out) => return Ok(*out),
-                RunEnd::Moved {
-                    cam_from_world,
-                    look,
-                } => (cam_from_world, look),
-            };
+        let (cam_from_world, look) = match map_until(
+            self.inputs,
+            &self.start(),
+            run_options,
+            look,
+            end,
+            &mut *progress,
+        )? {
+            RunEnd::Finished(out) => return Ok(*out),
+            RunEnd::Moved {
+                cam_from_world,
+                look,
+            } => (cam_from_world, look),
+        };
         let look_s = started.elapsed().as_secs_f64();
         log::info!(
             "the run free from the start: at {} the initial image is {:.3} m and {:.2} deg from its given pose: mapping again from there",
@@ -376,42 +453,24 @@ pub fn run_mapper_with_priors(
             look.change.turned_deg
         );
         let from_look = Instant::now();
-        match from_refined(&cam_from_world, &mut *progress) {
+        match self.run_from(&cam_from_world, &mut *progress) {
             Ok(out) => Ok(kept_run_from_free_look(
                 out,
-                init_image,
+                self.init_image,
                 &cam_from_world,
                 (look, look_s, from_look.elapsed().as_secs_f64()),
                 |out, change, first_run_s| {
-                    restart_from_end(out, change, first_run_s, &mut *progress)
+                    self.restart_from_end(out, change, first_run_s, &mut *progress)
                 },
             )),
             Err(e) => {
                 log::warn!(
                     "the run from where the run free from the start put the initial image failed: {e}\nthe run free from the start to its end"
                 );
-                map_once(inputs, &start, run_options, progress)
+                map_once(self.inputs, &self.start(), run_options, progress)
             }
         }
-    };
-    let run = |which: RetryRun, run_options: &MapperOptions| {
-        let started = Instant::now();
-        let outcome = match which {
-            RetryRun::Held => map_once(inputs, &start, run_options, &mut *progress),
-            RetryRun::Free => free_run(run_options, &mut *progress),
-        };
-        (outcome, started.elapsed().as_secs_f64())
-    };
-    let mut first = run_with_retries(options, db.images.len(), first_outcome, run)?;
-    let first_run_s = finished_s + started.elapsed().as_secs_f64();
-    if let Some((record, look)) = failed_early {
-        first.report.early_restart = Some(record);
-        first.report.early_look = Some(look);
     }
-    Ok(match restart_reason(&first, options) {
-        Some(change) => restart_from_end(first, change, first_run_s, &mut *progress),
-        None => first,
-    })
 }
 
 /// The first run's look at the end of its registration ([`EndLook`]): with
