@@ -480,6 +480,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
         cloud: &cloud,
         known_poses: &known_poses,
     };
+    let mapping = std::time::Instant::now();
     let out = match &start {
         RunStart::InitialPose(image, pose) if config.init_search.is_some() => run_mapper_searching(
             inputs,
@@ -501,6 +502,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
             config.lidar.display()
         )
     })?;
+    out.report.mapping_s = Some(mapping.elapsed().as_secs_f64());
     if let Some(bar) = &bar {
         bar.finish_and_clear();
     }
@@ -546,11 +548,12 @@ pub fn run(args: &MapArgs) -> Result<()> {
     })
     .with_context(|| format!("writing the model to {}", config.output.display()))?;
     println!(
-        "registered {}/{} images, {} points, mean reprojection error {:.3} px; model in {}",
+        "registered {}/{} images, {} points, mean reprojection error {:.3} px, mapped in {:.1} s; model in {}",
         out.report.num_registered,
         out.report.num_images,
         out.report.num_points,
         out.report.mean_reprojection_error_px,
+        out.report.mapping_s.unwrap_or(f64::NAN),
         config.output.display()
     );
     for c in &out.report.intrinsics {

@@ -209,7 +209,15 @@ pub struct MapReport {
     /// rounds run again, `pass` 2, when the probe of a given focal length
     /// found it off).
     pub final_rounds: Vec<RoundRecord>,
+    /// The kept run's stages. After an early look, a restart, a retry or a
+    /// search the other runs' time is not in them; [`Self::mapping_s`] has
+    /// it all.
     pub stages: Vec<StageRecord>,
+    /// Wall time of the whole mapping, seconds: every run made (first run,
+    /// the runs from its looks and its end, the retries, the search), from
+    /// the database and map in memory to the final model; set by `map`
+    /// (`None` when the mapper is called as a library).
+    pub mapping_s: Option<f64>,
     /// The points' colours from the images (`--image-path`), when given.
     pub point_colours: Option<crate::io::images::ColourSummary>,
     /// The options the run used, adapted to the map's spacing (the TOML

@@ -350,6 +350,13 @@ fn changed_yard_is_held_at_its_given_pose() {
         first_s > 0.0 && stages_s > 0.0 && stages_s <= held_s,
         "{retry}"
     );
+    // The whole mapping's time holds all three runs.
+    let free_s = retry["free_run_s"].as_f64().unwrap();
+    let mapping_s = exact.report["mapping_s"].as_f64().unwrap();
+    assert!(
+        mapping_s >= first_s + free_s + held_s,
+        "mapping {mapping_s} s\n{retry}"
+    );
     let moved = exact.report["initial_pose_change"]["moved_m"].as_f64();
     assert!(moved.is_some_and(|m| m < 1e-6), "{moved:?}");
     assert!(exact.report["fit_share"].as_f64().unwrap() > 0.6);
