@@ -135,9 +135,14 @@ struct PoseRuns<'a> {
 impl PoseRuns<'_> {
     /// The run from the given pose.
     fn start(&self) -> Start<'static> {
+        self.start_at(self.given)
+    }
+
+    /// A run with the initial image at `cam_from_world`.
+    fn start_at(&self, cam_from_world: Rigid3) -> Start<'static> {
         Start::InitialPose {
             image: self.init_image,
-            cam_from_world: self.given,
+            cam_from_world,
             rough: false,
         }
     }
@@ -154,11 +159,7 @@ impl PoseRuns<'_> {
         end: Option<EndLook>,
         progress: &mut dyn FnMut(usize, usize),
     ) -> Result<RunEnd, MapperError> {
-        let start = Start::InitialPose {
-            image: self.init_image,
-            cam_from_world: *refined,
-            rough: false,
-        };
+        let start = self.start_at(*refined);
         let mut out = match map_until(self.inputs, &start, self.options, look, end, progress)? {
             RunEnd::Finished(out) => out,
             moved => return Ok(moved),
