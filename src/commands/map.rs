@@ -556,6 +556,9 @@ pub fn run(args: &MapArgs) -> Result<()> {
         out.report.mapping_s.unwrap_or(f64::NAN),
         config.output.display()
     );
+    if let Some(summary) = out.report.not_registered_summary() {
+        log::warn!("{summary}");
+    }
     for c in &out.report.intrinsics {
         if c.refined != "held" {
             println!(

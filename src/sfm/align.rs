@@ -346,6 +346,14 @@ pub fn similarity_constraint(state: &MapState) -> Option<SimilarityConstraint> {
         .values()
         .filter_map(|p| p.plane.map(|plane| (p.xyz, plane.normal)))
         .collect();
+    similarity_constraint_of(&tied)
+}
+
+/// [`SimilarityConstraint`] of points (position, unit normal of the plane
+/// each is tied to); `None` with fewer than 7.
+pub fn similarity_constraint_of(
+    tied: &[(Vector3<f64>, Vector3<f64>)],
+) -> Option<SimilarityConstraint> {
     if tied.len() < 7 {
         return None;
     }
@@ -358,7 +366,7 @@ pub fn similarity_constraint(state: &MapState) -> Option<SimilarityConstraint> {
         .sqrt()
         .max(1e-9);
     let mut h = SMatrix::<f64, 7, 7>::zeros();
-    for (x, n) in &tied {
+    for (x, n) in tied {
         let r = (x - centroid) / rms;
         let j = similarity_row(&r, n);
         h += j * j.transpose();

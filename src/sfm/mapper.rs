@@ -18,8 +18,9 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::align::{
-    align_to_map, apply_sim3, count_points_on_map, similarity_constraint, within_bounds,
-    AlignOptions, Alignment, INLIER_M, MIN_SIMILARITY_CONSTRAINT, WEAK_SIMILARITY_CONSTRAINT,
+    align_to_map, apply_sim3, count_points_on_map, similarity_constraint, similarity_constraint_of,
+    within_bounds, AlignOptions, Alignment, INLIER_M, MIN_SIMILARITY_CONSTRAINT,
+    WEAK_SIMILARITY_CONSTRAINT,
 };
 use super::associate::{
     NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
@@ -69,13 +70,19 @@ pub enum MapperError {
     #[error("the LiDAR map is empty")]
     EmptyMap,
     #[error(
-        "the input model is not in the map's frame: {:.0} % of its {points} 3D points lie within {:.0} cm of the map surface their images see (at least {:.0} % expected, option association.min_points_on_map_share); it must be a model of these images in this map, e.g. an earlier `colmap-lidar map` output{hint}",
-        share * 100.0, INLIER_M * 100.0, min_share * 100.0
+        "the input model is not in the map's frame: {:.0} % of its {points} 3D points lie within {:.0} cm of the map surface their images see (at least {:.0} % expected, option association.min_points_on_map_share); the map shows a surface at the features of {:.0} % of them, and {:.0} % of those are on it, with a similarity-constraint ratio of {} (a model the map covers only in part is accepted when it covers at least {:.0} % of the points and {PARTIAL_MAP_MIN_POINTS} of those looked up, at least {:.0} % of those are on it, and the ratio is at least {PARTIAL_MAP_MIN_CONSTRAINT:.0e}); it must be a model of these images in this map, e.g. an earlier `colmap-lidar map` output{hint}",
+        share * 100.0, INLIER_M * 100.0, min_share * 100.0, coverage * 100.0,
+        covered_fit * 100.0, ratio.map_or_else(|| "not measured".to_string(), |r| format!("{r:.1e}")),
+        PARTIAL_MAP_MIN_COVERAGE * 100.0, PARTIAL_MAP_MIN_FIT.max(*min_share) * 100.0
     )]
     InputModelOffMap {
         share: f64,
         points: usize,
         min_share: f64,
+        /// As in [`MapperError::OffMap`].
+        coverage: f64,
+        covered_fit: f64,
+        ratio: Option<f64>,
         /// What the map's alignment trial found for a held model, if it
         /// would move it.
         hint: String,
@@ -682,7 +689,8 @@ fn seed_from_model(
     } else {
         None
     };
-    let share = seen_surface(state, nearest, grid, options)?.1.on_share();
+    let (covered, count) = seen_surface(state, nearest, grid, options)?;
+    let share = count.on_share();
     log::info!(
         "input model: {} images, {} points, {:.1} % of them on the map surface their images see{}",
         model.poses.len(),
@@ -712,13 +720,31 @@ fn seed_from_model(
             )
         });
     let min_share = options.association.min_points_on_map_share;
+    // A model the map covers only in part passes on the terms of a finished
+    // run's (see `partly_mapped`): its covered points fit, and their planes
+    // fix its similarity.
+    let mut partial_map = false;
     if lidar_gauge && share < min_share {
-        return Err(MapperError::InputModelOffMap {
-            share,
-            points: state.points.len(),
-            min_share,
-            hint: disagreement.map(|d| format!("; {d}")).unwrap_or_default(),
-        });
+        let covered_fit = count.on_surface as f64 / count.covered.max(1) as f64;
+        let ratio = covered_constraint(state, nearest, &covered, options).map(|c| c.ratio);
+        if !partly_mapped(&count, covered_fit, ratio, min_share) {
+            return Err(MapperError::InputModelOffMap {
+                share,
+                points: state.points.len(),
+                min_share,
+                coverage: count.covered_share(),
+                covered_fit,
+                ratio,
+                hint: disagreement.map(|d| format!("; {d}")).unwrap_or_default(),
+            });
+        }
+        partial_map = true;
+        log::warn!(
+            "the map covers only part of the input model: it shows a surface at the features of {:.0} % of its points, and {:.0} % of those lie on it (similarity-constraint ratio {:.1e}); the rest is placed through its links to the mapped part",
+            count.covered_share() * 100.0,
+            covered_fit * 100.0,
+            ratio.unwrap_or(0.0)
+        );
     }
     if let Some(d) = disagreement {
         log::warn!(
@@ -730,8 +756,33 @@ fn seed_from_model(
         num_points: state.points.len(),
         held: model.hold,
         points_on_seen_surface_share: share,
+        map_coverage_share: count.covered_share(),
+        partial_map,
         alignment,
     })
+}
+
+/// [`SimilarityConstraint`](super::align::SimilarityConstraint) of the
+/// `covered` points tied to the map's nearest plane (within the smallest
+/// association radius and `association.max_plane_distance_m`): how well the
+/// part of a model the map covers fixes its similarity, before any solve
+/// has associated its points.
+fn covered_constraint(
+    state: &MapState,
+    nearest: &NearestNeighbourAssociator,
+    covered: &BTreeSet<Point3DId>,
+    options: &MapperOptions,
+) -> Option<super::align::SimilarityConstraint> {
+    let tied: Vec<_> = covered
+        .iter()
+        .filter_map(|id| {
+            let x = state.points.get(id)?.xyz;
+            let (normal, offset) = nearest.plane_near(&x, options.association.min_radius_m)?;
+            ((normal.dot(&x) - offset).abs() <= options.association.max_plane_distance_m)
+                .then_some((x, normal))
+        })
+        .collect();
+    similarity_constraint_of(&tied)
 }
 
 /// How far the map may want to move a held input model before a warning

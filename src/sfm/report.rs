@@ -1,6 +1,8 @@
 //! `report.json`: what the mapper did, per image and per solve. Everything in
 //! it is deterministic except the times (`time_s`, `*_time_s`, `wall_s`,
 //! `solver_times`).
+use std::collections::{BTreeMap, BTreeSet};
+
 use serde::Serialize;
 
 use super::bundle::{PoseUncertainty, SolveRecord};
@@ -41,6 +43,32 @@ pub struct ImageRecord {
     pub mean_plane_distance_m: Option<f64>,
     /// The pose's uncertainty after the final solve (with LiDAR constraints).
     pub pose_uncertainty: Option<PoseUncertainty>,
+    /// Why it is not in the model (`None` when registered).
+    pub not_registered: Option<NotRegistered>,
+}
+
+/// Why an image is not in the model, in the order they are told apart.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+#[serde(tag = "reason", rename_all = "snake_case")]
+pub enum NotRegistered {
+    /// No verified image pair with any other image (no matches passed
+    /// geometric verification, or it has no features).
+    NoMatches,
+    /// Its verified pairs link it only to images none of which is in the
+    /// model: a group of `group_size` images (a connected component of the
+    /// image graph; its smallest image id `group_first_image_id`) that
+    /// shares no verified matches with the model's images. Such a group is
+    /// mapped on its own, from one of its images at its pose in the map.
+    OtherGroup {
+        group_size: usize,
+        group_first_image_id: u32,
+    },
+    /// Linked to the model's images, but it sees fewer than the 4 of the
+    /// model's points a pose needs (`points_seen`); no pose was tried.
+    TooFewModelPoints { points_seen: usize },
+    /// A pose was tried and not found (`attempts`, `num_correspondences`
+    /// and `pnp_inliers` of the last attempt).
+    PoseNotFound,
 }
 
 /// The model a run extended, as it came.
@@ -54,6 +82,12 @@ pub struct InputModelRecord {
     /// Share of (a sample of) its points within 2 cm of the map surface
     /// their images see: how well it sits in the map's frame.
     pub points_on_seen_surface_share: f64,
+    /// Share of those points where the map shows a surface at their
+    /// features in one of their images.
+    pub map_coverage_share: f64,
+    /// Accepted below `association.min_points_on_map_share` as a model the
+    /// map covers only in part (see the top-level `partial_map`).
+    pub partial_map: bool,
     /// The whole-model alignment to the map as it came: applied unless held.
     pub alignment: Option<AlignmentRecord>,
 }
@@ -381,6 +415,79 @@ impl MapReport {
         }
     }
 
+    /// One line on the images not in the model, by reason (with their
+    /// names, the first few of each), or `None` when every image is in it.
+    pub fn not_registered_summary(&self) -> Option<String> {
+        let missing: Vec<&ImageRecord> = self.images.iter().filter(|r| !r.registered).collect();
+        if missing.is_empty() {
+            return None;
+        }
+        let names = |keep: &dyn Fn(&NotRegistered) -> bool| -> (usize, String) {
+            let all: Vec<&str> = missing
+                .iter()
+                .filter(|r| r.not_registered.as_ref().is_some_and(keep))
+                .map(|r| r.name.as_str())
+                .collect();
+            const SHOWN: usize = 4;
+            let mut list = all
+                .iter()
+                .take(SHOWN)
+                .copied()
+                .collect::<Vec<_>>()
+                .join(", ");
+            if all.len() > SHOWN {
+                list.push_str(&format!(", and {} more", all.len() - SHOWN));
+            }
+            (all.len(), list)
+        };
+        let mut parts = Vec::new();
+        let (n, list) = names(&|w| matches!(w, NotRegistered::NoMatches));
+        if n > 0 {
+            parts.push(format!(
+                "{n} without verified matches to any image ({list})"
+            ));
+        }
+        let mut groups: BTreeMap<u32, usize> = BTreeMap::new();
+        for r in &missing {
+            if let Some(NotRegistered::OtherGroup {
+                group_size,
+                group_first_image_id,
+            }) = &r.not_registered
+            {
+                groups.insert(*group_first_image_id, *group_size);
+            }
+        }
+        if !groups.is_empty() {
+            let n: usize = groups.values().sum();
+            let listed: Vec<String> = groups
+                .iter()
+                .map(|(id, size)| format!("{size} images from id {id}"))
+                .collect();
+            parts.push(format!(
+                "{n} in {} group{} matched among themselves but not to the model's images ({}): map each on its own, from one of its images at its pose (--init-image ID --init-pose)",
+                groups.len(),
+                if groups.len() == 1 { "" } else { "s" },
+                listed.join("; ")
+            ));
+        }
+        let (n, list) = names(&|w| matches!(w, NotRegistered::TooFewModelPoints { .. }));
+        if n > 0 {
+            parts.push(format!(
+                "{n} matched to the model's images but seeing fewer than 4 of its points ({list})"
+            ));
+        }
+        let (n, list) = names(&|w| matches!(w, NotRegistered::PoseNotFound));
+        if n > 0 {
+            parts.push(format!("{n} whose pose was not found ({list})"));
+        }
+        Some(format!(
+            "{} of {} images not registered: {} (report.json: images -> not_registered)",
+            missing.len(),
+            self.images.len(),
+            parts.join("; ")
+        ))
+    }
+
     pub fn record_mut(&mut self, image: ImageId) -> Option<&mut ImageRecord> {
         self.images.iter_mut().find(|r| r.image_id == image.0)
     }
@@ -389,11 +496,14 @@ impl MapReport {
     pub fn finish(&mut self, state: &MapState) {
         let mut total_err = 0.0;
         let mut total_obs = 0usize;
+        let groups = ImageGroups::of(state);
         for rec in &mut self.images {
             let id = ImageId(rec.image_id);
             let img = &state.images[&id];
             rec.registered = img.is_registered();
             rec.registration_index = state.registration_order.iter().position(|&i| i == id);
+            rec.not_registered = (!rec.registered)
+                .then(|| groups.why_not_registered(id, rec.attempts, img.num_visible));
             let mut sum = 0.0;
             let mut n = 0usize;
             let mut plane_sum = 0.0;
@@ -460,5 +570,125 @@ impl MapReport {
                 rec.focal_change = c.mean_focal_length() / before.mean_focal_length() - 1.0;
             }
         }
+    }
+}
+
+/// The image graph's connected components (images linked by verified
+/// pairs), and which of them hold a registered image.
+struct ImageGroups {
+    /// Image -> its group's smallest image id.
+    group_of: BTreeMap<ImageId, ImageId>,
+    /// Group -> its number of images.
+    sizes: BTreeMap<ImageId, usize>,
+    /// Groups with a registered image.
+    in_model: BTreeSet<ImageId>,
+}
+
+impl ImageGroups {
+    fn of(state: &MapState) -> Self {
+        // Union-find over the verified pairs, each group named by its
+        // smallest id (the roots are always the smaller of two).
+        let mut parent: BTreeMap<ImageId, ImageId> =
+            state.images.keys().map(|&id| (id, id)).collect();
+        fn root(parent: &BTreeMap<ImageId, ImageId>, mut id: ImageId) -> ImageId {
+            while parent[&id] != id {
+                id = parent[&id];
+            }
+            id
+        }
+        for ((a, b), n) in state.graph.pairs() {
+            if n == 0 || !parent.contains_key(&a) || !parent.contains_key(&b) {
+                continue;
+            }
+            let (ra, rb) = (root(&parent, a), root(&parent, b));
+            let (lo, hi) = (ra.min(rb), ra.max(rb));
+            parent.insert(hi, lo);
+        }
+        let group_of: BTreeMap<ImageId, ImageId> =
+            parent.keys().map(|&id| (id, root(&parent, id))).collect();
+        let mut sizes: BTreeMap<ImageId, usize> = BTreeMap::new();
+        for g in group_of.values() {
+            *sizes.entry(*g).or_default() += 1;
+        }
+        let in_model = state
+            .images
+            .values()
+            .filter(|img| img.is_registered())
+            .map(|img| group_of[&img.id])
+            .collect();
+        Self {
+            group_of,
+            sizes,
+            in_model,
+        }
+    }
+
+    /// Why `image` (not registered; `attempts` pose trials, seeing
+    /// `points_seen` of the model's points) is not in the model.
+    fn why_not_registered(
+        &self,
+        image: ImageId,
+        attempts: usize,
+        points_seen: usize,
+    ) -> NotRegistered {
+        let group = self.group_of[&image];
+        let size = self.sizes[&group];
+        if size == 1 {
+            NotRegistered::NoMatches
+        } else if !self.in_model.contains(&group) {
+            NotRegistered::OtherGroup {
+                group_size: size,
+                group_first_image_id: group.0,
+            }
+        } else if attempts == 0 {
+            NotRegistered::TooFewModelPoints { points_seen }
+        } else {
+            NotRegistered::PoseNotFound
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Images 1-2 (in the model), 3 linked to them, 4-5 a group of their
+    /// own, 6 alone.
+    fn groups() -> ImageGroups {
+        let id = ImageId;
+        let group_of: BTreeMap<ImageId, ImageId> = [(1, 1), (2, 1), (3, 1), (4, 4), (5, 4), (6, 6)]
+            .into_iter()
+            .map(|(a, b)| (id(a), id(b)))
+            .collect();
+        ImageGroups {
+            group_of,
+            sizes: [(id(1), 3), (id(4), 2), (id(6), 1)].into_iter().collect(),
+            in_model: [id(1)].into_iter().collect(),
+        }
+    }
+
+    #[test]
+    fn an_image_tried_in_the_models_group_is_a_pose_not_found() {
+        let g = groups();
+        assert_eq!(
+            g.why_not_registered(ImageId(3), 2, 40),
+            NotRegistered::PoseNotFound
+        );
+        assert_eq!(
+            g.why_not_registered(ImageId(3), 0, 2),
+            NotRegistered::TooFewModelPoints { points_seen: 2 }
+        );
+        // Another group's image is that whatever it was tried.
+        assert_eq!(
+            g.why_not_registered(ImageId(5), 0, 0),
+            NotRegistered::OtherGroup {
+                group_size: 2,
+                group_first_image_id: 4
+            }
+        );
+        assert_eq!(
+            g.why_not_registered(ImageId(6), 0, 0),
+            NotRegistered::NoMatches
+        );
     }
 }

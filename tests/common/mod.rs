@@ -3,6 +3,8 @@
 use std::ffi::OsStr;
 use std::path::PathBuf;
 
+use colmap_lidar::scene::{Image, Reconstruction};
+
 /// Path of the built `colmap-lidar` binary.
 pub fn bin() -> PathBuf {
     PathBuf::from(env!("CARGO_BIN_EXE_colmap-lidar"))
@@ -103,4 +105,25 @@ pub fn ply_header(bytes: &[u8]) -> (&str, usize) {
         .expect("a PLY header")
         + 11;
     (std::str::from_utf8(&bytes[..end]).unwrap(), end)
+}
+
+/// `rec` with only the images `keep` takes: their observations, and the
+/// points two or more of them still see.
+pub fn part_of_model(rec: &Reconstruction, keep: impl Fn(&Image) -> bool) -> Reconstruction {
+    let mut part = rec.clone();
+    part.images.retain(|_, img| keep(img));
+    part.points3d.retain(|_, p| {
+        p.track.retain(|e| part.images.contains_key(&e.image_id));
+        p.track.len() >= 2
+    });
+    for img in part.images.values_mut() {
+        for p in &mut img.points2d {
+            if p.point3d_id
+                .is_some_and(|id| !part.points3d.contains_key(&id))
+            {
+                p.point3d_id = None;
+            }
+        }
+    }
+    part
 }

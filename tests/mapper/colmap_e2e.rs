@@ -13,7 +13,6 @@ use colmap_lidar::eval::{evaluate, Alignment, EvaluationReport};
 use colmap_lidar::io::database::read_database;
 use colmap_lidar::io::model::{read_model, write_model, ModelFormat};
 use colmap_lidar::io::pose_ply::{read_pose_ply, write_pose_ply};
-use colmap_lidar::scene::Reconstruction;
 use colmap_lidar::scene::{BodyPose, ImageId};
 use colmap_lidar::synth::colmap_harness::{make_database, run_matcher, HarnessOptions, Matcher};
 use colmap_lidar::synth::generate::{generate_scene, image_name, read_init_pose, SynthOptions};
@@ -1029,34 +1028,13 @@ fn check_partial_map(scene: &Path, work: &Path) {
     assert!(!out.exists());
 }
 
-/// `rec` with only the images `keep` names: their observations, and the
-/// points two or more of them still see.
-fn part_of_model(rec: &Reconstruction, keep: impl Fn(&str) -> bool) -> Reconstruction {
-    let mut part = rec.clone();
-    part.images.retain(|_, img| keep(&img.name));
-    part.points3d.retain(|_, p| {
-        p.track.retain(|e| part.images.contains_key(&e.image_id));
-        p.track.len() >= 2
-    });
-    for img in part.images.values_mut() {
-        for p in &mut img.points2d {
-            if p.point3d_id
-                .is_some_and(|id| !part.points3d.contains_key(&id))
-            {
-                p.point3d_id = None;
-            }
-        }
-    }
-    part
-}
-
 /// `map --input-model`: half the yard's model (its first 12 trajectory
 /// images) extended with the other 12 from the same database, held and free;
 /// a model moved off the map is refused.
 fn check_extension(scene: &Path, model_dir: &Path, work: &Path) {
     let full = read_model(model_dir).unwrap();
     let first: BTreeSet<String> = (0..12).map(image_name).collect();
-    let half = part_of_model(&full, |name| first.contains(name));
+    let half = crate::common::part_of_model(&full, |img| first.contains(&img.name));
     assert_eq!(half.images.len(), 12);
     let half_dir = work.join("half");
     write_model(&half_dir, &half, ModelFormat::Text).unwrap();

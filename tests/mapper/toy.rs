@@ -1430,3 +1430,204 @@ fn toy_room_self_calibrates_a_camera_the_database_marks_as_uncalibrated() {
         );
     }
 }
+
+/// The toy room's map with only the points where `keep` (room coordinates,
+/// metres) holds.
+fn cut_cloud(cloud: &PointCloud, keep: impl Fn([f32; 3]) -> bool) -> PointCloud {
+    let normals = cloud.normals.as_ref().expect("the toy map has normals");
+    let (points, normals): (Vec<_>, Vec<_>) = cloud
+        .points
+        .iter()
+        .zip(normals)
+        .filter(|(p, _)| keep(**p))
+        .map(|(p, n)| (*p, *n))
+        .unzip();
+    PointCloud {
+        origin: cloud.origin,
+        points,
+        normals: Some(normals),
+        planarity: None,
+    }
+}
+
+/// A map that covers only the part x > 1 m of the room the walk sees: the
+/// full run is accepted as partly mapped, and so is the model of its first
+/// half when it is extended with the rest (held or free), where it was
+/// refused for its fit over all its points (52 %, under 60 %). A model moved
+/// 0.3 m off the cut map is still refused, with the coverage in the error.
+#[test]
+fn toy_room_partly_mapped_model_is_extended() {
+    use colmap_lidar::sfm::existing::match_to_database;
+    use colmap_lidar::sfm::{extend_model, MapperError};
+    let mut scene = toy(16, 0.3, 0.03, 2);
+    scene.cloud = cut_cloud(&scene.cloud, |p| p[0] > 1.0);
+    let options = MapperOptions::default();
+    let (full, err) = map_toy(&scene, &options);
+    let report = &full.report;
+    eprintln!(
+        "toy room, map cut at x = 1 m: {}/{} registered, max error {err:.4} m, fit {:?}, coverage {:?}, covered fit {:?}, ratio {:?}",
+        report.num_registered,
+        report.num_images,
+        report.fit_share,
+        report.map_coverage_share,
+        report.covered_fit_share,
+        report.similarity_constraint.as_ref().map(|c| c.ratio)
+    );
+    assert!(report.partial_map);
+    assert_eq!(report.num_registered, 16);
+    assert!(err < 0.02, "max centre error {err} m");
+    let half = crate::common::part_of_model(&full.reconstruction, |img| img.id.0 <= 8);
+    let inputs = MapperInputs {
+        db: &scene.db,
+        cloud: &scene.cloud,
+        known_poses: &BTreeMap::new(),
+    };
+    for hold in [true, false] {
+        let model = match_to_database(&half, &scene.db, hold).unwrap();
+        let out = extend_model(inputs, &model, &options, &mut |_, _| {}).unwrap();
+        let input = out.report.input_model.as_ref().expect("an input model");
+        let err = max_centre_error(&out.reconstruction, &scene.gt);
+        eprintln!(
+            "  half extended (held: {hold}): {}/16 registered, max error {err:.4} m, input on the map {:.3}, covered {:.3}",
+            out.report.num_registered, input.points_on_seen_surface_share, input.map_coverage_share
+        );
+        assert!(input.partial_map && out.report.partial_map);
+        assert!(input.points_on_seen_surface_share < options.association.min_points_on_map_share);
+        assert!((0.1..0.9).contains(&input.map_coverage_share));
+        assert_eq!(out.report.num_registered, 16);
+        assert!(err < 0.02, "max centre error {err} m");
+    }
+    // The same half moved 0.3 m along y: off the cut map's surfaces.
+    let mut moved = half.clone();
+    let shift = Rigid3::new(UnitQuaternion::identity(), Vector3::new(0.0, 0.3, 0.0));
+    for img in moved.images.values_mut() {
+        let pose = img.cam_from_world.expect("registered");
+        img.cam_from_world = Some(pose.compose(&shift.inverse()));
+    }
+    for p in moved.points3d.values_mut() {
+        p.xyz = shift.transform_point(&p.xyz);
+    }
+    let model = match_to_database(&moved, &scene.db, true).unwrap();
+    match extend_model(inputs, &model, &options, &mut |_, _| {}) {
+        Err(e @ MapperError::InputModelOffMap { .. }) => {
+            let msg = e.to_string();
+            eprintln!("  moved 0.3 m: {msg}");
+            // The coverage the half measured in place (52 %): a shift along
+            // the wall keeps what the map shows at the features.
+            let coverage: f64 = msg
+                .split("the map shows a surface at the features of ")
+                .nth(1)
+                .and_then(|rest| rest.split(" %").next())
+                .and_then(|n| n.parse().ok())
+                .expect("the coverage in the message");
+            assert!((30.0..70.0).contains(&coverage), "{msg}");
+            assert!(
+                msg.contains("accepted when it covers at least 10 %"),
+                "{msg}"
+            );
+        }
+        other => panic!(
+            "a model moved off the map was taken: {:?}",
+            other.map(|o| o.report.num_registered)
+        ),
+    }
+}
+
+/// Images the run cannot register say why, in `report.json` and in one
+/// line: a copy of images 1-3 matched only among themselves (another group),
+/// an image without any verified pair, and one matched to the model by 3
+/// matches (too few of its points for a pose).
+#[test]
+fn toy_room_says_why_images_are_not_registered() {
+    use colmap_lidar::sfm::report::NotRegistered;
+    let mut scene = toy(10, 0.3, 0.03, 1);
+    let db = &mut scene.db;
+    let copy_of = |id: u32| ImageId(100 + id);
+    for id in 1..=3 {
+        let mut img = db.images[&ImageId(id)].clone();
+        img.id = copy_of(id);
+        img.name = format!("copy_{id}.png");
+        db.images.insert(img.id, img);
+        let keypoints = db.keypoints[&ImageId(id)].clone();
+        db.keypoints.insert(copy_of(id), keypoints);
+    }
+    let copies: Vec<TwoViewGeometry> = db
+        .two_view_geometries
+        .iter()
+        .filter(|g| g.image_id1.0 <= 3 && g.image_id2.0 <= 3)
+        .map(|g| TwoViewGeometry {
+            image_id1: copy_of(g.image_id1.0),
+            image_id2: copy_of(g.image_id2.0),
+            ..g.clone()
+        })
+        .collect();
+    assert_eq!(copies.len(), 3);
+    db.two_view_geometries.extend(copies);
+    let mut lone = db.images[&ImageId(4)].clone();
+    lone.id = ImageId(200);
+    lone.name = "lone.png".into();
+    db.images.insert(lone.id, lone);
+    db.keypoints
+        .insert(ImageId(200), db.keypoints[&ImageId(4)].clone());
+    let mut weak = db.images[&ImageId(5)].clone();
+    weak.id = ImageId(300);
+    weak.name = "weak.png".into();
+    db.images.insert(weak.id, weak);
+    db.keypoints
+        .insert(ImageId(300), db.keypoints[&ImageId(5)].clone());
+    db.two_view_geometries.push(TwoViewGeometry {
+        image_id1: ImageId(5),
+        image_id2: ImageId(300),
+        config: 2,
+        inlier_matches: vec![[0, 0], [1, 1], [2, 2]],
+        fundamental: None,
+        essential: None,
+    });
+    let (out, _) = map_toy(&scene, &MapperOptions::default());
+    let report = &out.report;
+    assert_eq!(report.num_registered, 10);
+    let why = |name: &str| {
+        let rec = report.images.iter().find(|r| r.name == name).unwrap();
+        (rec.registered, rec.not_registered.clone())
+    };
+    for id in 1..=10 {
+        assert_eq!(why(&format!("img_{:03}.png", id - 1)), (true, None));
+    }
+    for id in 1..=3 {
+        assert_eq!(
+            why(&format!("copy_{id}.png")),
+            (
+                false,
+                Some(NotRegistered::OtherGroup {
+                    group_size: 3,
+                    group_first_image_id: 101
+                })
+            )
+        );
+    }
+    assert_eq!(why("lone.png"), (false, Some(NotRegistered::NoMatches)));
+    match why("weak.png") {
+        (false, Some(NotRegistered::TooFewModelPoints { points_seen })) => {
+            assert!(points_seen <= 3, "{points_seen}")
+        }
+        other => panic!("weak.png: {other:?}"),
+    }
+    let summary = report.not_registered_summary().expect("a summary");
+    eprintln!("{summary}");
+    assert!(summary.starts_with("5 of 15 images not registered: 1 without verified matches to any image (lone.png); 3 in 1 group matched among themselves but not to the model's images (3 images from id 101)"), "{summary}");
+    assert!(
+        summary.contains(
+            "1 matched to the model's images but seeing fewer than 4 of its points (weak.png)"
+        ),
+        "{summary}"
+    );
+    let json = serde_json::to_value(&report.images).unwrap();
+    let copy = json
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|r| r["name"] == "copy_2.png")
+        .unwrap();
+    assert_eq!(copy["not_registered"]["reason"], "other_group");
+    assert_eq!(copy["not_registered"]["group_size"], 3);
+}
