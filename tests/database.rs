@@ -177,6 +177,7 @@ fn reads_hand_made_database_exactly() {
         "Verified pairs  3 (inlier matches 5 in all",
         "config 4 (planar): 1",
         "tracks                           3",
+        "Image groups  1 (3 images linked by verified pairs)",
         "sub dir/b.jpg",
         "-0.050000  (focal length guessed: `map` self-calibrates it)",
         "cy=299.500000  (focal length given)",

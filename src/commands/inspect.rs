@@ -6,6 +6,8 @@ use std::path::PathBuf;
 use anyhow::Result;
 
 use crate::io::database::{read_database, DatabaseSnapshot};
+use crate::scene::correspondence_graph::CorrespondenceGraph;
+use crate::scene::ImageId;
 
 #[derive(clap::Args, Debug)]
 pub struct InspectArgs {
@@ -144,6 +146,7 @@ pub fn summary(db: &DatabaseSnapshot, per_image: bool) -> String {
     if isolated > 0 {
         let _ = writeln!(w, "  {isolated} images have no verified match at all");
     }
+    let _ = writeln!(w, "\nImage groups  {}", image_groups_line(&graph, db));
 
     if per_image {
         let _ = writeln!(w, "\n  image_id  keypoints  matched  name");
@@ -168,4 +171,40 @@ pub fn summary(db: &DatabaseSnapshot, per_image: bool) -> String {
         }
     }
     out
+}
+
+/// The image graph's groups (images linked by verified pairs, see
+/// [`CorrespondenceGraph::image_groups`]): `map` registers only the initial
+/// image's group, so more than one is worth a line.
+fn image_groups_line(graph: &CorrespondenceGraph, db: &DatabaseSnapshot) -> String {
+    let groups = graph.image_groups(db.images.keys().copied());
+    let mut sizes: BTreeMap<ImageId, usize> = BTreeMap::new();
+    for g in groups.values() {
+        *sizes.entry(*g).or_default() += 1;
+    }
+    let linked: Vec<(ImageId, usize)> = sizes
+        .iter()
+        .filter(|(_, &n)| n > 1)
+        .map(|(&g, &n)| (g, n))
+        .collect();
+    let alone = sizes.values().filter(|&&n| n == 1).count();
+    let mut line = match linked.len() {
+        0 => "none: no two images share verified matches".to_string(),
+        1 => format!("1 ({} images linked by verified pairs)", linked[0].1),
+        k => {
+            let list: Vec<String> = linked
+                .iter()
+                .map(|(g, n)| format!("{n} images from id {}", g.0))
+                .collect();
+            format!(
+                "{k} ({}): no verified pair links one to another, and `map` registers only the initial image's group; map each on its own from one of its images at its pose",
+                list.join(", ")
+            )
+        }
+    };
+    if alone > 0 {
+        let images = if alone == 1 { "image" } else { "images" };
+        line.push_str(&format!("; {alone} {images} in none (no verified pair)"));
+    }
+    line
 }

@@ -165,6 +165,33 @@ impl CorrespondenceGraph {
         self.pair_matches.get(&key).copied().unwrap_or(0)
     }
 
+    /// The image graph's connected components over `images` (images linked
+    /// by verified pairs): each image's group, named by the group's smallest
+    /// image id. An image without a pair is a group of its own; pairs with an
+    /// image not in `images` are ignored.
+    pub fn image_groups(
+        &self,
+        images: impl IntoIterator<Item = ImageId>,
+    ) -> BTreeMap<ImageId, ImageId> {
+        // Union-find; a root is always the smaller of the two it joins.
+        let mut parent: BTreeMap<ImageId, ImageId> =
+            images.into_iter().map(|id| (id, id)).collect();
+        fn root(parent: &BTreeMap<ImageId, ImageId>, mut id: ImageId) -> ImageId {
+            while parent[&id] != id {
+                id = parent[&id];
+            }
+            id
+        }
+        for (&(a, b), &n) in &self.pair_matches {
+            if n == 0 || !parent.contains_key(&a) || !parent.contains_key(&b) {
+                continue;
+            }
+            let (ra, rb) = (root(&parent, a), root(&parent, b));
+            parent.insert(ra.max(rb), ra.min(rb));
+        }
+        parent.keys().map(|&id| (id, root(&parent, id))).collect()
+    }
+
     /// Image pairs with their verified match counts, smaller id first.
     pub fn pairs(&self) -> impl Iterator<Item = ((ImageId, ImageId), usize)> + '_ {
         self.pair_matches.iter().map(|(k, v)| (*k, *v))
@@ -243,6 +270,24 @@ mod tests {
             image_id: ImageId(i),
             point2d_idx: k,
         }
+    }
+
+    #[test]
+    fn image_groups_are_the_connected_components_named_by_their_smallest_id() {
+        // 5-3, 3-1 (joined through 3), 2-4, 6 alone; 7 has a pair with 8,
+        // which is not asked about.
+        let m: Vec<[u32; 2]> = vec![[0, 0]];
+        let pairs: Vec<(ImageId, ImageId, &[[u32; 2]])> = [(3, 5), (1, 3), (2, 4), (7, 8)]
+            .into_iter()
+            .map(|(a, b)| (ImageId(a), ImageId(b), m.as_slice()))
+            .collect();
+        let g = CorrespondenceGraph::new((1..=8).map(|i| (ImageId(i), 1)), pairs);
+        let groups = g.image_groups((1..=7).map(ImageId));
+        let named: Vec<(u32, u32)> = groups.iter().map(|(a, b)| (a.0, b.0)).collect();
+        assert_eq!(
+            named,
+            vec![(1, 1), (2, 2), (3, 1), (4, 2), (5, 1), (6, 6), (7, 7)]
+        );
     }
 
     #[test]

@@ -586,26 +586,7 @@ struct ImageGroups {
 
 impl ImageGroups {
     fn of(state: &MapState) -> Self {
-        // Union-find over the verified pairs, each group named by its
-        // smallest id (the roots are always the smaller of two).
-        let mut parent: BTreeMap<ImageId, ImageId> =
-            state.images.keys().map(|&id| (id, id)).collect();
-        fn root(parent: &BTreeMap<ImageId, ImageId>, mut id: ImageId) -> ImageId {
-            while parent[&id] != id {
-                id = parent[&id];
-            }
-            id
-        }
-        for ((a, b), n) in state.graph.pairs() {
-            if n == 0 || !parent.contains_key(&a) || !parent.contains_key(&b) {
-                continue;
-            }
-            let (ra, rb) = (root(&parent, a), root(&parent, b));
-            let (lo, hi) = (ra.min(rb), ra.max(rb));
-            parent.insert(hi, lo);
-        }
-        let group_of: BTreeMap<ImageId, ImageId> =
-            parent.keys().map(|&id| (id, root(&parent, id))).collect();
+        let group_of = state.graph.image_groups(state.images.keys().copied());
         let mut sizes: BTreeMap<ImageId, usize> = BTreeMap::new();
         for g in group_of.values() {
             *sizes.entry(*g).or_default() += 1;

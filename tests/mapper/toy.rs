@@ -1583,6 +1583,13 @@ fn toy_room_says_why_images_are_not_registered() {
         fundamental: None,
         essential: None,
     });
+    // `inspect` shows the groups before any run.
+    let text = colmap_lidar::commands::inspect::summary(&scene.db, false);
+    assert!(
+        text.contains("Image groups  2 (11 images from id 1, 3 images from id 101): no verified pair links one to another")
+            && text.contains("; 1 image in none (no verified pair)"),
+        "{text}"
+    );
     let (out, _) = map_toy(&scene, &MapperOptions::default());
     let report = &out.report;
     assert_eq!(report.num_registered, 10);
