@@ -53,6 +53,8 @@ enum Command {
     Inspect(commands::inspect::InspectArgs),
     /// Structure-from-motion inside the LiDAR map: COLMAP database + map -> model in the map frame.
     Map(commands::map::MapArgs),
+    /// Put models of the same LiDAR map (e.g. groups of photos mapped each from its own pose) into one model.
+    Merge(commands::merge::MergeArgs),
     /// Prepare a raw point cloud (PLY, PCD, LAS/LAZ, E57) as a map: downsample, estimate normals.
     PrepareMap(commands::prepare_map::PrepareMapArgs),
     /// Render a synthetic scene with exact ground truth (images, LiDAR map, true cameras).
@@ -87,6 +89,7 @@ fn main() -> ExitCode {
     let result = match &cli.command {
         Command::Inspect(args) => commands::inspect::run(args),
         Command::Map(args) => commands::map::run(args),
+        Command::Merge(args) => commands::merge::run(args),
         Command::PrepareMap(args) => commands::prepare_map::run(args),
         Command::Depth(args) => commands::depth::run(args),
         Command::ColourMap(args) => commands::colour_map::run(args),

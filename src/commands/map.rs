@@ -19,7 +19,7 @@ use serde::Deserialize;
 use crate::io::database::{read_database, DatabaseSnapshot};
 use crate::io::images::{check_image_folder, colour_points, ExpectedImage};
 use crate::io::model::{read_model, write_model, ModelFormat};
-use crate::io::pose_ply::{format_pose_ply, read_pose_ply};
+use crate::io::pose_ply::{format_model_pose_ply, read_pose_ply};
 use crate::map::io::read_point_cloud;
 use crate::map::prepare::{estimate_normals, widen_normal_radius, NormalOptions};
 use crate::map::PointCloud;
@@ -535,15 +535,10 @@ pub fn run(args: &MapArgs) -> Result<()> {
     crate::io::atomic::write_dir_atomically(&config.output, |tmp| -> Result<()> {
         write_model(tmp, &out.reconstruction, config.format)?;
         std::fs::write(tmp.join("report.json"), format!("{report_json}\n"))?;
-        let poses: BTreeMap<ImageId, BodyPose> = out
-            .reconstruction
-            .images
-            .iter()
-            .filter_map(|(&id, img)| {
-                Some((id, BodyPose::from_cam_from_world(&img.cam_from_world?)))
-            })
-            .collect();
-        std::fs::write(tmp.join("pose.ply"), format_pose_ply(&poses))?;
+        std::fs::write(
+            tmp.join("pose.ply"),
+            format_model_pose_ply(&out.reconstruction),
+        )?;
         Ok(())
     })
     .with_context(|| format!("writing the model to {}", config.output.display()))?;

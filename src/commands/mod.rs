@@ -5,6 +5,7 @@ pub mod depth;
 pub mod evaluate;
 pub mod inspect;
 pub mod map;
+pub mod merge;
 pub mod plot;
 pub mod prepare_map;
 pub mod synth;

@@ -341,6 +341,16 @@ pub fn parse_pose_ply(
     Ok(poses)
 }
 
+/// [`format_pose_ply`] of a model's registered images.
+pub fn format_model_pose_ply(rec: &crate::scene::Reconstruction) -> String {
+    let poses: BTreeMap<ImageId, BodyPose> = rec
+        .images
+        .iter()
+        .filter_map(|(&id, img)| Some((id, BodyPose::from_cam_from_world(&img.cam_from_world?))))
+        .collect();
+    format_pose_ply(&poses)
+}
+
 /// Formats poses as a pose file: data lines 1..=max id; ids without a pose get a
 /// `nan` line. Values use Rust's shortest round-trip formatting, so reading the
 /// text back gives bit-identical f64s. A pose with a non-finite value is written

@@ -58,7 +58,8 @@ pub enum NotRegistered {
     /// model: a group of `group_size` images (a connected component of the
     /// image graph; its smallest image id `group_first_image_id`) that
     /// shares no verified matches with the model's images. Such a group is
-    /// mapped on its own, from one of its images at its pose in the map.
+    /// mapped on its own, from one of its images at its pose in the map,
+    /// and the models merged (`colmap-lidar merge`).
     OtherGroup {
         group_size: usize,
         group_first_image_id: u32,
@@ -464,7 +465,7 @@ impl MapReport {
                 .map(|(id, size)| format!("{size} images from id {id}"))
                 .collect();
             parts.push(format!(
-                "{n} in {} group{} matched among themselves but not to the model's images ({}): map each on its own, from one of its images at its pose (--init-image ID --init-pose)",
+                "{n} in {} group{} matched among themselves but not to the model's images ({}): map each on its own, from one of its images at its pose (--init-image ID --init-pose), then `colmap-lidar merge` the models",
                 groups.len(),
                 if groups.len() == 1 { "" } else { "s" },
                 listed.join("; ")

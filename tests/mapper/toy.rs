@@ -1638,3 +1638,121 @@ fn toy_room_says_why_images_are_not_registered() {
     assert_eq!(copy["not_registered"]["reason"], "other_group");
     assert_eq!(copy["not_registered"]["group_size"], 3);
 }
+
+/// Two groups of images that no verified match links (the toy's 10 images
+/// and a copy of them under other names and ids), mapped each from its own
+/// initial image at its pose, and `merge`d: one model with every image at
+/// the pose its own run gave it, the points of both, and one camera; the
+/// copy's camera with other intrinsics becomes a second camera; an image in
+/// both models is refused.
+#[test]
+fn toy_room_groups_mapped_apart_merge_into_one_model() {
+    use colmap_lidar::commands::merge::{merge_models, run as merge, MergeArgs};
+    use colmap_lidar::io::model::{read_model, write_model, ModelFormat};
+    let mut scene = toy(10, 0.3, 0.03, 4);
+    let copy_of = |id: ImageId| ImageId(id.0 + 100);
+    let db = &mut scene.db;
+    for id in 1..=10 {
+        let mut img = db.images[&ImageId(id)].clone();
+        img.id = copy_of(img.id);
+        img.name = format!("copy_{id:03}.png");
+        db.images.insert(img.id, img);
+        let keypoints = db.keypoints[&ImageId(id)].clone();
+        db.keypoints.insert(copy_of(ImageId(id)), keypoints);
+        scene
+            .gt
+            .insert(copy_of(ImageId(id)), scene.gt[&ImageId(id)]);
+    }
+    let copies: Vec<TwoViewGeometry> = db
+        .two_view_geometries
+        .iter()
+        .map(|g| TwoViewGeometry {
+            image_id1: copy_of(g.image_id1),
+            image_id2: copy_of(g.image_id2),
+            ..g.clone()
+        })
+        .collect();
+    db.two_view_geometries.extend(copies);
+    let options = MapperOptions::default();
+    let pose = scene.init_pose.to_cam_from_world();
+    let group = |init: ImageId| {
+        let out = run_mapper(
+            &scene.db,
+            &scene.cloud,
+            init,
+            &pose,
+            &options,
+            &mut |_, _| {},
+        )
+        .unwrap();
+        assert_eq!(out.report.num_registered, 10);
+        out.reconstruction
+    };
+    let (a, b) = (group(ImageId(1)), group(ImageId(101)));
+    let dir = tempfile::tempdir().unwrap();
+    let (dir_a, dir_b) = (dir.path().join("a"), dir.path().join("b"));
+    write_model(&dir_a, &a, ModelFormat::Binary).unwrap();
+    write_model(&dir_b, &b, ModelFormat::Binary).unwrap();
+    let out = dir.path().join("merged");
+    merge(&MergeArgs {
+        inputs: vec![dir_a.clone(), dir_b.clone()],
+        output: out.clone(),
+        output_type: "binary".into(),
+    })
+    .unwrap();
+    let merged = read_model(&out).unwrap();
+    assert_eq!(merged.num_registered_images(), 20);
+    assert_eq!(merged.cameras.len(), 1);
+    assert_eq!(merged.points3d.len(), a.points3d.len() + b.points3d.len());
+    for source in [&a, &b] {
+        for img in source.registered_images() {
+            let m = &merged.images[&img.id];
+            assert_eq!((&m.name, m.cam_from_world), (&img.name, img.cam_from_world));
+            // The same observations of the same points, renumbered.
+            for (p, q) in img.points2d.iter().zip(&m.points2d) {
+                assert_eq!(p.xy, q.xy);
+                let (Some(p), Some(q)) = (p.point3d_id, q.point3d_id) else {
+                    assert_eq!(p.point3d_id.is_some(), q.point3d_id.is_some());
+                    continue;
+                };
+                assert_eq!(source.points3d[&p].xyz, merged.points3d[&q].xyz);
+            }
+        }
+    }
+    let err = max_centre_error(&merged, &scene.gt);
+    assert!(err < 0.03, "max centre error {err} m");
+    let poses = colmap_lidar::io::pose_ply::read_pose_ply(&out.join("pose.ply")).unwrap();
+    assert!(poses.keys().eq(merged.images.keys()));
+    if crate::common::have_colmap() {
+        let text = crate::common::run_colmap([
+            "model_analyzer".as_ref(),
+            "--path".as_ref(),
+            out.as_os_str(),
+        ]);
+        assert!(text.contains("Registered images: 20"), "{text}");
+    }
+    // Other intrinsics under the same camera id: a second camera.
+    let mut b2 = b.clone();
+    b2.cameras.get_mut(&CameraId(1)).unwrap().params[0] += 1.0;
+    let models = vec![(dir_a.clone(), a.clone()), (dir_b.clone(), b2)];
+    let (merged, summary) = merge_models(&models).unwrap();
+    assert_eq!(
+        summary.cameras_renumbered,
+        vec![(1, CameraId(1), CameraId(2))]
+    );
+    assert!(merged
+        .images
+        .values()
+        .all(|img| img.camera_id == CameraId(if img.id.0 > 100 { 2 } else { 1 })));
+    // One image in both: refused, naming it and both folders; nothing written.
+    let refused = dir.path().join("refused");
+    let e = merge(&MergeArgs {
+        inputs: vec![dir_a.clone(), dir_a.clone()],
+        output: refused.clone(),
+        output_type: "text".into(),
+    })
+    .unwrap_err();
+    let msg = format!("{e:#}");
+    assert!(msg.contains("image img_000.png is in both"), "{msg}");
+    assert!(!refused.exists());
+}
