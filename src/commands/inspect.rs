@@ -197,7 +197,7 @@ fn image_groups_line(graph: &CorrespondenceGraph, db: &DatabaseSnapshot) -> Stri
                 .map(|(g, n)| format!("{n} images from id {}", g.0))
                 .collect();
             format!(
-                "{k} ({}): no verified pair links one to another, and `map` registers only the initial image's group; map each on its own from one of its images at its pose, then `colmap-lidar merge` the models",
+                "{k} ({}): no verified pair links one to another, and a `map` run registers one group (its initial image's or its input model's); map each on its own from one of its images at its pose, then `colmap-lidar merge` the models",
                 list.join(", ")
             )
         }

@@ -57,7 +57,21 @@ pub fn merge_models(
     let mut names: BTreeMap<String, &Path> = BTreeMap::new();
     let mut next_point = 1u64;
     for (k, (dir, model)) in models.iter().enumerate() {
+        if model.num_registered_images() == 0 {
+            bail!(
+                "{} has no registered image: nothing to merge",
+                dir.display()
+            );
+        }
+        let mut own: BTreeSet<&str> = BTreeSet::new();
         for img in model.registered_images() {
+            if !own.insert(img.name.as_str()) {
+                bail!(
+                    "{}: image {} is in it twice (a model has one pose per image)",
+                    dir.display(),
+                    img.name
+                );
+            }
             if let Some(first) = names.insert(img.name.clone(), dir) {
                 bail!(
                     "image {} is in both {} and {}: merge models of different images (one pose per image)",
@@ -69,6 +83,10 @@ pub fn merge_models(
         }
         let mut camera_ids: BTreeMap<CameraId, CameraId> = BTreeMap::new();
         let used: BTreeSet<CameraId> = model.registered_images().map(|img| img.camera_id).collect();
+        // A new id is free in the merged model and not one of this model's
+        // own, which keep theirs where they can.
+        let mut cameras_taken: BTreeSet<u32> =
+            out.cameras.keys().chain(&used).map(|c| c.0).collect();
         for id in used {
             let camera = model.cameras.get(&id).with_context(|| {
                 format!(
@@ -81,7 +99,9 @@ pub fn merge_models(
                 None => id,
                 Some(c) if c == camera => id,
                 Some(_) => {
-                    let free = CameraId(out.cameras.keys().map(|c| c.0).max().unwrap_or(0) + 1);
+                    let free = CameraId(
+                        next_free(&mut cameras_taken).context("no camera id left to give")?,
+                    );
                     summary.cameras_renumbered.push((k, id, free));
                     free
                 }
@@ -92,9 +112,17 @@ pub fn merge_models(
             camera_ids.insert(id, new_id);
         }
         let mut image_ids: BTreeMap<ImageId, ImageId> = BTreeMap::new();
+        let mut images_taken: BTreeSet<u32> = out
+            .images
+            .keys()
+            .copied()
+            .chain(model.registered_images().map(|img| img.id))
+            .map(|i| i.0)
+            .collect();
         for img in model.registered_images() {
             let new_id = if out.images.contains_key(&img.id) {
-                let free = ImageId(out.images.keys().map(|i| i.0).max().unwrap_or(0) + 1);
+                let free =
+                    ImageId(next_free(&mut images_taken).context("no image id left to give")?);
                 summary.images_renumbered.push((k, img.id, free));
                 free
             } else {
@@ -137,6 +165,14 @@ pub fn merge_models(
     Ok((out, summary))
 }
 
+/// The smallest id above every id in `taken`, which it joins (`None` past
+/// `u32::MAX`).
+fn next_free(taken: &mut BTreeSet<u32>) -> Option<u32> {
+    let id = taken.last().map_or(Some(1), |&max| max.checked_add(1))?;
+    taken.insert(id);
+    Some(id)
+}
+
 pub fn run(args: &MergeArgs) -> Result<()> {
     if args.inputs.len() < 2 {
         bail!(
@@ -149,6 +185,16 @@ pub fn run(args: &MergeArgs) -> Result<()> {
         "binary" | "BIN" | "bin" => ModelFormat::Binary,
         other => bail!("--output-type must be text or binary, got `{other}`"),
     };
+    // The output replaces its folder: never an input's.
+    let output = std::fs::canonicalize(&args.output).ok();
+    for dir in &args.inputs {
+        if output.is_some() && std::fs::canonicalize(dir).ok() == output {
+            bail!(
+                "--output {} is one of the inputs: write the merged model to another folder",
+                args.output.display()
+            );
+        }
+    }
     let mut models = Vec::with_capacity(args.inputs.len());
     for dir in &args.inputs {
         let model =

@@ -176,9 +176,12 @@ impl CorrespondenceGraph {
         // Union-find; a root is always the smaller of the two it joins.
         let mut parent: BTreeMap<ImageId, ImageId> =
             images.into_iter().map(|id| (id, id)).collect();
-        fn root(parent: &BTreeMap<ImageId, ImageId>, mut id: ImageId) -> ImageId {
+        // With path halving: each step points a node at its grandparent.
+        fn root(parent: &mut BTreeMap<ImageId, ImageId>, mut id: ImageId) -> ImageId {
             while parent[&id] != id {
-                id = parent[&id];
+                let grand = parent[&parent[&id]];
+                parent.insert(id, grand);
+                id = grand;
             }
             id
         }
@@ -186,10 +189,13 @@ impl CorrespondenceGraph {
             if n == 0 || !parent.contains_key(&a) || !parent.contains_key(&b) {
                 continue;
             }
-            let (ra, rb) = (root(&parent, a), root(&parent, b));
+            let (ra, rb) = (root(&mut parent, a), root(&mut parent, b));
             parent.insert(ra.max(rb), ra.min(rb));
         }
-        parent.keys().map(|&id| (id, root(&parent, id))).collect()
+        let ids: Vec<ImageId> = parent.keys().copied().collect();
+        ids.into_iter()
+            .map(|id| (id, root(&mut parent, id)))
+            .collect()
     }
 
     /// Image pairs with their verified match counts, smaller id first.

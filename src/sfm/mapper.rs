@@ -723,10 +723,11 @@ fn seed_from_model(
     // A model the map covers only in part passes on the terms of a finished
     // run's (see `partly_mapped`): its covered points fit, and their planes
     // fix its similarity.
-    let mut partial_map = false;
+    let (mut partial_map, mut covered_fit_share, mut covered_ratio) = (false, None, None);
     if lidar_gauge && share < min_share {
         let covered_fit = count.on_surface as f64 / count.covered.max(1) as f64;
         let ratio = covered_constraint(state, nearest, &covered, options).map(|c| c.ratio);
+        (covered_fit_share, covered_ratio) = (Some(covered_fit), ratio);
         if !partly_mapped(&count, covered_fit, ratio, min_share) {
             return Err(MapperError::InputModelOffMap {
                 share,
@@ -757,6 +758,8 @@ fn seed_from_model(
         held: model.hold,
         points_on_seen_surface_share: share,
         map_coverage_share: count.covered_share(),
+        covered_fit_share,
+        covered_similarity_constraint_ratio: covered_ratio,
         partial_map,
         alignment,
     })

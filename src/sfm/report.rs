@@ -64,8 +64,9 @@ pub enum NotRegistered {
         group_size: usize,
         group_first_image_id: u32,
     },
-    /// Linked to the model's images, but it sees fewer than the 4 of the
-    /// model's points a pose needs (`points_seen`); no pose was tried.
+    /// In the model's group of images, but it never saw the 4 of the
+    /// model's points a pose needs while images were registered, so no pose
+    /// was tried (`points_seen`: how many it sees in the final model).
     TooFewModelPoints { points_seen: usize },
     /// A pose was tried and not found (`attempts`, `num_correspondences`
     /// and `pnp_inliers` of the last attempt).
@@ -86,6 +87,12 @@ pub struct InputModelRecord {
     /// Share of those points where the map shows a surface at their
     /// features in one of their images.
     pub map_coverage_share: f64,
+    /// Share of the covered points that lie on the map (measured only
+    /// below `association.min_points_on_map_share`).
+    pub covered_fit_share: Option<f64>,
+    /// Similarity-constraint ratio of the covered points' nearest planes
+    /// (measured only below that share, see `mapper::covered_constraint`).
+    pub covered_similarity_constraint_ratio: Option<f64>,
     /// Accepted below `association.min_points_on_map_share` as a model the
     /// map covers only in part (see the top-level `partial_map`).
     pub partial_map: bool,
@@ -460,10 +467,15 @@ impl MapReport {
         }
         if !groups.is_empty() {
             let n: usize = groups.values().sum();
-            let listed: Vec<String> = groups
+            const SHOWN_GROUPS: usize = 4;
+            let mut listed: Vec<String> = groups
                 .iter()
+                .take(SHOWN_GROUPS)
                 .map(|(id, size)| format!("{size} images from id {id}"))
                 .collect();
+            if groups.len() > SHOWN_GROUPS {
+                listed.push(format!("and {} more", groups.len() - SHOWN_GROUPS));
+            }
             parts.push(format!(
                 "{n} in {} group{} matched among themselves but not to the model's images ({}): map each on its own, from one of its images at its pose (--init-image ID --init-pose), then `colmap-lidar merge` the models",
                 groups.len(),
@@ -474,7 +486,7 @@ impl MapReport {
         let (n, list) = names(&|w| matches!(w, NotRegistered::TooFewModelPoints { .. }));
         if n > 0 {
             parts.push(format!(
-                "{n} matched to the model's images but seeing fewer than 4 of its points ({list})"
+                "{n} in the model's group of images but never seeing the 4 of its points a pose needs ({list})"
             ));
         }
         let (n, list) = names(&|w| matches!(w, NotRegistered::PoseNotFound));
