@@ -503,6 +503,8 @@ pub fn run(args: &MapArgs) -> Result<()> {
         )
     })?;
     out.report.mapping_s = Some(mapping.elapsed().as_secs_f64());
+    out.report.map_file = Some(config.lidar.display().to_string());
+    out.report.map_points = Some(cloud.len());
     if let Some(bar) = &bar {
         bar.finish_and_clear();
     }

@@ -165,6 +165,52 @@ pub fn merge_models(
     Ok((out, summary))
 }
 
+/// What the inputs' `report.json` (where `map` wrote one) say against
+/// their being in one map's frame: a model mapped without the map's planes
+/// (`association` "none": its frame is its initial pose's, its scale the
+/// initial pair's), or models of maps with other numbers of points. An
+/// input without a readable report is not checked.
+pub fn map_frame_warnings(inputs: &[PathBuf]) -> Vec<String> {
+    let mut warnings = Vec::new();
+    let mut maps: BTreeMap<u64, Vec<String>> = BTreeMap::new();
+    for dir in inputs {
+        let path = dir.join("report.json");
+        let Ok(text) = std::fs::read_to_string(&path) else {
+            continue;
+        };
+        let Ok(report) = serde_json::from_str::<serde_json::Value>(&text) else {
+            warnings.push(format!(
+                "{}: not read as JSON; its map is not checked",
+                path.display()
+            ));
+            continue;
+        };
+        if report["association"].as_str() == Some("none") {
+            warnings.push(format!(
+                "{} was mapped without the map's planes (--no-lidar-constraints): it is in its initial pose's frame at the initial pair's scale, not held by the map",
+                dir.display()
+            ));
+        }
+        if let Some(n) = report["map_points"].as_u64() {
+            let file = report["map_file"].as_str().unwrap_or("?");
+            maps.entry(n)
+                .or_default()
+                .push(format!("{} ({file})", dir.display()));
+        }
+    }
+    if maps.len() > 1 {
+        let list: Vec<String> = maps
+            .iter()
+            .map(|(n, dirs)| format!("{} from a map of {n} points", dirs.join(", ")))
+            .collect();
+        warnings.push(format!(
+            "the inputs were mapped into different maps: {}; their frames agree only if those maps do",
+            list.join("; ")
+        ));
+    }
+    warnings
+}
+
 /// The smallest id above every id in `taken`, which it joins (`None` past
 /// `u32::MAX`).
 fn next_free(taken: &mut BTreeSet<u32>) -> Option<u32> {
@@ -200,6 +246,9 @@ pub fn run(args: &MergeArgs) -> Result<()> {
         let model =
             read_model(dir).with_context(|| format!("reading the model {}", dir.display()))?;
         models.push((dir.clone(), model));
+    }
+    for warning in map_frame_warnings(&args.inputs) {
+        log::warn!("{warning}");
     }
     let (merged, summary) = merge_models(&models)?;
     for (k, old, new) in &summary.cameras_renumbered {

@@ -260,6 +260,11 @@ pub struct MapReport {
     /// the database and map in memory to the final model; set by `map`
     /// (`None` when the mapper is called as a library).
     pub mapping_s: Option<f64>,
+    /// The LiDAR map the model is in: its file and number of points, as
+    /// loaded; set by `map` (`merge` warns when its inputs name different
+    /// maps).
+    pub map_file: Option<String>,
+    pub map_points: Option<usize>,
     /// The points' colours from the images (`--image-path`), when given.
     pub point_colours: Option<crate::io::images::ColourSummary>,
     /// The options the run used, adapted to the map's spacing (the TOML

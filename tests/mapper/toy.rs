@@ -1797,6 +1797,37 @@ fn toy_room_groups_mapped_apart_merge_into_one_model() {
             assert_eq!(seen, Some(*id));
         }
     }
+    // What the inputs' reports say against one frame: nothing without
+    // reports; a run without the map's planes, other maps.
+    use colmap_lidar::commands::merge::map_frame_warnings;
+    let both = [dir_a.clone(), dir_b.clone()];
+    assert!(map_frame_warnings(&both).is_empty());
+    let report = |dir: &std::path::Path, json: &str| {
+        std::fs::write(dir.join("report.json"), json).unwrap();
+    };
+    report(
+        &dir_a,
+        r#"{"association": "nearest", "map_file": "a.ply", "map_points": 5000}"#,
+    );
+    report(
+        &dir_b,
+        r#"{"association": "nearest", "map_file": "a.ply", "map_points": 5000}"#,
+    );
+    assert!(map_frame_warnings(&both).is_empty());
+    report(
+        &dir_b,
+        r#"{"association": "none", "map_file": "b.ply", "map_points": 4000}"#,
+    );
+    let warnings = map_frame_warnings(&both);
+    assert_eq!(warnings.len(), 2, "{warnings:?}");
+    assert!(
+        warnings[0].contains("without the map's planes"),
+        "{warnings:?}"
+    );
+    assert!(
+        warnings[1].contains("from a map of 4000 points") && warnings[1].contains("(b.ply)"),
+        "{warnings:?}"
+    );
     // The output folder is never an input's (it would replace it).
     let e = merge(&MergeArgs {
         inputs: vec![dir_a.clone(), dir_b.clone()],
