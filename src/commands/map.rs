@@ -359,7 +359,9 @@ const REPLACEABLE: [&str; 8] = [
     "report.json",
 ];
 
-fn check_output(dir: &Path) -> Result<()> {
+/// Refuses an output folder that holds anything but the files `map` (or
+/// `merge`) writes: it is replaced as a whole.
+pub(crate) fn check_output(dir: &Path) -> Result<()> {
     if !dir.exists() {
         return Ok(());
     }

@@ -241,6 +241,7 @@ pub fn run(args: &MergeArgs) -> Result<()> {
             );
         }
     }
+    super::map::check_output(&args.output)?;
     let mut models = Vec::with_capacity(args.inputs.len());
     for dir in &args.inputs {
         let model =

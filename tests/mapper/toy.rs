@@ -1837,6 +1837,24 @@ fn toy_room_groups_mapped_apart_merge_into_one_model() {
     .unwrap_err();
     assert!(format!("{e:#}").contains("is one of the inputs"), "{e:#}");
     assert_eq!(read_model(&dir_b).unwrap(), b);
+    // A folder holding anything but model files is not replaced.
+    let notes = dir.path().join("notes");
+    std::fs::create_dir(&notes).unwrap();
+    std::fs::write(notes.join("todo.txt"), "keep me").unwrap();
+    let e = merge(&MergeArgs {
+        inputs: vec![dir_a.clone(), dir_b.clone()],
+        output: notes.clone(),
+        output_type: "text".into(),
+    })
+    .unwrap_err();
+    assert!(
+        format!("{e:#}").contains("which is not a model file"),
+        "{e:#}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(notes.join("todo.txt")).unwrap(),
+        "keep me"
+    );
     // One image in both: refused, naming it and both folders; nothing written.
     let refused = dir.path().join("refused");
     let e = merge(&MergeArgs {
