@@ -1851,7 +1851,7 @@ pub(super) fn map_until(
         let on_map = count_points_on_map(&nearest, &points, options.association.min_radius_m);
         let share = on_map as f64 / points.len() as f64;
         report.points_on_map_share = Some(share);
-        let (_, count) = seen_surface(&state, &nearest, &grid, options)?;
+        let (covered, count) = seen_surface(&state, &nearest, &grid, options)?;
         let seen_share = count.on_share();
         report.points_on_seen_surface_share = Some(seen_share);
         report.map_coverage_share = Some(count.covered_share());
@@ -1878,7 +1878,10 @@ pub(super) fn map_until(
         );
         report.covered_fit_share = Some(covered_fit);
         let min_share = options.association.min_points_on_map_share;
-        report.similarity_constraint = similarity_constraint(&state);
+        // Without a final solve (a held input model with no new image) no
+        // point has a plane: the covered points' nearest planes stand in.
+        report.similarity_constraint = similarity_constraint(&state)
+            .or_else(|| covered_constraint(&state, &nearest, &covered, options));
         let ratio = report.similarity_constraint.as_ref().map(|c| c.ratio);
         if fit < min_share {
             if !partly_mapped(&count, covered_fit, ratio, min_share) {

@@ -1503,6 +1503,21 @@ fn toy_room_partly_mapped_model_is_extended() {
         assert_eq!(out.report.num_registered, 16);
         assert!(err < 0.02, "max centre error {err} m");
     }
+    // The whole partly mapped model, held: no new image, no final solve,
+    // the fit measured on the covered points' nearest planes; kept as it came.
+    let model = match_to_database(&full.reconstruction, &scene.db, true).unwrap();
+    let out = extend_model(inputs, &model, &options, &mut |_, _| {}).unwrap();
+    assert!(out.report.partial_map);
+    let ratio = out.report.similarity_constraint.as_ref().unwrap().ratio;
+    assert!(ratio >= 1e-2, "{ratio}");
+    for img in full.reconstruction.registered_images() {
+        assert_eq!(
+            out.reconstruction.pose(img.id),
+            img.cam_from_world,
+            "{}",
+            img.name
+        );
+    }
     // The same half moved 0.3 m along y: off the cut map's surfaces.
     let mut moved = half.clone();
     let shift = Rigid3::new(UnitQuaternion::identity(), Vector3::new(0.0, 0.3, 0.0));
