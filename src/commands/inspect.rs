@@ -174,8 +174,8 @@ pub fn summary(db: &DatabaseSnapshot, per_image: bool) -> String {
 }
 
 /// The image graph's groups (images linked by verified pairs, see
-/// [`CorrespondenceGraph::image_groups`]): `map` registers only the initial
-/// image's group, so more than one is worth a line.
+/// [`CorrespondenceGraph::image_groups`]): a `map` run registers one group,
+/// so more than one is worth saying how to map the others.
 fn image_groups_line(graph: &CorrespondenceGraph, db: &DatabaseSnapshot) -> String {
     let groups = graph.image_groups(db.images.keys().copied());
     let mut sizes: BTreeMap<ImageId, usize> = BTreeMap::new();
