@@ -177,11 +177,7 @@ pub fn summary(db: &DatabaseSnapshot, per_image: bool) -> String {
 /// [`CorrespondenceGraph::image_groups`]): a `map` run registers one group,
 /// so more than one is worth saying how to map the others.
 fn image_groups_line(graph: &CorrespondenceGraph, db: &DatabaseSnapshot) -> String {
-    let groups = graph.image_groups(db.images.keys().copied());
-    let mut sizes: BTreeMap<ImageId, usize> = BTreeMap::new();
-    for g in groups.values() {
-        *sizes.entry(*g).or_default() += 1;
-    }
+    let sizes = CorrespondenceGraph::group_sizes(&graph.image_groups(db.images.keys().copied()));
     let linked: Vec<(ImageId, usize)> = sizes
         .iter()
         .filter(|(_, &n)| n > 1)

@@ -198,6 +198,15 @@ impl CorrespondenceGraph {
             .collect()
     }
 
+    /// The size of each group of [`Self::image_groups`]' result, by name.
+    pub fn group_sizes(groups: &BTreeMap<ImageId, ImageId>) -> BTreeMap<ImageId, usize> {
+        let mut sizes: BTreeMap<ImageId, usize> = BTreeMap::new();
+        for g in groups.values() {
+            *sizes.entry(*g).or_default() += 1;
+        }
+        sizes
+    }
+
     /// Image pairs with their verified match counts, smaller id first.
     pub fn pairs(&self) -> impl Iterator<Item = ((ImageId, ImageId), usize)> + '_ {
         self.pair_matches.iter().map(|(k, v)| (*k, *v))
@@ -294,6 +303,9 @@ mod tests {
             named,
             vec![(1, 1), (2, 2), (3, 1), (4, 2), (5, 1), (6, 6), (7, 7)]
         );
+        let sizes = CorrespondenceGraph::group_sizes(&groups);
+        let sizes: Vec<(u32, usize)> = sizes.iter().map(|(g, n)| (g.0, *n)).collect();
+        assert_eq!(sizes, vec![(1, 3), (2, 2), (6, 1), (7, 1)]);
     }
 
     #[test]

@@ -23,7 +23,8 @@ use super::align::{
     WEAK_SIMILARITY_CONSTRAINT,
 };
 use super::associate::{
-    NearestNeighbourAssociator, NoAssociation, PlaneAssociator, ProjectionAssociator, SolveKind,
+    AssociationQuery, NearestNeighbourAssociator, NoAssociation, PlaneAssociator,
+    ProjectionAssociator, SolveKind,
 };
 use super::bundle::{bundle_adjust, pose_uncertainty, BundleConfig, SoftPosePrior, SolveRecord};
 use super::existing::ExistingModel;
@@ -726,7 +727,7 @@ fn seed_from_model(
     let (mut partial_map, mut covered_fit_share, mut covered_ratio) = (false, None, None);
     if lidar_gauge && share < min_share {
         let covered_fit = count.on_surface as f64 / count.covered.max(1) as f64;
-        let ratio = covered_constraint(state, nearest, &covered, options).map(|c| c.ratio);
+        let ratio = covered_constraint(state, nearest, &covered).map(|c| c.ratio);
         (covered_fit_share, covered_ratio) = (Some(covered_fit), ratio);
         if !partly_mapped(&count, covered_fit, ratio, min_share) {
             return Err(MapperError::InputModelOffMap {
@@ -766,23 +767,33 @@ fn seed_from_model(
 }
 
 /// [`SimilarityConstraint`](super::align::SimilarityConstraint) of the
-/// `covered` points tied to the map's nearest plane (within the smallest
-/// association radius and `association.max_plane_distance_m`): how well the
-/// part of a model the map covers fixes its similarity, before any solve
-/// has associated its points.
+/// `covered` points tied to the planes the final rounds' nearest-neighbour
+/// association gives them (the smallest radius, the distance gate): how
+/// well the part of a model the map covers fixes its similarity, before any
+/// solve has associated its points.
 fn covered_constraint(
     state: &MapState,
     nearest: &NearestNeighbourAssociator,
     covered: &BTreeSet<Point3DId>,
-    options: &MapperOptions,
 ) -> Option<super::align::SimilarityConstraint> {
-    let tied: Vec<_> = covered
+    let queries: Vec<AssociationQuery> = covered
         .iter()
-        .filter_map(|id| {
-            let x = state.points.get(id)?.xyz;
-            let (normal, offset) = nearest.plane_near(&x, options.association.min_radius_m)?;
-            ((normal.dot(&x) - offset).abs() <= options.association.max_plane_distance_m)
-                .then_some((x, normal))
+        .filter_map(|&point_id| state.points.get(&point_id).map(|p| (point_id, p)))
+        .enumerate()
+        .map(|(i, (point_id, p))| AssociationQuery {
+            point_idx: i as u32,
+            point_id,
+            position_in_world: p.xyz,
+            num_global_ba: 0,
+            track_len: p.track.len(),
+        })
+        .collect();
+    let tied: Vec<_> = nearest
+        .associate_points(SolveKind::Final, &queries)
+        .iter()
+        .map(|c| {
+            let x = queries[c.point_idx as usize].position_in_world;
+            (x, nalgebra::Vector3::from(c.normal))
         })
         .collect();
     similarity_constraint_of(&tied)
@@ -1881,7 +1892,7 @@ pub(super) fn map_until(
         // Without a final solve (a held input model with no new image) no
         // point has a plane: the covered points' nearest planes stand in.
         report.similarity_constraint = similarity_constraint(&state)
-            .or_else(|| covered_constraint(&state, &nearest, &covered, options));
+            .or_else(|| covered_constraint(&state, &nearest, &covered));
         let ratio = report.similarity_constraint.as_ref().map(|c| c.ratio);
         if fit < min_share {
             if !partly_mapped(&count, covered_fit, ratio, min_share) {

@@ -9,6 +9,7 @@ use super::bundle::{PoseUncertainty, SolveRecord};
 use super::initialize::InitSummary;
 use super::options::MapperOptions;
 use super::state::MapState;
+use crate::scene::correspondence_graph::CorrespondenceGraph;
 use crate::scene::{Camera, CameraId, ImageId, Rigid3};
 use crate::solver::PlaneFamily;
 
@@ -436,22 +437,12 @@ impl MapReport {
             return None;
         }
         let names = |keep: &dyn Fn(&NotRegistered) -> bool| -> (usize, String) {
-            let all: Vec<&str> = missing
+            let all: Vec<String> = missing
                 .iter()
                 .filter(|r| r.not_registered.as_ref().is_some_and(keep))
-                .map(|r| r.name.as_str())
+                .map(|r| r.name.clone())
                 .collect();
-            const SHOWN: usize = 4;
-            let mut list = all
-                .iter()
-                .take(SHOWN)
-                .copied()
-                .collect::<Vec<_>>()
-                .join(", ");
-            if all.len() > SHOWN {
-                list.push_str(&format!(", and {} more", all.len() - SHOWN));
-            }
-            (all.len(), list)
+            (all.len(), first_few(all, ", "))
         };
         let mut parts = Vec::new();
         let (n, list) = names(&|w| matches!(w, NotRegistered::NoMatches));
@@ -472,20 +463,15 @@ impl MapReport {
         }
         if !groups.is_empty() {
             let n: usize = groups.values().sum();
-            const SHOWN_GROUPS: usize = 4;
-            let mut listed: Vec<String> = groups
+            let listed: Vec<String> = groups
                 .iter()
-                .take(SHOWN_GROUPS)
                 .map(|(id, size)| format!("{size} images from id {id}"))
                 .collect();
-            if groups.len() > SHOWN_GROUPS {
-                listed.push(format!("and {} more", groups.len() - SHOWN_GROUPS));
-            }
             parts.push(format!(
                 "{n} in {} group{} matched among themselves but not to the model's images ({}): map each on its own, from one of its images at its pose (--init-image ID --init-pose), then `colmap-lidar merge` the models",
                 groups.len(),
                 if groups.len() == 1 { "" } else { "s" },
-                listed.join("; ")
+                first_few(listed, "; ")
             ));
         }
         let (n, list) = names(&|w| matches!(w, NotRegistered::TooFewModelPoints { .. }));
@@ -591,6 +577,21 @@ impl MapReport {
     }
 }
 
+/// The first four of `items` joined by `separator`, and how many more.
+fn first_few(items: Vec<String>, separator: &str) -> String {
+    const SHOWN: usize = 4;
+    let more = items.len().saturating_sub(SHOWN);
+    let mut list = items
+        .into_iter()
+        .take(SHOWN)
+        .collect::<Vec<_>>()
+        .join(separator);
+    if more > 0 {
+        list.push_str(&format!("{separator}and {more} more"));
+    }
+    list
+}
+
 /// The image graph's connected components (images linked by verified
 /// pairs), and which of them hold a registered image.
 struct ImageGroups {
@@ -605,10 +606,7 @@ struct ImageGroups {
 impl ImageGroups {
     fn of(state: &MapState) -> Self {
         let group_of = state.graph.image_groups(state.images.keys().copied());
-        let mut sizes: BTreeMap<ImageId, usize> = BTreeMap::new();
-        for g in group_of.values() {
-            *sizes.entry(*g).or_default() += 1;
-        }
+        let sizes = CorrespondenceGraph::group_sizes(&group_of);
         let in_model = state
             .images
             .values()

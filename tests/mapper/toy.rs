@@ -1554,6 +1554,36 @@ fn toy_room_partly_mapped_model_is_extended() {
     }
 }
 
+/// Adds to `db` a copy of image `from` (its camera and keypoints, no
+/// pairs) as image `id` named `name`.
+fn copy_image(db: &mut DatabaseSnapshot, from: ImageId, id: ImageId, name: &str) {
+    let mut img = db.images[&from].clone();
+    img.id = id;
+    img.name = name.to_owned();
+    db.images.insert(id, img);
+    let keypoints = db.keypoints[&from].clone();
+    db.keypoints.insert(id, keypoints);
+}
+
+/// Adds to `db` a copy of each verified pair whose two images `copy_of`
+/// maps to copies, between those copies; how many.
+fn copy_pairs(db: &mut DatabaseSnapshot, copy_of: impl Fn(ImageId) -> Option<ImageId>) -> usize {
+    let copies: Vec<TwoViewGeometry> = db
+        .two_view_geometries
+        .iter()
+        .filter_map(|g| {
+            Some(TwoViewGeometry {
+                image_id1: copy_of(g.image_id1)?,
+                image_id2: copy_of(g.image_id2)?,
+                ..g.clone()
+            })
+        })
+        .collect();
+    let n = copies.len();
+    db.two_view_geometries.extend(copies);
+    n
+}
+
 /// Images the run cannot register say why, in `report.json` and in one
 /// line: a copy of images 1-3 matched only among themselves (another group),
 /// an image without any verified pair, and one matched to the model by 3
@@ -1563,39 +1593,18 @@ fn toy_room_says_why_images_are_not_registered() {
     use colmap_lidar::sfm::report::NotRegistered;
     let mut scene = toy(10, 0.3, 0.03, 1);
     let db = &mut scene.db;
-    let copy_of = |id: u32| ImageId(100 + id);
     for id in 1..=3 {
-        let mut img = db.images[&ImageId(id)].clone();
-        img.id = copy_of(id);
-        img.name = format!("copy_{id}.png");
-        db.images.insert(img.id, img);
-        let keypoints = db.keypoints[&ImageId(id)].clone();
-        db.keypoints.insert(copy_of(id), keypoints);
+        copy_image(
+            db,
+            ImageId(id),
+            ImageId(100 + id),
+            &format!("copy_{id}.png"),
+        );
     }
-    let copies: Vec<TwoViewGeometry> = db
-        .two_view_geometries
-        .iter()
-        .filter(|g| g.image_id1.0 <= 3 && g.image_id2.0 <= 3)
-        .map(|g| TwoViewGeometry {
-            image_id1: copy_of(g.image_id1.0),
-            image_id2: copy_of(g.image_id2.0),
-            ..g.clone()
-        })
-        .collect();
-    assert_eq!(copies.len(), 3);
-    db.two_view_geometries.extend(copies);
-    let mut lone = db.images[&ImageId(4)].clone();
-    lone.id = ImageId(200);
-    lone.name = "lone.png".into();
-    db.images.insert(lone.id, lone);
-    db.keypoints
-        .insert(ImageId(200), db.keypoints[&ImageId(4)].clone());
-    let mut weak = db.images[&ImageId(5)].clone();
-    weak.id = ImageId(300);
-    weak.name = "weak.png".into();
-    db.images.insert(weak.id, weak);
-    db.keypoints
-        .insert(ImageId(300), db.keypoints[&ImageId(5)].clone());
+    let copied = copy_pairs(db, |id| (id.0 <= 3).then_some(ImageId(100 + id.0)));
+    assert_eq!(copied, 3);
+    copy_image(db, ImageId(4), ImageId(200), "lone.png");
+    copy_image(db, ImageId(5), ImageId(300), "weak.png");
     db.two_view_geometries.push(TwoViewGeometry {
         image_id1: ImageId(5),
         image_id2: ImageId(300),
@@ -1673,27 +1682,11 @@ fn toy_room_groups_mapped_apart_merge_into_one_model() {
     let mut scene = toy(10, 0.3, 0.03, 4);
     let copy_of = |id: ImageId| ImageId(id.0 + 100);
     let db = &mut scene.db;
-    for id in 1..=10 {
-        let mut img = db.images[&ImageId(id)].clone();
-        img.id = copy_of(img.id);
-        img.name = format!("copy_{id:03}.png");
-        db.images.insert(img.id, img);
-        let keypoints = db.keypoints[&ImageId(id)].clone();
-        db.keypoints.insert(copy_of(ImageId(id)), keypoints);
-        scene
-            .gt
-            .insert(copy_of(ImageId(id)), scene.gt[&ImageId(id)]);
+    for id in (1..=10).map(ImageId) {
+        copy_image(db, id, copy_of(id), &format!("copy_{:03}.png", id.0));
+        scene.gt.insert(copy_of(id), scene.gt[&id]);
     }
-    let copies: Vec<TwoViewGeometry> = db
-        .two_view_geometries
-        .iter()
-        .map(|g| TwoViewGeometry {
-            image_id1: copy_of(g.image_id1),
-            image_id2: copy_of(g.image_id2),
-            ..g.clone()
-        })
-        .collect();
-    db.two_view_geometries.extend(copies);
+    copy_pairs(db, |id| Some(copy_of(id)));
     let options = MapperOptions::default();
     let pose = scene.init_pose.to_cam_from_world();
     let group = |init: ImageId| {
