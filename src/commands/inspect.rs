@@ -174,8 +174,8 @@ pub fn summary(db: &DatabaseSnapshot, per_image: bool) -> String {
 }
 
 /// The image graph's groups (images linked by verified pairs, see
-/// [`CorrespondenceGraph::image_groups`]): a `map` run registers one group,
-/// so more than one is worth saying how to map the others.
+/// [`CorrespondenceGraph::image_groups`]): a `map` run registers the groups
+/// of its initial images, so more than one is worth saying how to map them.
 fn image_groups_line(graph: &CorrespondenceGraph, db: &DatabaseSnapshot) -> String {
     let sizes = CorrespondenceGraph::group_sizes(&graph.image_groups(db.images.keys().copied()));
     let linked: Vec<(ImageId, usize)> = sizes
@@ -193,7 +193,7 @@ fn image_groups_line(graph: &CorrespondenceGraph, db: &DatabaseSnapshot) -> Stri
                 .map(|(g, n)| format!("{n} images from id {}", g.0))
                 .collect();
             format!(
-                "{k} ({}): no verified pair links one to another, and a `map` run registers one group (its initial image's or its input model's); map each on its own from one of its images at its pose, then `colmap-lidar merge` the models",
+                "{k} ({}): no verified pair links one to another: a `map` run registers the groups of its initial images (give one --init-image with its --init-pose per group) or of its input model",
                 list.join(", ")
             )
         }

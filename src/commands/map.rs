@@ -2,14 +2,18 @@
 //! database inside a LiDAR map; writes a COLMAP model in the map frame and a
 //! `report.json`, atomically (a failed run leaves nothing behind).
 //!
+//! With one `--init-image` (and `--init-pose`) per group of images that no
+//! verified match links, each group is mapped from its own and the models
+//! put in one ([`crate::sfm::groups`]).
+//!
 //! Every option can also come from a TOML file (`--options FILE`): top-level
-//! keys `database`, `lidar`, `output`, `image_path`, `init_image`, `init_pose`,
-//! `init_search`,
+//! keys `database`, `lidar`, `output`, `image_path`, `init_image`, `init_pose`
+//! (each one value or a list), `init_search`,
 //! `pose_priors`, `input_model`, `fix_existing_images`, `output_type`,
 //! `no_lidar_constraints`, and a `[mapper]` table with the
 //! stage options of [`MapperOptions`] (`seed`, `[mapper.register]`, ...).
 //! Command-line values win over the file.
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 
@@ -28,10 +32,7 @@ use crate::sfm::existing::{match_to_database, ExistingModel};
 use crate::sfm::localise::SearchRegion;
 use crate::sfm::options::{AssociationKind, IntrinsicsRefinement};
 use crate::sfm::report::StageRecord;
-use crate::sfm::{
-    extend_model, run_mapper_from_pose, run_mapper_searching, KnownPose, MapperInputs,
-    MapperOptions,
-};
+use crate::sfm::{extend_model, map_groups, GroupStart, KnownPose, MapperInputs, MapperOptions};
 
 /// Known poses: the database's pose priors, overridden by the pose file.
 fn known_poses(
@@ -104,19 +105,23 @@ pub struct MapArgs {
     /// (128, 128, 128).
     #[arg(long, visible_alias = "image_path", value_name = "DIR")]
     pub image_path: Option<PathBuf>,
-    /// Initial image, by name or id. Default: the smallest image id.
+    /// Initial image, by name or id. Default: the smallest image id. Given
+    /// again (one per group of images that no verified match links, see
+    /// `inspect`), each group is mapped from its own and the models are put
+    /// in one.
     #[arg(long, visible_alias = "init_image", value_name = "NAME|ID")]
-    pub init_image: Option<String>,
+    pub init_image: Vec<String>,
     /// Pose of the initial image in the map frame: x,y,z (camera centre, m),
     /// roll,pitch,yaw (degrees); body x forward, y left, z up. Default: the
-    /// database's pose prior of the image, if it has one.
+    /// image's known pose (the database's pose prior, or --pose-priors).
+    /// With several --init-image, one per image in the same order (or none).
     #[arg(
         long,
         visible_alias = "init_pose",
         value_name = "X,Y,Z,ROLL,PITCH,YAW",
         allow_hyphen_values = true
     )]
-    pub init_pose: Option<String>,
+    pub init_pose: Vec<String>,
     /// The initial pose is known only roughly: within METRES of its camera
     /// centre horizontally, VERTICAL_METRES vertically (default: METRES, at
     /// most 1 m) and DEGREES of its heading (180: any), roll and pitch
@@ -188,7 +193,7 @@ struct OptionsFile {
     output: Option<PathBuf>,
     image_path: Option<PathBuf>,
     init_image: Option<toml::Value>,
-    init_pose: Option<String>,
+    init_pose: Option<toml::Value>,
     init_search: Option<String>,
     pose_priors: Option<PathBuf>,
     input_model: Option<PathBuf>,
@@ -205,8 +210,10 @@ pub struct MapConfig {
     pub lidar: PathBuf,
     pub output: PathBuf,
     pub image_path: Option<PathBuf>,
-    pub init_image: Option<String>,
-    pub init_pose: Option<BodyPose>,
+    /// The initial images (one per group of images; none: the smallest id).
+    pub init_images: Vec<String>,
+    /// Their poses, in the same order (none: their known poses).
+    pub init_poses: Vec<BodyPose>,
     /// `--init-search`: where to search for the initial pose around it.
     pub init_search: Option<SearchRegion>,
     pub pose_priors: Option<PathBuf>,
@@ -237,20 +244,27 @@ impl MapArgs {
         let database = need(&self.database, &file.database, "database")?;
         let lidar = need(&self.lidar, &file.lidar, "lidar")?;
         let output = need(&self.output, &file.output, "output")?;
-        let init_image = self.init_image.clone().or(match file.init_image {
-            Some(toml::Value::String(s)) => Some(s),
-            Some(toml::Value::Integer(i)) => Some(i.to_string()),
-            Some(other) => {
-                bail!("init_image in the options file must be a name or an id, got {other}")
-            }
-            None => None,
-        });
-        let init_pose = self
-            .init_pose
-            .clone()
-            .or(file.init_pose)
-            .map(|s| BodyPose::parse_degrees(&s).map_err(|e| anyhow::anyhow!("--init-pose {e}")))
-            .transpose()?;
+        let init_images = if self.init_image.is_empty() {
+            file_list(file.init_image, "init_image", true)?
+        } else {
+            self.init_image.clone()
+        };
+        let init_pose_text = if self.init_pose.is_empty() {
+            file_list(file.init_pose, "init_pose", false)?
+        } else {
+            self.init_pose.clone()
+        };
+        let init_poses = init_pose_text
+            .iter()
+            .map(|s| BodyPose::parse_degrees(s).map_err(|e| anyhow::anyhow!("--init-pose {e}")))
+            .collect::<Result<Vec<_>>>()?;
+        if !init_poses.is_empty() && init_poses.len() != init_images.len().max(1) {
+            bail!(
+                "{} --init-pose for {} --init-image: give one pose per initial image, in the same order (or none: their known poses)",
+                init_poses.len(),
+                init_images.len()
+            );
+        }
         let init_search = self
             .init_search
             .clone()
@@ -279,7 +293,7 @@ impl MapArgs {
         let input_model = self.input_model.clone().or(file.input_model);
         let fix_existing_images =
             self.fix_existing_images || file.fix_existing_images == Some(true);
-        if input_model.is_some() && (init_image.is_some() || init_pose.is_some()) {
+        if input_model.is_some() && (!init_images.is_empty() || !init_poses.is_empty()) {
             bail!(
                 "--init-image and --init-pose are not used with --input-model: the model's images start at their poses"
             );
@@ -295,8 +309,8 @@ impl MapArgs {
             lidar,
             output,
             image_path: self.image_path.clone().or(file.image_path),
-            init_image,
-            init_pose,
+            init_images,
+            init_poses,
             init_search,
             pose_priors: self.pose_priors.clone().or(file.pose_priors),
             input_model,
@@ -304,6 +318,24 @@ impl MapArgs {
             format,
             options,
         })
+    }
+}
+
+/// A list from the options file: one value or an array of them (names or
+/// ids when `ids`, else strings).
+fn file_list(value: Option<toml::Value>, key: &str, ids: bool) -> Result<Vec<String>> {
+    let one = |v: toml::Value| -> Result<String> {
+        match v {
+            toml::Value::String(s) => Ok(s),
+            toml::Value::Integer(i) if ids => Ok(i.to_string()),
+            other if ids => bail!("{key} in the options file must be a name or an id, got {other}"),
+            other => bail!("{key} in the options file must be a string, got {other}"),
+        }
+    };
+    match value {
+        None => Ok(Vec::new()),
+        Some(toml::Value::Array(items)) => items.into_iter().map(one).collect(),
+        Some(v) => Ok(vec![one(v)?]),
     }
 }
 
@@ -343,8 +375,53 @@ pub fn resolve_init_image(db: &DatabaseSnapshot, spec: Option<&str>) -> Result<I
 
 /// Where a run starts.
 enum RunStart {
-    InitialPose(ImageId, Rigid3),
+    /// One initial image per group of images, at its pose.
+    InitialPoses(Vec<GroupStart>),
     Model(ExistingModel),
+}
+
+/// The initial images at their poses: given ones, else their known poses
+/// (the database's pose priors, or the pose file).
+fn group_starts(
+    db: &DatabaseSnapshot,
+    config: &MapConfig,
+    known: &BTreeMap<ImageId, KnownPose>,
+) -> Result<Vec<GroupStart>> {
+    let specs: Vec<Option<&str>> = if config.init_images.is_empty() {
+        vec![None]
+    } else {
+        config
+            .init_images
+            .iter()
+            .map(|s| Some(s.as_str()))
+            .collect()
+    };
+    let mut starts = Vec::with_capacity(specs.len());
+    for (k, spec) in specs.into_iter().enumerate() {
+        let image = resolve_init_image(db, spec)?;
+        if starts.iter().any(|s: &GroupStart| s.image == image) {
+            bail!(
+                "image `{}` is given twice as --init-image",
+                db.images[&image].name
+            );
+        }
+        let cam_from_world = match config.init_poses.get(k) {
+            Some(p) => p.to_cam_from_world(),
+            None => match known.get(&image).filter(|p| p.has_rotation) {
+                Some(p) => p.cam_from_world,
+                None => bail!(
+                    "no initial pose for image `{}`: pass --init-pose x,y,z,roll,pitch,yaw (map frame, metres, degrees){}",
+                    db.images[&image].name,
+                    if k > 0 { ", one per --init-image" } else { "" }
+                ),
+            },
+        };
+        starts.push(GroupStart {
+            image,
+            cam_from_world,
+        });
+    }
+    Ok(starts)
 }
 
 /// Files we may replace in an existing output folder.
@@ -423,7 +500,9 @@ pub fn run(args: &MapArgs) -> Result<()> {
         })?;
         log::info!("{n} images found in {}", dir.display());
     }
-    // Where the run starts: the model to extend, or the initial image at its pose.
+    let known_poses = known_poses(&db, config.pose_priors.as_deref())?;
+    // Where the run starts: the model to extend, or the initial image(s) at
+    // their poses.
     let start = match &config.input_model {
         Some(dir) => {
             let model = read_model(dir)
@@ -444,22 +523,8 @@ pub fn run(args: &MapArgs) -> Result<()> {
             );
             RunStart::Model(existing)
         }
-        None => {
-            let init_image = resolve_init_image(&db, config.init_image.as_deref())?;
-            let init_cam_from_world: Rigid3 = match &config.init_pose {
-                Some(p) => p.to_cam_from_world(),
-                None => match db.pose_priors.get(&init_image).and_then(|p| p.cam_from_world) {
-                    Some(pose) => pose,
-                    None => bail!(
-                        "no initial pose for image `{}`: pass --init-pose x,y,z,roll,pitch,yaw (map frame, metres, degrees)",
-                        db.images[&init_image].name
-                    ),
-                },
-            };
-            RunStart::InitialPose(init_image, init_cam_from_world)
-        }
+        None => RunStart::InitialPoses(group_starts(&db, &config, &known_poses)?),
     };
-    let known_poses = known_poses(&db, config.pose_priors.as_deref())?;
     let cloud = load_map(&config.lidar)?;
     let total = db.images.len();
     let bar = std::io::stderr().is_terminal().then(|| {
@@ -481,20 +546,17 @@ pub fn run(args: &MapArgs) -> Result<()> {
         db: &db,
         cloud: &cloud,
         known_poses: &known_poses,
+        held_cameras: &BTreeSet::new(),
     };
     let mapping = std::time::Instant::now();
     let out = match &start {
-        RunStart::InitialPose(image, pose) if config.init_search.is_some() => run_mapper_searching(
+        RunStart::InitialPoses(starts) => map_groups(
             inputs,
-            *image,
-            pose,
-            config.init_search.as_ref().expect("checked"),
+            starts,
+            config.init_search.as_ref(),
             &config.options,
             &mut progress,
         ),
-        RunStart::InitialPose(image, pose) => {
-            run_mapper_from_pose(inputs, *image, pose, &config.options, &mut progress)
-        }
         RunStart::Model(existing) => extend_model(inputs, existing, &config.options, &mut progress),
     };
     let mut out = out.with_context(|| {

@@ -3,15 +3,15 @@
 //! that no verified match links (groups of photos mapped each from its own
 //! initial pose, see `report.json` → `not_registered`) go into one model as
 //! they are: no alignment, nothing moved.
-use std::collections::{BTreeMap, BTreeSet};
-use std::path::{Path, PathBuf};
+use std::collections::BTreeMap;
+use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 
 use crate::io::atomic::write_dir_atomically;
 use crate::io::model::{read_model, write_model, ModelFormat};
 use crate::io::pose_ply::format_model_pose_ply;
-use crate::scene::{CameraId, ImageId, Point3DId, Reconstruction, TrackElement};
+pub use crate::scene::merge::{merge_models, MergeError, MergeSummary};
 
 /// Put models of the same LiDAR map (outputs of `map`) into one model.
 #[derive(Debug, clap::Args)]
@@ -30,139 +30,6 @@ pub struct MergeArgs {
         default_value = "text"
     )]
     pub output_type: String,
-}
-
-/// What [`merge_models`] did besides the union.
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
-pub struct MergeSummary {
-    /// Cameras of a later model given a new id because the same id held
-    /// other intrinsics (model index, old id, new id).
-    pub cameras_renumbered: Vec<(usize, CameraId, CameraId)>,
-    /// Images of a later model given a new id because the id was taken
-    /// (model index, old id, new id).
-    pub images_renumbered: Vec<(usize, ImageId, ImageId)>,
-}
-
-/// The registered images of `models` (and the points they see) in one
-/// model. Images are matched by name: one name in two models is an error
-/// (which pose would it keep?). Ids are kept where they are free: a camera
-/// id that a later model uses for other intrinsics, or an image id taken by
-/// another image, gets the next free id. 3D points are numbered from 1 in
-/// the models' order.
-pub fn merge_models(
-    models: &[(PathBuf, Reconstruction)],
-) -> Result<(Reconstruction, MergeSummary)> {
-    let mut out = Reconstruction::default();
-    let mut summary = MergeSummary::default();
-    let mut names: BTreeMap<String, &Path> = BTreeMap::new();
-    let mut next_point = 1u64;
-    for (k, (dir, model)) in models.iter().enumerate() {
-        if model.num_registered_images() == 0 {
-            bail!(
-                "{} has no registered image: nothing to merge",
-                dir.display()
-            );
-        }
-        let mut own: BTreeSet<&str> = BTreeSet::new();
-        for img in model.registered_images() {
-            if !own.insert(img.name.as_str()) {
-                bail!(
-                    "{}: image {} is in it twice (a model has one pose per image)",
-                    dir.display(),
-                    img.name
-                );
-            }
-            if let Some(first) = names.insert(img.name.clone(), dir) {
-                bail!(
-                    "image {} is in both {} and {}: merge models of different images (one pose per image)",
-                    img.name,
-                    first.display(),
-                    dir.display()
-                );
-            }
-        }
-        let mut camera_ids: BTreeMap<CameraId, CameraId> = BTreeMap::new();
-        let used: BTreeSet<CameraId> = model.registered_images().map(|img| img.camera_id).collect();
-        // A new id is free in the merged model and not one of this model's
-        // own, which keep theirs where they can.
-        let mut cameras_taken: BTreeSet<u32> =
-            out.cameras.keys().chain(&used).map(|c| c.0).collect();
-        for id in used {
-            let camera = model.cameras.get(&id).with_context(|| {
-                format!(
-                    "{}: camera {} of its images is missing",
-                    dir.display(),
-                    id.0
-                )
-            })?;
-            let new_id = match out.cameras.get(&id) {
-                None => id,
-                Some(c) if c == camera => id,
-                Some(_) => {
-                    let free = CameraId(
-                        next_free(&mut cameras_taken).context("no camera id left to give")?,
-                    );
-                    summary.cameras_renumbered.push((k, id, free));
-                    free
-                }
-            };
-            let mut camera = camera.clone();
-            camera.id = new_id;
-            out.cameras.insert(new_id, camera);
-            camera_ids.insert(id, new_id);
-        }
-        let mut image_ids: BTreeMap<ImageId, ImageId> = BTreeMap::new();
-        let mut images_taken: BTreeSet<u32> = out
-            .images
-            .keys()
-            .copied()
-            .chain(model.registered_images().map(|img| img.id))
-            .map(|i| i.0)
-            .collect();
-        for img in model.registered_images() {
-            let new_id = if out.images.contains_key(&img.id) {
-                let free =
-                    ImageId(next_free(&mut images_taken).context("no image id left to give")?);
-                summary.images_renumbered.push((k, img.id, free));
-                free
-            } else {
-                img.id
-            };
-            image_ids.insert(img.id, new_id);
-        }
-        let mut point_ids: BTreeMap<Point3DId, Point3DId> = BTreeMap::new();
-        for (&id, point) in &model.points3d {
-            let track: Vec<TrackElement> = point
-                .track
-                .iter()
-                .filter_map(|e| {
-                    Some(TrackElement {
-                        image_id: *image_ids.get(&e.image_id)?,
-                        point2d_idx: e.point2d_idx,
-                    })
-                })
-                .collect();
-            if track.is_empty() {
-                continue;
-            }
-            let new_id = Point3DId(next_point);
-            next_point += 1;
-            let mut point = point.clone();
-            point.track = track;
-            out.points3d.insert(new_id, point);
-            point_ids.insert(id, new_id);
-        }
-        for img in model.registered_images() {
-            let mut img = img.clone();
-            img.id = image_ids[&img.id];
-            img.camera_id = camera_ids[&img.camera_id];
-            for p in &mut img.points2d {
-                p.point3d_id = p.point3d_id.and_then(|id| point_ids.get(&id).copied());
-            }
-            out.images.insert(img.id, img);
-        }
-    }
-    Ok((out, summary))
 }
 
 /// What the inputs' `report.json` (where `map` wrote one) say against
@@ -211,14 +78,6 @@ pub fn map_frame_warnings(inputs: &[PathBuf]) -> Vec<String> {
     warnings
 }
 
-/// The smallest id above every id in `taken`, which it joins (`None` past
-/// `u32::MAX`).
-fn next_free(taken: &mut BTreeSet<u32>) -> Option<u32> {
-    let id = taken.last().map_or(Some(1), |&max| max.checked_add(1))?;
-    taken.insert(id);
-    Some(id)
-}
-
 pub fn run(args: &MergeArgs) -> Result<()> {
     if args.inputs.len() < 2 {
         bail!(
@@ -246,7 +105,7 @@ pub fn run(args: &MergeArgs) -> Result<()> {
     for dir in &args.inputs {
         let model =
             read_model(dir).with_context(|| format!("reading the model {}", dir.display()))?;
-        models.push((dir.clone(), model));
+        models.push((dir.display().to_string(), model));
     }
     for warning in map_frame_warnings(&args.inputs) {
         log::warn!("{warning}");
@@ -255,7 +114,7 @@ pub fn run(args: &MergeArgs) -> Result<()> {
     for (k, old, new) in &summary.cameras_renumbered {
         log::warn!(
             "{}: camera {} has other intrinsics than the earlier model's camera {}; it is camera {} in the merged model",
-            models[*k].0.display(),
+            models[*k].0,
             old.0,
             old.0,
             new.0
@@ -264,7 +123,7 @@ pub fn run(args: &MergeArgs) -> Result<()> {
     for (k, old, new) in &summary.images_renumbered {
         log::warn!(
             "{}: image id {} is taken by another image (models of different databases?); it is image {} in the merged model and its pose.ply line",
-            models[*k].0.display(),
+            models[*k].0,
             old.0,
             new.0
         );

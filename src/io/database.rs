@@ -159,6 +159,43 @@ impl DatabaseSnapshot {
                 .map(|g| (g.image_id1, g.image_id2, g.inlier_matches.as_slice())),
         )
     }
+
+    /// The database of only the images `keep`: their keypoints, the pairs
+    /// between two of them and their pose priors; every camera stays (an
+    /// unused one costs nothing).
+    pub fn restricted_to(&self, keep: &BTreeSet<ImageId>) -> DatabaseSnapshot {
+        let kept = |id: &ImageId| keep.contains(id);
+        DatabaseSnapshot {
+            path: self.path.clone(),
+            schema: self.schema.clone(),
+            cameras: self.cameras.clone(),
+            images: self
+                .images
+                .iter()
+                .filter(|(id, _)| kept(id))
+                .map(|(&id, img)| (id, img.clone()))
+                .collect(),
+            keypoints: self
+                .keypoints
+                .iter()
+                .filter(|(id, _)| kept(id))
+                .map(|(&id, k)| (id, k.clone()))
+                .collect(),
+            two_view_geometries: self
+                .two_view_geometries
+                .iter()
+                .filter(|g| kept(&g.image_id1) && kept(&g.image_id2))
+                .cloned()
+                .collect(),
+            pose_priors: self
+                .pose_priors
+                .iter()
+                .filter(|(id, _)| kept(id))
+                .map(|(&id, p)| (id, p.clone()))
+                .collect(),
+            cameras_without_focal_prior: self.cameras_without_focal_prior.clone(),
+        }
+    }
 }
 
 const KNOWN_TABLES: &[&str] = &[

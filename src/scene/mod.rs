@@ -4,6 +4,7 @@ pub mod body_pose;
 pub mod camera;
 pub mod correspondence_graph;
 pub mod ids;
+pub mod merge;
 pub mod pose;
 pub mod reconstruction;
 

@@ -68,6 +68,18 @@ pub enum MapperError {
     NoVerifiedPairs(String),
     #[error("the initial image id {0} is not in the database")]
     UnknownImage(ImageId),
+    #[error("no initial image given")]
+    NoInitialImage,
+    #[error("the initial images {first} and {second} are in one group of images (verified matches link them): give one initial image per group")]
+    SameGroup { first: String, second: String },
+    #[error("mapping the group of {images} images of the initial image {image}: {error}")]
+    Group {
+        image: String,
+        images: usize,
+        error: Box<MapperError>,
+    },
+    #[error("putting the groups' models in one: {0}")]
+    Merge(#[from] crate::scene::merge::MergeError),
     #[error("the LiDAR map is empty")]
     EmptyMap,
     #[error(
@@ -594,12 +606,15 @@ pub struct KnownPose {
 }
 
 /// What every run of the mapper reads and none changes: the database, the
-/// LiDAR map and the images' known poses (pose priors; empty for none).
+/// LiDAR map, the images' known poses (pose priors; empty for none) and the
+/// cameras whose intrinsics every solve holds at the database's values
+/// (those an earlier group's run refined; empty for none).
 #[derive(Clone, Copy)]
 pub struct MapperInputs<'a> {
     pub db: &'a DatabaseSnapshot,
     pub cloud: &'a PointCloud,
     pub known_poses: &'a BTreeMap<ImageId, KnownPose>,
+    pub held_cameras: &'a BTreeSet<CameraId>,
 }
 
 /// A run from the early look must leave the initial image within this of
@@ -1003,6 +1018,7 @@ pub(super) fn map_until(
         db,
         cloud,
         known_poses,
+        held_cameras,
     } = inputs;
     options.validate()?;
     match start {
@@ -1058,10 +1074,17 @@ pub(super) fn map_until(
     if let Some(m) = existing.filter(|m| m.hold || !lidar_terms) {
         refine.hold(m.camera_params.keys());
     }
-    // A model's cameras never share intrinsics with the database's others.
-    let model_cameras: BTreeSet<CameraId> = existing.map_or(BTreeSet::new(), |m| {
-        m.camera_params.keys().copied().collect()
-    });
+    // Cameras an earlier group's run refined keep its intrinsics.
+    refine.hold(held_cameras);
+    // A model's cameras, and held ones, never share intrinsics with the
+    // database's others.
+    let model_cameras: BTreeSet<CameraId> = existing
+        .map_or(BTreeSet::new(), |m| {
+            m.camera_params.keys().copied().collect()
+        })
+        .union(held_cameras)
+        .copied()
+        .collect();
     if options.bundle.share_identical_intrinsics {
         // Guessed and given focal lengths are refined differently only with
         // `auto`; otherwise identical cameras share whatever the database says.

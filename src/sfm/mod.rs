@@ -15,6 +15,7 @@
 //! * [`align`]: the whole model moved onto the map (similarity, shape held);
 //! * [`localise`]: a model placed on the map from a rough initial pose;
 //! * [`existing`]: an earlier model to extend, matched to the database;
+//! * [`groups`]: one run per group of images no match links, one model;
 //! * [`filter`]: outlier filters; [`report`]: `report.json`.
 pub mod align;
 pub mod associate;
@@ -23,6 +24,7 @@ pub mod existing;
 pub mod filter;
 pub mod focal;
 pub mod geometry;
+pub mod groups;
 pub mod initialize;
 pub mod localise;
 pub mod mapper;
@@ -33,6 +35,7 @@ pub mod runs;
 pub mod state;
 pub mod triangulate;
 
+pub use groups::{map_groups, GroupStart};
 pub use mapper::{extend_model, KnownPose, MapperError, MapperInputs, MapperOutput};
 pub use options::MapperOptions;
 pub use runs::{run_mapper, run_mapper_from_pose, run_mapper_searching, run_mapper_with_priors};

@@ -271,6 +271,32 @@ pub struct MapReport {
     /// The options the run used, adapted to the map's spacing (the TOML
     /// file's `[mapper]` sections, as JSON).
     pub options: Option<MapperOptions>,
+    /// With one initial image per group of images ([`super::groups`]):
+    /// each group's run, in the order given. The counts, `images` and
+    /// `intrinsics` above cover the whole model; the other fields are the
+    /// first group's run, and each further run's own report is in its record.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub groups: Vec<GroupRunRecord>,
+}
+
+/// One group's run of a `map` given one initial image per group.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct GroupRunRecord {
+    pub init_image_id: u32,
+    pub init_image: String,
+    /// The images the run was given: the group's, and for the first run
+    /// also every image of a group without an initial image (placed at a
+    /// known pose, or left out with the reason).
+    pub num_images: usize,
+    pub num_registered: usize,
+    pub num_points: usize,
+    /// Cameras whose intrinsics this run held at the values an earlier
+    /// group's run gave them (one set of intrinsics per camera in the model).
+    pub cameras_held: Vec<u32>,
+    /// Wall time of the group's runs, seconds.
+    pub mapping_s: f64,
+    /// The run's own report (`None` for the first, which is the top level).
+    pub report: Option<Box<MapReport>>,
 }
 
 /// A pose's change: its centre's move and its rotation's angle.
@@ -468,7 +494,7 @@ impl MapReport {
                 .map(|(id, size)| format!("{size} images from id {id}"))
                 .collect();
             parts.push(format!(
-                "{n} in {} group{} matched among themselves but not to the model's images ({}): map each on its own, from one of its images at its pose (--init-image ID --init-pose), then `colmap-lidar merge` the models",
+                "{n} in {} group{} matched among themselves but not to the model's images ({}): give one of each group's images as another --init-image, with its --init-pose, and each group is mapped from it into the same model",
                 groups.len(),
                 if groups.len() == 1 { "" } else { "s" },
                 first_few(listed, "; ")

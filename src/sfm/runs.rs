@@ -12,7 +12,7 @@
 //! * [`run_mapper_searching`]: the model mapped without the map's planes,
 //!   placed on the map by [`search_placement`], then mapped from each close
 //!   placement; the best fit kept.
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
 
 use super::align::{MIN_SIMILARITY_CONSTRAINT, WEAK_SIMILARITY_CONSTRAINT};
@@ -46,6 +46,7 @@ pub fn run_mapper(
         db,
         cloud,
         known_poses: &BTreeMap::new(),
+        held_cameras: &BTreeSet::new(),
     };
     run_mapper_with_priors(inputs, init_image, init_cam_from_world, options, progress)
 }

@@ -60,9 +60,9 @@ pub fn scene_args(scene: &Path, out: &Path, init_pose: &[f64; 6]) -> MapArgs {
         database: Some(scene.join("database.db")),
         lidar: Some(scene.join("lidar.ply")),
         output: Some(out.to_path_buf()),
-        init_pose: Some(init_pose.map(|v| v.to_string()).join(",")),
+        init_pose: vec![init_pose.map(|v| v.to_string()).join(",")],
         // The pose is that of the first trajectory image; COLMAP's ids need not follow names.
-        init_image: Some(image_name(0)),
+        init_image: vec![image_name(0)],
         ..Default::default()
     }
 }
@@ -465,7 +465,7 @@ fn yard_self_calibrates_colmaps_guessed_camera() {
     // 15 deg off against 4.1 mm with the true camera, focal 512.2 px).
     let searched = map_scene(&shared.scene, &dir.path().join("searched"), |args| {
         args.database = Some(db.clone());
-        args.init_pose = Some(rough_pose(&shared.scene).map(|v| v.to_string()).join(","));
+        args.init_pose = vec![rough_pose(&shared.scene).map(|v| v.to_string()).join(",")];
         args.init_search = Some("2,30".to_owned());
     });
     print_run(
@@ -512,6 +512,7 @@ fn yard_with_colmap_database() {
     check_map_colours(&scene, &dir.path().join("a"), dir.path());
     check_extension(&scene, &dir.path().join("a"), dir.path());
     check_partial_map(&scene, dir.path());
+    check_groups(&scene, dir.path(), &a);
     check_init_search(&scene, dir.path(), &a);
     // `evaluate` compares the errors with the model's own sigmas.
     let eval_json = dir.path().join("evaluation.json");
@@ -665,7 +666,7 @@ fn yard_with_colmap_database() {
     // pose); report.json says whether the whole-model alignment moved it.
     let (exact, perturbed) = read_init_pose(&scene.join("init_pose.txt")).unwrap();
     let perturbed_run = map_scene(&scene, &dir.path().join("perturbed"), |args| {
-        args.init_pose = Some(perturbed.map(|v| v.to_string()).join(","));
+        args.init_pose = vec![perturbed.map(|v| v.to_string()).join(",")];
     });
     print_run("yard, perturbed initial pose", &perturbed_run);
     check_run(&perturbed_run);
@@ -711,7 +712,7 @@ fn yard_with_colmap_database() {
     write_pose_ply(&pose_file, &known).unwrap();
     let with_priors = map_scene(&scene, &dir.path().join("priors"), |args| {
         args.pose_priors = Some(pose_file.clone());
-        args.init_pose = Some(perturbed.map(|v| v.to_string()).join(","));
+        args.init_pose = vec![perturbed.map(|v| v.to_string()).join(",")];
     });
     print_run(
         "yard, perturbed initial pose, true poses as priors",
@@ -723,7 +724,7 @@ fn yard_with_colmap_database() {
     let out = dir.path().join("bad");
     let base = scene_args(&scene, &out, &exact);
     let err = run_map(&MapArgs {
-        init_image: Some("no_such_image.jpg".into()),
+        init_image: vec!["no_such_image.jpg".into()],
         ..base.clone()
     })
     .unwrap_err();
@@ -735,7 +736,7 @@ fn yard_with_colmap_database() {
     // Looking straight up from far above the scene: no map point in view.
     let away = format!("{},{},{},0,-90,0", exact[0], exact[1], exact[2] + 500.0);
     let err = run_map(&MapArgs {
-        init_pose: Some(away),
+        init_pose: vec![away],
         ..base.clone()
     })
     .unwrap_err();
@@ -1031,6 +1032,142 @@ fn check_partial_map(scene: &Path, work: &Path) {
 /// `map --input-model`: half the yard's model (its first 12 trajectory
 /// images) extended with the other 12 from the same database, held and free;
 /// a model moved off the map is refused.
+/// One `map` run with one initial image per group: a copy of the yard's
+/// database without any verified pair (nor match) between frames 0-11 and
+/// 12-23, each group from its first frame's true pose. Every image in one
+/// model at the truth (as the connected database's run: the bar of
+/// `check_run`), `report.json` with both runs and the whole model's counts,
+/// `pose.ply` with every image, COLMAP reads it; one initial image maps its
+/// group alone and says why the others are not in.
+fn check_groups(scene: &Path, work: &Path, connected: &Run) {
+    let db = work.join("groups.db");
+    std::fs::copy(scene.join("database.db"), &db).unwrap();
+    let conn = rusqlite::Connection::open(&db).unwrap();
+    let first: BTreeSet<i64> = (0..12)
+        .map(|k| {
+            conn.query_row(
+                "SELECT image_id FROM images WHERE name = ?1",
+                [image_name(k)],
+                |row| row.get(0),
+            )
+            .unwrap()
+        })
+        .collect();
+    let mut cut = 0;
+    for table in ["two_view_geometries", "matches"] {
+        let pairs: Vec<i64> = conn
+            .prepare(&format!("SELECT pair_id FROM {table}"))
+            .unwrap()
+            .query_map([], |row| row.get(0))
+            .unwrap()
+            .map(Result::unwrap)
+            .collect();
+        for pair in pairs {
+            let (a, b) = (pair / 2147483647, pair % 2147483647);
+            if first.contains(&a) != first.contains(&b) {
+                cut += conn
+                    .execute(&format!("DELETE FROM {table} WHERE pair_id = ?1"), [pair])
+                    .unwrap();
+            }
+        }
+    }
+    drop(conn);
+    assert!(cut > 10, "{cut} rows deleted");
+    let gt = load_poses(&scene.join("gt")).unwrap();
+    let pose_of = |k: usize| {
+        BodyPose::from_cam_from_world(&gt[&image_name(k)])
+            .to_degrees_array()
+            .map(|v| v.to_string())
+            .join(",")
+    };
+    let exact = |k: usize| -> [f64; 6] {
+        BodyPose::from_cam_from_world(&gt[&image_name(k)]).to_degrees_array()
+    };
+    let out = work.join("groups");
+    let both = map_scene_from(scene, &out, &exact(0), |args| {
+        args.database = Some(db.clone());
+        args.init_image.push(image_name(12));
+        args.init_pose.push(pose_of(12));
+    });
+    print_run("yard in two groups, one run", &both);
+    check_run(&both);
+    assert_eq!(both.none.num_registered, 24);
+    let c = both.none.centre_error_m.as_ref().unwrap();
+    let c0 = connected.none.centre_error_m.as_ref().unwrap();
+    eprintln!(
+        "two groups: median {:.2} mm, p90 {:.2} mm (connected database {:.2} / {:.2} mm)",
+        c.median * 1e3,
+        c.p90 * 1e3,
+        c0.median * 1e3,
+        c0.p90 * 1e3
+    );
+    let report = &both.report;
+    assert_eq!(report["num_registered"].as_u64(), Some(24));
+    assert_eq!(report["images"].as_array().unwrap().len(), 24);
+    let groups = report["groups"].as_array().unwrap();
+    assert_eq!(groups.len(), 2);
+    for (g, k) in groups.iter().zip([0, 12]) {
+        assert_eq!(g["init_image"].as_str(), Some(image_name(k).as_str()));
+        assert_eq!(
+            (g["num_images"].as_u64(), g["num_registered"].as_u64()),
+            (Some(12), Some(12)),
+            "{g}"
+        );
+    }
+    assert!(groups[0]["report"].is_null());
+    assert_eq!(groups[1]["report"]["num_registered"].as_u64(), Some(12));
+    let points = report["num_points"].as_u64().unwrap();
+    assert_eq!(
+        points,
+        groups[0]["num_points"].as_u64().unwrap() + groups[1]["num_points"].as_u64().unwrap()
+    );
+    assert_eq!(read_pose_ply(&out.join("pose.ply")).unwrap().len(), 24);
+    if have_colmap() {
+        let text = crate::common::run_colmap([
+            "model_analyzer".as_ref(),
+            "--path".as_ref(),
+            out.as_os_str(),
+        ]);
+        assert!(text.contains("Registered images: 24"), "{text}");
+    }
+    // One initial image: its group, and the other named.
+    let one = work.join("groups_one");
+    let args = MapArgs {
+        database: Some(db.clone()),
+        ..scene_args(scene, &one, &exact(0))
+    };
+    run_map(&args).unwrap();
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(one.join("report.json")).unwrap()).unwrap();
+    assert_eq!(report["num_registered"].as_u64(), Some(12));
+    assert!(report.get("groups").is_none());
+    let other = report["images"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|r| r["name"] == image_name(12).as_str())
+        .unwrap();
+    assert_eq!(other["not_registered"]["reason"], "other_group", "{other}");
+    // Two initial images of one group: an error naming both, nothing written.
+    let same = work.join("groups_same");
+    let args = MapArgs {
+        database: Some(db.clone()),
+        init_image: vec![image_name(0), image_name(3)],
+        init_pose: vec![pose_of(0), pose_of(3)],
+        ..scene_args(scene, &same, &exact(0))
+    };
+    let err = format!("{:#}", run_map(&args).unwrap_err());
+    assert!(
+        err.contains(&format!(
+            "{} and {} are in one group",
+            image_name(0),
+            image_name(3)
+        )),
+        "{err}"
+    );
+    assert!(!same.exists());
+}
+
 fn check_extension(scene: &Path, model_dir: &Path, work: &Path) {
     let full = read_model(model_dir).unwrap();
     let first: BTreeSet<String> = (0..12).map(image_name).collect();

@@ -2,7 +2,7 @@
 //! normals; random surface points seen by a short camera trajectory; their
 //! projections (with noise) as keypoints; matches (with a few wrong ones) as
 //! verified pairs. Everything in memory, no COLMAP.
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
 
 use colmap_lidar::commands::map::{run as run_map, MapArgs};
@@ -771,14 +771,14 @@ fn toy_bad_inputs_fail_clearly() {
         database: Some(dir.path().join("missing.db")),
         lidar: Some(dir.path().join("missing.ply")),
         output: Some(out.clone()),
-        init_pose: Some("0,0,0,0,0,0".into()),
+        init_pose: vec!["0,0,0,0,0,0".into()],
         ..Default::default()
     };
     let err = run_map(&args).unwrap_err();
     assert!(format!("{err:#}").contains("missing.db"), "{err:#}");
     assert!(!out.exists());
     let args = MapArgs {
-        init_pose: Some("0,0,0,0,0".into()),
+        init_pose: vec!["0,0,0,0,0".into()],
         ..args
     };
     let err = run_map(&args).unwrap_err();
@@ -1013,12 +1013,58 @@ fn options_file_and_command_line_merge() {
     let c = args.config().unwrap();
     assert_eq!(c.database, PathBuf::from("a.db"));
     assert_eq!(c.output, PathBuf::from("cli-out"));
-    assert_eq!(c.init_image.as_deref(), Some("3"));
+    assert_eq!(c.init_images, vec!["3".to_string()]);
     assert_eq!(c.image_path, Some(PathBuf::from("photos")));
     assert_eq!(c.options.seed, 9);
     assert_eq!(c.options.register.max_error_px, 3.0);
     assert_eq!(c.format, colmap_lidar::io::model::ModelFormat::Binary);
-    assert!((c.init_pose.unwrap().to_degrees_array()[5] - 90.0).abs() < 1e-12);
+    assert!((c.init_poses[0].to_degrees_array()[5] - 90.0).abs() < 1e-12);
+    // One initial image per group: lists in the file, repeated flags on the
+    // command line; as many poses as images, or none.
+    std::fs::write(
+        &file,
+        "database = \"a.db\"\nlidar = \"m.ply\"\noutput = \"out\"\ninit_image = [\"a.png\", 7]\n\
+         init_pose = [\"1,2,3,0,0,90\", \"4,5,6,0,0,-90\"]\n",
+    )
+    .unwrap();
+    let c = args.config().unwrap();
+    assert_eq!(c.init_images, vec!["a.png".to_string(), "7".to_string()]);
+    assert_eq!(c.init_poses[1].to_degrees_array()[..3], [4.0, 5.0, 6.0]);
+    let one_pose = MapArgs {
+        init_image: vec!["a.png".into(), "b.png".into()],
+        init_pose: vec!["1,2,3,0,0,90".into()],
+        ..args.clone()
+    };
+    let err = format!("{:#}", one_pose.config().unwrap_err());
+    assert!(err.contains("1 --init-pose for 2 --init-image"), "{err}");
+    let no_pose = MapArgs {
+        init_pose: Vec::new(),
+        ..one_pose
+    };
+    std::fs::write(
+        &file,
+        "database = \"a.db\"\nlidar = \"m.ply\"\noutput = \"out\"\n",
+    )
+    .unwrap();
+    assert_eq!(no_pose.config().unwrap().init_poses.len(), 0);
+    std::fs::write(
+        &file,
+        "database = \"a.db\"\nlidar = \"m.ply\"\noutput = \"out\"\ninit_pose = [1, 2]\n",
+    )
+    .unwrap();
+    let err = format!(
+        "{:#}",
+        MapArgs {
+            options: Some(file.clone()),
+            ..Default::default()
+        }
+        .config()
+        .unwrap_err()
+    );
+    assert!(
+        err.contains("init_pose in the options file must be a string"),
+        "{err}"
+    );
     // Unknown keys and bad values are errors naming the problem.
     std::fs::write(&file, "[mapper.register]\nmax_eror_px = 3.0\n").unwrap();
     let err = format!("{:#}", args.config().unwrap_err());
@@ -1041,7 +1087,7 @@ fn options_file_and_command_line_merge() {
     assert_eq!(c.input_model, Some(PathBuf::from("sparse/0")));
     assert!(c.fix_existing_images);
     let with_pose = MapArgs {
-        init_pose: Some("1,2,3,0,0,90".into()),
+        init_pose: vec!["1,2,3,0,0,90".into()],
         ..args.clone()
     };
     let err = format!("{:#}", with_pose.config().unwrap_err());
@@ -1137,6 +1183,7 @@ fn toy_room_image_with_too_few_matches_is_placed_at_its_known_pose() {
         db: &scene.db,
         cloud: &scene.cloud,
         known_poses: &known,
+        held_cameras: &BTreeSet::new(),
     };
     let out = run_mapper_with_priors(inputs, ImageId(1), &init, &options, &mut |_, _| {}).unwrap();
     let rec = out
@@ -1481,6 +1528,7 @@ fn toy_room_partly_mapped_model_is_extended() {
         db: &scene.db,
         cloud: &scene.cloud,
         known_poses: &BTreeMap::new(),
+        held_cameras: &BTreeSet::new(),
     };
     for hold in [true, false] {
         let model = match_to_database(&half, &scene.db, hold).unwrap();
@@ -1669,6 +1717,153 @@ fn toy_room_says_why_images_are_not_registered() {
     assert_eq!(copy["not_registered"]["group_size"], 3);
 }
 
+/// One run from one initial image per group (`map_groups`): the toy's 10
+/// images and a copy of them under other names and ids, no verified match
+/// between the two, and a third group of 3 copies with no initial image.
+/// One model with both groups at the truth, one camera (its focal length,
+/// given 1 % off, refined by the first group's run and held by the
+/// second's), a report over all 23 images with a record per run; two
+/// initial images in one group are refused.
+#[test]
+fn toy_room_groups_mapped_in_one_run() {
+    use colmap_lidar::sfm::report::NotRegistered;
+    use colmap_lidar::sfm::{map_groups, GroupStart, MapperError};
+    let mut scene = toy(10, 0.3, 0.03, 4);
+    scene.db.cameras.get_mut(&CameraId(1)).unwrap().params[0] = 454.5;
+    let db = &mut scene.db;
+    for id in (1..=10).map(ImageId) {
+        copy_image(
+            db,
+            id,
+            ImageId(id.0 + 100),
+            &format!("copy_{:03}.png", id.0),
+        );
+        scene.gt.insert(ImageId(id.0 + 100), scene.gt[&id]);
+    }
+    copy_pairs(db, |id| Some(ImageId(id.0 + 100)));
+    for id in (1..=3).map(ImageId) {
+        copy_image(
+            db,
+            id,
+            ImageId(id.0 + 200),
+            &format!("third_{:03}.png", id.0),
+        );
+    }
+    copy_pairs(db, |id| (id.0 <= 3).then_some(ImageId(id.0 + 200)));
+    let pose = scene.init_pose.to_cam_from_world();
+    let start = |id: u32| GroupStart {
+        image: ImageId(id),
+        cam_from_world: pose,
+    };
+    let known = BTreeMap::new();
+    let inputs = MapperInputs {
+        db: &scene.db,
+        cloud: &scene.cloud,
+        known_poses: &known,
+        held_cameras: &BTreeSet::new(),
+    };
+    let options = MapperOptions::default();
+    let mut seen = Vec::new();
+    let out = map_groups(
+        inputs,
+        &[start(1), start(101)],
+        None,
+        &options,
+        &mut |done, total| seen.push((done, total)),
+    )
+    .unwrap();
+    let report = &out.report;
+    assert_eq!(
+        (report.num_images, report.num_registered),
+        (23, 20),
+        "{:?}",
+        report.groups
+    );
+    assert_eq!(out.reconstruction.num_registered_images(), 20);
+    let err = max_centre_error(&out.reconstruction, &scene.gt);
+    assert!(err < 0.03, "max centre error {err} m");
+    // Progress counts on over the runs, to all 20.
+    assert!(seen.windows(2).all(|w| w[0].0 <= w[1].0), "{seen:?}");
+    assert_eq!(seen.last(), Some(&(20, 23)));
+    // The runs: the first over its group and the third (23 - 10 images).
+    let runs: Vec<(u32, usize, usize, Vec<u32>, bool)> = report
+        .groups
+        .iter()
+        .map(|g| {
+            (
+                g.init_image_id,
+                g.num_images,
+                g.num_registered,
+                g.cameras_held.clone(),
+                g.report.is_some(),
+            )
+        })
+        .collect();
+    assert_eq!(
+        runs,
+        vec![(1, 13, 10, vec![], false), (101, 10, 10, vec![1], true)]
+    );
+    // One camera: refined by the first run, held by the second there.
+    assert_eq!(out.reconstruction.cameras.len(), 1);
+    let first = &report.intrinsics[0];
+    assert_eq!(
+        (first.camera_id, first.refined.as_str()),
+        (1, "final rounds")
+    );
+    assert!((first.final_params[0] - 450.0).abs() < 0.9, "{first:?}");
+    let second = report.groups[1].report.as_ref().unwrap();
+    assert!(second.options.is_none() && second.groups.is_empty());
+    let held = &second.intrinsics[0];
+    assert_eq!(held.refined, "held");
+    assert_eq!(held.database_params, first.final_params);
+    assert_eq!(held.final_params, first.final_params);
+    assert_eq!(
+        out.reconstruction.cameras[&CameraId(1)].params,
+        first.final_params
+    );
+    // Every image once in the report, in id order; the third group says why.
+    let ids: Vec<u32> = report.images.iter().map(|r| r.image_id).collect();
+    let want: Vec<u32> = (1..=10).chain(101..=110).chain(201..=203).collect();
+    assert_eq!(ids, want);
+    for rec in &report.images {
+        if rec.image_id > 200 {
+            assert_eq!(
+                rec.not_registered,
+                Some(NotRegistered::OtherGroup {
+                    group_size: 3,
+                    group_first_image_id: 201
+                })
+            );
+        } else {
+            assert!(rec.registered, "{rec:?}");
+        }
+    }
+    let obs: usize = out
+        .reconstruction
+        .points3d
+        .values()
+        .map(|p| p.track.len())
+        .sum();
+    assert_eq!(report.num_observations, obs);
+    assert_eq!(report.num_points, out.reconstruction.points3d.len());
+    // Two initial images of one group.
+    let Err(err) = map_groups(
+        inputs,
+        &[start(1), start(5)],
+        None,
+        &options,
+        &mut |_, _| {},
+    ) else {
+        panic!("two initial images of one group were mapped");
+    };
+    assert!(matches!(err, MapperError::SameGroup { .. }), "{err}");
+    assert!(
+        err.to_string()
+            .contains("img_000.png and img_004.png are in one group"),
+        "{err}"
+    );
+}
+
 /// Two groups of images that no verified match links (the toy's 10 images
 /// and a copy of them under other names and ids), mapped each from its own
 /// initial image at its pose, and `merge`d: one model with every image at
@@ -1749,7 +1944,8 @@ fn toy_room_groups_mapped_apart_merge_into_one_model() {
     // Other intrinsics under the same camera id: a second camera.
     let mut b2 = b.clone();
     b2.cameras.get_mut(&CameraId(1)).unwrap().params[0] += 1.0;
-    let models = vec![(dir_a.clone(), a.clone()), (dir_b.clone(), b2)];
+    let label = |dir: &PathBuf| dir.display().to_string();
+    let models = vec![(label(&dir_a), a.clone()), (label(&dir_b), b2)];
     let (merged, summary) = merge_models(&models).unwrap();
     assert_eq!(
         summary.cameras_renumbered,
@@ -1777,7 +1973,7 @@ fn toy_room_groups_mapped_apart_merge_into_one_model() {
             e.image_id = to(e.image_id);
         }
     }
-    let models = vec![(dir_a.clone(), a.clone()), (dir_b.clone(), b3)];
+    let models = vec![(label(&dir_a), a.clone()), (label(&dir_b), b3)];
     let (merged, summary) = merge_models(&models).unwrap();
     let renumbered: Vec<(u32, u32)> = summary
         .images_renumbered
