@@ -617,6 +617,24 @@ pub fn run(args: &MapArgs) -> Result<()> {
         out.report.mapping_s.unwrap_or(f64::NAN),
         config.output.display()
     );
+    for g in &out.report.groups {
+        println!(
+            "  group of {}: {}/{} images, {} points, {:.1} s{}",
+            g.init_image,
+            g.num_registered,
+            g.num_images,
+            g.num_points,
+            g.mapping_s,
+            if g.cameras_held.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    ", intrinsics of cameras {:?} held as an earlier group's run gave them",
+                    g.cameras_held
+                )
+            }
+        );
+    }
     if let Some(summary) = out.report.not_registered_summary() {
         log::warn!("{summary}");
     }
@@ -635,9 +653,14 @@ pub fn run(args: &MapArgs) -> Result<()> {
     }
     if let Some(u) = &out.report.pose_uncertainty {
         println!(
-            "pose uncertainty (1 sigma, from the final solve's information; report.json per image): \
+            "pose uncertainty{} (1 sigma, from the final solve's information; report.json per image): \
              camera centre median {:.1} mm, max {:.1} mm along the least determined direction; \
              rotation median {:.3} deg",
+            if out.report.groups.is_empty() {
+                ""
+            } else {
+                " of the first group's images"
+            },
             u.median_centre_sigma_major_m * 1e3,
             u.max_centre_sigma_major_m * 1e3,
             u.median_rotation_sigma_deg

@@ -16,8 +16,10 @@ use std::time::Instant;
 use super::localise::SearchRegion;
 use super::mapper::{KnownPose, MapperError, MapperInputs, MapperOutput, Progress};
 use super::options::MapperOptions;
-use super::report::{GroupRunRecord, MapReport};
+use super::options::{AssociationKind, IntrinsicsRefinement};
+use super::report::{GroupRunRecord, IntrinsicsRecord, MapReport};
 use super::runs::{run_mapper_from_pose, run_mapper_searching};
+use crate::io::database::DatabaseSnapshot;
 use crate::scene::merge::merge_models;
 use crate::scene::{CameraId, ImageId, Rigid3};
 
@@ -55,24 +57,19 @@ pub fn map_groups(
             .map_or_else(|| format!("id {}", id.0), |img| img.name.clone())
     };
     let sets = group_image_sets(inputs, starts)?;
+    if options.association.kind == AssociationKind::None {
+        log::warn!(
+            "without the map's planes (--no-lidar-constraints) each group's model is in its own initial pose's frame at its own initial pair's scale: the {} groups are not in one frame",
+            starts.len()
+        );
+    }
     let total = db.images.len();
-    let mut held: BTreeMap<CameraId, Vec<f64>> = BTreeMap::new();
+    let mut held = HeldIntrinsics::new(db, options);
     let mut runs: Vec<(GroupRunRecord, MapperOutput)> = Vec::with_capacity(starts.len());
     let mut done = 0usize;
     for (start, images) in starts.iter().zip(&sets) {
         let mut group_db = db.restricted_to(images);
-        // Cameras an earlier run refined, at its values.
-        let used: BTreeSet<CameraId> = group_db.images.values().map(|i| i.camera_id).collect();
-        let held_here: BTreeSet<CameraId> = used
-            .into_iter()
-            .filter(|id| held.contains_key(id))
-            .collect();
-        for id in &held_here {
-            if let Some(camera) = group_db.cameras.get_mut(id) {
-                camera.params = held[id].clone();
-            }
-            group_db.cameras_without_focal_prior.remove(id);
-        }
+        let held_here = held.apply(&mut group_db);
         let known: BTreeMap<ImageId, KnownPose> = inputs
             .known_poses
             .iter()
@@ -92,19 +89,20 @@ pub fn map_groups(
         );
         let started = Instant::now();
         let mut group_progress = |registered: usize, _: usize| progress(done + registered, total);
-        let out =
+        let mut out =
             run(group_inputs, start, &mut group_progress).map_err(|e| MapperError::Group {
                 image: name(start.image),
                 images: images.len(),
                 error: Box::new(e),
             })?;
-        done += out.report.num_registered;
-        for img in out.reconstruction.registered_images() {
-            if let Some(camera) = out.reconstruction.cameras.get(&img.camera_id) {
-                held.entry(img.camera_id)
-                    .or_insert_with(|| camera.params.clone());
+        // Registration order goes on from the earlier groups'.
+        for rec in &mut out.report.images {
+            if let Some(k) = &mut rec.registration_index {
+                *k += done;
             }
         }
+        done += out.report.num_registered;
+        held.record(&out);
         let record = GroupRunRecord {
             init_image_id: start.image.0,
             init_image: name(start.image),
@@ -117,7 +115,92 @@ pub fn map_groups(
         };
         runs.push((record, out));
     }
-    merge_runs(runs, total)
+    merge_runs(db, runs)
+}
+
+/// The intrinsics earlier groups' runs gave the cameras of their registered
+/// images, to hold in the later runs: by camera id, and, where identical
+/// cameras share intrinsics (`bundle.share_identical_intrinsics`), by what
+/// the database says of the camera (model, size, parameters, guessed), as
+/// [`super::state::MapState::share_identical_intrinsics`] groups them.
+struct HeldIntrinsics<'a> {
+    db: &'a DatabaseSnapshot,
+    /// Whether identical cameras share intrinsics, and whether a guessed
+    /// focal length sets a camera apart (`auto` only).
+    share: bool,
+    guessed_apart: bool,
+    by_id: BTreeMap<CameraId, Vec<f64>>,
+    by_kind: BTreeMap<CameraKind, Vec<f64>>,
+}
+
+/// A camera as the database describes it: model, size, parameter bits and
+/// whether its focal length is a guess.
+type CameraKind = (&'static str, u32, u32, Vec<u64>, bool);
+
+impl<'a> HeldIntrinsics<'a> {
+    fn new(db: &'a DatabaseSnapshot, options: &MapperOptions) -> Self {
+        Self {
+            db,
+            share: options.bundle.share_identical_intrinsics,
+            guessed_apart: options.bundle.refine_intrinsics == IntrinsicsRefinement::Auto,
+            by_id: BTreeMap::new(),
+            by_kind: BTreeMap::new(),
+        }
+    }
+
+    fn kind(&self, id: CameraId) -> Option<CameraKind> {
+        let c = self.db.cameras.get(&id)?;
+        Some((
+            c.model.name(),
+            c.width,
+            c.height,
+            c.params.iter().map(|p| p.to_bits()).collect(),
+            self.guessed_apart && self.db.cameras_without_focal_prior.contains(&id),
+        ))
+    }
+
+    /// The held intrinsics for camera `id`, if an earlier run gave them.
+    fn get(&self, id: CameraId) -> Option<&Vec<f64>> {
+        self.by_id.get(&id).or_else(|| {
+            self.share
+                .then(|| self.kind(id).and_then(|k| self.by_kind.get(&k)))
+                .flatten()
+        })
+    }
+
+    /// Sets the held cameras of `group_db`'s images to their intrinsics,
+    /// given (no longer guessed); returns them.
+    fn apply(&self, group_db: &mut DatabaseSnapshot) -> BTreeSet<CameraId> {
+        let used: BTreeSet<CameraId> = group_db.images.values().map(|i| i.camera_id).collect();
+        let mut held = BTreeSet::new();
+        for id in used {
+            let Some(params) = self.get(id) else { continue };
+            if let Some(camera) = group_db.cameras.get_mut(&id) {
+                camera.params = params.clone();
+                group_db.cameras_without_focal_prior.remove(&id);
+                held.insert(id);
+            }
+        }
+        held
+    }
+
+    /// The intrinsics `out` gave the cameras of its registered images (the
+    /// first run to give a camera its intrinsics keeps them).
+    fn record(&mut self, out: &MapperOutput) {
+        for img in out.reconstruction.registered_images() {
+            let Some(camera) = out.reconstruction.cameras.get(&img.camera_id) else {
+                continue;
+            };
+            self.by_id
+                .entry(img.camera_id)
+                .or_insert_with(|| camera.params.clone());
+            if let Some(kind) = self.kind(img.camera_id) {
+                self.by_kind
+                    .entry(kind)
+                    .or_insert_with(|| camera.params.clone());
+            }
+        }
+    }
 }
 
 /// One run from `start` (the search's, with a region).
@@ -167,6 +250,11 @@ fn group_image_sets(
         let group = *group_of
             .get(&start.image)
             .ok_or(MapperError::UnknownImage(start.image))?;
+        if members[&group].len() < 2 {
+            return Err(MapperError::InitialImageAlone(
+                db.images[&start.image].name.clone(),
+            ));
+        }
         if let Some(first) = started.insert(group, start.image) {
             return Err(MapperError::SameGroup {
                 first: db.images[&first].name.clone(),
@@ -186,8 +274,8 @@ fn group_image_sets(
 /// The groups' models in one, with one report: the first run's, its counts,
 /// images and intrinsics over the whole model, and a record of every run.
 fn merge_runs(
+    db: &DatabaseSnapshot,
     runs: Vec<(GroupRunRecord, MapperOutput)>,
-    total_images: usize,
 ) -> Result<MapperOutput, MapperError> {
     let labelled: Vec<(String, crate::scene::Reconstruction)> = runs
         .iter()
@@ -206,19 +294,16 @@ fn merge_runs(
     let mut records = Vec::with_capacity(runs.len());
     let mut report: Option<MapReport> = None;
     let (mut observations, mut error_sum) = (0usize, 0.0);
+    let mut intrinsics = Intrinsics::default();
     for (mut record, out) in runs {
         let mut own = out.report;
+        intrinsics.add(db, &own);
         observations += own.num_observations;
         error_sum += own.mean_reprojection_error_px * own.num_observations as f64;
         match &mut report {
             None => report = Some(own),
             Some(top) => {
                 top.images.extend(own.images.iter().cloned());
-                for rec in &own.intrinsics {
-                    if !top.intrinsics.iter().any(|r| r.camera_id == rec.camera_id) {
-                        top.intrinsics.push(rec.clone());
-                    }
-                }
                 own.options = None;
                 record.report = Some(Box::new(own));
             }
@@ -228,9 +313,9 @@ fn merge_runs(
     let Some(mut report) = report else {
         return Err(MapperError::NoInitialImage);
     };
+    report.intrinsics = intrinsics.records();
     report.images.sort_by_key(|r| r.image_id);
-    report.intrinsics.sort_by_key(|r| r.camera_id);
-    report.num_images = total_images;
+    report.num_images = db.images.len();
     report.num_registered = reconstruction.num_registered_images();
     report.num_points = reconstruction.points3d.len();
     report.num_observations = observations;
@@ -249,4 +334,41 @@ fn merge_runs(
         reconstruction,
         report,
     })
+}
+
+/// One intrinsics record per camera: from the first run that registered an
+/// image of it (the run whose values the model has; later runs held it),
+/// else from the first run that had it.
+#[derive(Default)]
+struct Intrinsics {
+    registered: BTreeMap<u32, IntrinsicsRecord>,
+    other: BTreeMap<u32, IntrinsicsRecord>,
+}
+
+impl Intrinsics {
+    /// The records of one run's report (before it is merged).
+    fn add(&mut self, db: &DatabaseSnapshot, report: &MapReport) {
+        let used: BTreeSet<u32> = report
+            .images
+            .iter()
+            .filter(|r| r.registered)
+            .filter_map(|r| db.images.get(&ImageId(r.image_id)))
+            .map(|img| img.camera_id.0)
+            .collect();
+        for rec in &report.intrinsics {
+            let records = if used.contains(&rec.camera_id) {
+                &mut self.registered
+            } else {
+                &mut self.other
+            };
+            records.entry(rec.camera_id).or_insert_with(|| rec.clone());
+        }
+    }
+
+    fn records(mut self) -> Vec<IntrinsicsRecord> {
+        for (id, rec) in self.other {
+            self.registered.entry(id).or_insert(rec);
+        }
+        self.registered.into_values().collect()
+    }
 }

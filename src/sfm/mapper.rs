@@ -78,6 +78,8 @@ pub enum MapperError {
         images: usize,
         error: Box<MapperError>,
     },
+    #[error("the initial image {0} has no verified pair with any image: it cannot start a group")]
+    InitialImageAlone(String),
     #[error("putting the groups' models in one: {0}")]
     Merge(#[from] crate::scene::merge::MergeError),
     #[error("the LiDAR map is empty")]

@@ -59,8 +59,9 @@ pub enum NotRegistered {
     /// model: a group of `group_size` images (a connected component of the
     /// image graph; its smallest image id `group_first_image_id`) that
     /// shares no verified matches with the model's images. Such a group is
-    /// mapped on its own, from one of its images at its pose in the map,
-    /// and the models merged (`colmap-lidar merge`).
+    /// mapped from one of its images at its pose in the map: in the same
+    /// run (another `--init-image`, [`super::groups`]), or on its own and
+    /// the models merged (`colmap-lidar merge`).
     OtherGroup {
         group_size: usize,
         group_first_image_id: u32,

@@ -1718,12 +1718,15 @@ fn toy_room_says_why_images_are_not_registered() {
 }
 
 /// One run from one initial image per group (`map_groups`): the toy's 10
-/// images and a copy of them under other names and ids, no verified match
-/// between the two, and a third group of 3 copies with no initial image.
-/// One model with both groups at the truth, one camera (its focal length,
-/// given 1 % off, refined by the first group's run and held by the
-/// second's), a report over all 23 images with a record per run; two
-/// initial images in one group are refused.
+/// images and a copy of them under other names and ids and with their own
+/// camera (identical in the database, as COLMAP gives each image one), no
+/// verified match between the two, a third group of 3 copies with no
+/// initial image and an image without any pair. One model with both groups
+/// at the truth, one set of intrinsics (the focal length, given 1 % off,
+/// refined by the first group's run and held by the second's for the
+/// identical camera), a report over all 24 images with a record per run;
+/// two initial images in one group, or one without any verified pair, are
+/// refused.
 #[test]
 fn toy_room_groups_mapped_in_one_run() {
     use colmap_lidar::sfm::report::NotRegistered;
@@ -1731,14 +1734,14 @@ fn toy_room_groups_mapped_in_one_run() {
     let mut scene = toy(10, 0.3, 0.03, 4);
     scene.db.cameras.get_mut(&CameraId(1)).unwrap().params[0] = 454.5;
     let db = &mut scene.db;
+    let mut twin = db.cameras[&CameraId(1)].clone();
+    twin.id = CameraId(2);
+    db.cameras.insert(CameraId(2), twin);
     for id in (1..=10).map(ImageId) {
-        copy_image(
-            db,
-            id,
-            ImageId(id.0 + 100),
-            &format!("copy_{:03}.png", id.0),
-        );
-        scene.gt.insert(ImageId(id.0 + 100), scene.gt[&id]);
+        let copy = ImageId(id.0 + 100);
+        copy_image(db, id, copy, &format!("copy_{:03}.png", id.0));
+        db.images.get_mut(&copy).unwrap().camera_id = CameraId(2);
+        scene.gt.insert(copy, scene.gt[&id]);
     }
     copy_pairs(db, |id| Some(ImageId(id.0 + 100)));
     for id in (1..=3).map(ImageId) {
@@ -1750,6 +1753,7 @@ fn toy_room_groups_mapped_in_one_run() {
         );
     }
     copy_pairs(db, |id| (id.0 <= 3).then_some(ImageId(id.0 + 200)));
+    copy_image(db, ImageId(4), ImageId(300), "lone.png");
     let pose = scene.init_pose.to_cam_from_world();
     let start = |id: u32| GroupStart {
         image: ImageId(id),
@@ -1775,7 +1779,7 @@ fn toy_room_groups_mapped_in_one_run() {
     let report = &out.report;
     assert_eq!(
         (report.num_images, report.num_registered),
-        (23, 20),
+        (24, 20),
         "{:?}",
         report.groups
     );
@@ -1784,8 +1788,8 @@ fn toy_room_groups_mapped_in_one_run() {
     assert!(err < 0.03, "max centre error {err} m");
     // Progress counts on over the runs, to all 20.
     assert!(seen.windows(2).all(|w| w[0].0 <= w[1].0), "{seen:?}");
-    assert_eq!(seen.last(), Some(&(20, 23)));
-    // The runs: the first over its group and the third (23 - 10 images).
+    assert_eq!(seen.last(), Some(&(20, 24)));
+    // The runs: the first over its group, the third and the lone image.
     let runs: Vec<(u32, usize, usize, Vec<u32>, bool)> = report
         .groups
         .iter()
@@ -1801,10 +1805,10 @@ fn toy_room_groups_mapped_in_one_run() {
         .collect();
     assert_eq!(
         runs,
-        vec![(1, 13, 10, vec![], false), (101, 10, 10, vec![1], true)]
+        vec![(1, 14, 10, vec![], false), (101, 10, 10, vec![2], true)]
     );
-    // One camera: refined by the first run, held by the second there.
-    assert_eq!(out.reconstruction.cameras.len(), 1);
+    // One set of intrinsics: refined by the first run, held by the second
+    // for the identical camera; a record for each camera from its run.
     let first = &report.intrinsics[0];
     assert_eq!(
         (first.camera_id, first.refined.as_str()),
@@ -1813,30 +1817,46 @@ fn toy_room_groups_mapped_in_one_run() {
     assert!((first.final_params[0] - 450.0).abs() < 0.9, "{first:?}");
     let second = report.groups[1].report.as_ref().unwrap();
     assert!(second.options.is_none() && second.groups.is_empty());
-    let held = &second.intrinsics[0];
-    assert_eq!(held.refined, "held");
+    let held = &report.intrinsics[1];
+    assert_eq!((held.camera_id, held.refined.as_str()), (2, "held"));
     assert_eq!(held.database_params, first.final_params);
     assert_eq!(held.final_params, first.final_params);
-    assert_eq!(
-        out.reconstruction.cameras[&CameraId(1)].params,
-        first.final_params
-    );
-    // Every image once in the report, in id order; the third group says why.
+    assert_eq!(second.intrinsics.len(), 1);
+    assert_eq!(second.intrinsics[0].camera_id, 2);
+    assert_eq!(out.reconstruction.cameras.len(), 2);
+    for camera in out.reconstruction.cameras.values() {
+        assert_eq!(camera.params, first.final_params);
+    }
+    // Every image once in the report, in id order, registration indices
+    // going on over the runs; the third group and the lone image say why.
     let ids: Vec<u32> = report.images.iter().map(|r| r.image_id).collect();
-    let want: Vec<u32> = (1..=10).chain(101..=110).chain(201..=203).collect();
+    let want: Vec<u32> = (1..=10)
+        .chain(101..=110)
+        .chain(201..=203)
+        .chain([300])
+        .collect();
     assert_eq!(ids, want);
+    let mut order: Vec<usize> = report
+        .images
+        .iter()
+        .filter_map(|r| r.registration_index)
+        .collect();
+    order.sort_unstable();
+    assert_eq!(order, (0..20).collect::<Vec<_>>());
     for rec in &report.images {
-        if rec.image_id > 200 {
-            assert_eq!(
-                rec.not_registered,
-                Some(NotRegistered::OtherGroup {
-                    group_size: 3,
-                    group_first_image_id: 201
-                })
-            );
-        } else {
-            assert!(rec.registered, "{rec:?}");
-        }
+        let why = match rec.image_id {
+            300 => Some(NotRegistered::NoMatches),
+            201.. => Some(NotRegistered::OtherGroup {
+                group_size: 3,
+                group_first_image_id: 201,
+            }),
+            _ => None,
+        };
+        assert_eq!(
+            (rec.registered, &rec.not_registered),
+            (why.is_none(), &why),
+            "{rec:?}"
+        );
     }
     let obs: usize = out
         .reconstruction
@@ -1846,20 +1866,23 @@ fn toy_room_groups_mapped_in_one_run() {
         .sum();
     assert_eq!(report.num_observations, obs);
     assert_eq!(report.num_points, out.reconstruction.points3d.len());
-    // Two initial images of one group.
-    let Err(err) = map_groups(
-        inputs,
-        &[start(1), start(5)],
-        None,
-        &options,
-        &mut |_, _| {},
-    ) else {
-        panic!("two initial images of one group were mapped");
+    // Two initial images of one group; one without any verified pair.
+    let fails = |ids: [u32; 2]| -> MapperError {
+        match map_groups(inputs, &ids.map(start), None, &options, &mut |_, _| {}) {
+            Ok(_) => panic!("{ids:?} were mapped"),
+            Err(e) => e,
+        }
     };
+    let err = fails([1, 5]);
     assert!(matches!(err, MapperError::SameGroup { .. }), "{err}");
     assert!(
         err.to_string()
             .contains("img_000.png and img_004.png are in one group"),
+        "{err}"
+    );
+    let err = fails([1, 300]);
+    assert!(
+        err.to_string().contains("lone.png has no verified pair"),
         "{err}"
     );
 }
