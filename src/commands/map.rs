@@ -653,14 +653,9 @@ pub fn run(args: &MapArgs) -> Result<()> {
     }
     if let Some(u) = &out.report.pose_uncertainty {
         println!(
-            "pose uncertainty{} (1 sigma, from the final solve's information; report.json per image): \
+            "pose uncertainty (1 sigma, from the final solve's information; report.json per image): \
              camera centre median {:.1} mm, max {:.1} mm along the least determined direction; \
              rotation median {:.3} deg",
-            if out.report.groups.is_empty() {
-                ""
-            } else {
-                " of the first group's images"
-            },
             u.median_centre_sigma_major_m * 1e3,
             u.max_centre_sigma_major_m * 1e3,
             u.median_rotation_sigma_deg

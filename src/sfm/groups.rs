@@ -8,16 +8,17 @@
 //! (the first also gets the images of groups without an initial image, so
 //! that images with a known pose there are placed at it and the others say
 //! why they are not in the model). A camera whose images are in two groups
-//! keeps the intrinsics the earlier group's run gave it: the later runs
-//! hold it there, so the model has one set of intrinsics per camera.
+//! keeps the intrinsics the earlier group's run gave it, and so do the
+//! cameras identical to it in the database (COLMAP gives each image its own
+//! camera unless told otherwise): the later runs hold them there, so the
+//! model has one set of intrinsics per camera as one run would give it.
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
 
 use super::localise::SearchRegion;
 use super::mapper::{KnownPose, MapperError, MapperInputs, MapperOutput, Progress};
-use super::options::MapperOptions;
-use super::options::{AssociationKind, IntrinsicsRefinement};
-use super::report::{GroupRunRecord, IntrinsicsRecord, MapReport};
+use super::options::{AssociationKind, IntrinsicsRefinement, MapperOptions};
+use super::report::{GroupRunRecord, IntrinsicsRecord, MapReport, UncertaintySummary};
 use super::runs::{run_mapper_from_pose, run_mapper_searching};
 use crate::io::database::DatabaseSnapshot;
 use crate::scene::merge::merge_models;
@@ -295,9 +296,13 @@ fn merge_runs(
     let mut report: Option<MapReport> = None;
     let (mut observations, mut error_sum) = (0usize, 0.0);
     let mut intrinsics = Intrinsics::default();
+    let mut uncertainties = Vec::new();
     for (mut record, out) in runs {
         let mut own = out.report;
         intrinsics.add(db, &own);
+        if let Some(u) = &own.pose_uncertainty {
+            uncertainties.push((own.num_observations, u.clone()));
+        }
         observations += own.num_observations;
         error_sum += own.mean_reprojection_error_px * own.num_observations as f64;
         match &mut report {
@@ -329,11 +334,44 @@ fn merge_runs(
     } else {
         0.0
     };
+    report.pose_uncertainty = merged_uncertainty(&report, &uncertainties);
     report.groups = records;
     Ok(MapperOutput {
         reconstruction,
         report,
     })
+}
+
+/// The pose uncertainties over every group's images (`report`'s, merged):
+/// medians and maxima over the images, the residual sigma as the runs' root
+/// mean square weighted by their observations, degenerate points and times
+/// summed. `runs`: each run's observations and summary; `None` when no run
+/// computed one.
+fn merged_uncertainty(
+    report: &MapReport,
+    runs: &[(usize, UncertaintySummary)],
+) -> Option<UncertaintySummary> {
+    if runs.is_empty() {
+        return None;
+    }
+    let weight: f64 = runs.iter().map(|(n, _)| *n as f64).sum();
+    let variance: f64 = runs
+        .iter()
+        .map(|(n, u)| *n as f64 * u.residual_sigma_px.powi(2))
+        .sum();
+    Some(UncertaintySummary::over(
+        report
+            .images
+            .iter()
+            .filter_map(|r| r.pose_uncertainty.as_ref()),
+        if weight > 0.0 {
+            (variance / weight).sqrt()
+        } else {
+            0.0
+        },
+        runs.iter().map(|(_, u)| u.num_degenerate_points).sum(),
+        runs.iter().map(|(_, u)| u.time_s).sum(),
+    ))
 }
 
 /// One intrinsics record per camera: from the first run that registered an

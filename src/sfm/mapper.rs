@@ -2338,16 +2338,12 @@ fn estimate_uncertainty(
         log::info!("pose uncertainty: no image's pose varies in the final solve");
         return;
     }
-    let major: Vec<f64> = poses.values().map(|u| u.centre_sigma_major_m).collect();
-    let rotation: Vec<f64> = poses.values().map(|u| u.rotation_sigma_deg).collect();
-    let clustered_major: Vec<f64> = poses
-        .values()
-        .filter_map(|u| u.clustered_centre_sigma_major_m)
-        .collect();
-    let clustered_rotation: Vec<f64> = poses
-        .values()
-        .filter_map(|u| u.clustered_rotation_sigma_deg)
-        .collect();
+    let summary = UncertaintySummary::over(
+        poses.values(),
+        residual_sigma_px,
+        num_degenerate_points,
+        t.elapsed().as_secs_f64(),
+    );
     let mut weak = Vec::new();
     for (image, u) in poses {
         if let Some(rec) = report.record_mut(image) {
@@ -2369,21 +2365,6 @@ fn estimate_uncertainty(
             weak.join(", ")
         );
     }
-    let median = |v: &[f64]| crate::eval::Stats::of(v).map_or(0.0, |s| s.median);
-    let max_of = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
-    let if_any = |v: &[f64], f: &dyn Fn(&[f64]) -> f64| (!v.is_empty()).then(|| f(v));
-    let summary = UncertaintySummary {
-        residual_sigma_px,
-        median_centre_sigma_major_m: median(&major),
-        max_centre_sigma_major_m: max_of(&major),
-        median_rotation_sigma_deg: median(&rotation),
-        max_rotation_sigma_deg: max_of(&rotation),
-        median_clustered_centre_sigma_major_m: if_any(&clustered_major, &median),
-        max_clustered_centre_sigma_major_m: if_any(&clustered_major, &max_of),
-        median_clustered_rotation_sigma_deg: if_any(&clustered_rotation, &median),
-        num_degenerate_points,
-        time_s: t.elapsed().as_secs_f64(),
-    };
     log::info!(
         "pose uncertainty (1 sigma, from the final solve): centre median {:.2} mm, max {:.2} mm along the least determined direction; rotation median {:.4} deg, max {:.4} deg; residual sigma {:.3} px ({:.2} s)",
         summary.median_centre_sigma_major_m * 1e3,

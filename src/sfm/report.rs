@@ -125,6 +125,44 @@ pub struct UncertaintySummary {
     pub time_s: f64,
 }
 
+impl UncertaintySummary {
+    /// Medians and maxima over the images' uncertainties `poses`; the other
+    /// fields as given.
+    pub fn over<'a>(
+        poses: impl IntoIterator<Item = &'a PoseUncertainty>,
+        residual_sigma_px: f64,
+        num_degenerate_points: usize,
+        time_s: f64,
+    ) -> Self {
+        let poses: Vec<&PoseUncertainty> = poses.into_iter().collect();
+        let major: Vec<f64> = poses.iter().map(|u| u.centre_sigma_major_m).collect();
+        let rotation: Vec<f64> = poses.iter().map(|u| u.rotation_sigma_deg).collect();
+        let clustered_major: Vec<f64> = poses
+            .iter()
+            .filter_map(|u| u.clustered_centre_sigma_major_m)
+            .collect();
+        let clustered_rotation: Vec<f64> = poses
+            .iter()
+            .filter_map(|u| u.clustered_rotation_sigma_deg)
+            .collect();
+        let median = |v: &[f64]| crate::eval::Stats::of(v).map_or(0.0, |s| s.median);
+        let max_of = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
+        let if_any = |v: &[f64], f: &dyn Fn(&[f64]) -> f64| (!v.is_empty()).then(|| f(v));
+        Self {
+            residual_sigma_px,
+            median_centre_sigma_major_m: median(&major),
+            max_centre_sigma_major_m: max_of(&major),
+            median_rotation_sigma_deg: median(&rotation),
+            max_rotation_sigma_deg: max_of(&rotation),
+            median_clustered_centre_sigma_major_m: if_any(&clustered_major, &median),
+            max_clustered_centre_sigma_major_m: if_any(&clustered_major, &max_of),
+            median_clustered_rotation_sigma_deg: if_any(&clustered_rotation, &median),
+            num_degenerate_points,
+            time_s,
+        }
+    }
+}
+
 /// The whole-model alignment to the map (see `sfm::align`).
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct AlignmentRecord {
@@ -273,9 +311,10 @@ pub struct MapReport {
     /// file's `[mapper]` sections, as JSON).
     pub options: Option<MapperOptions>,
     /// With one initial image per group of images ([`super::groups`]):
-    /// each group's run, in the order given. The counts, `images` and
-    /// `intrinsics` above cover the whole model; the other fields are the
-    /// first group's run, and each further run's own report is in its record.
+    /// each group's run, in the order given. The counts and means, `images`,
+    /// `intrinsics` and `pose_uncertainty` above cover the whole model; the
+    /// other fields are the first group's run, and each further run's own
+    /// report is in its record.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub groups: Vec<GroupRunRecord>,
 }

@@ -1865,6 +1865,22 @@ fn toy_room_groups_mapped_in_one_run() {
         .map(|p| p.track.len())
         .sum();
     assert_eq!(report.num_observations, obs);
+    // The pose uncertainties over both groups' images, each from its run.
+    let sigma = |r: &colmap_lidar::sfm::report::MapReport| -> Vec<f64> {
+        r.images
+            .iter()
+            .filter_map(|r| r.pose_uncertainty.as_ref())
+            .map(|u| u.centre_sigma_major_m)
+            .collect()
+    };
+    let all = sigma(report);
+    assert_eq!(all.len(), 20);
+    assert_eq!(&all[10..], &sigma(second)[..]);
+    let u = report.pose_uncertainty.as_ref().unwrap();
+    assert_eq!(
+        u.max_centre_sigma_major_m,
+        all.iter().copied().fold(0.0, f64::max)
+    );
     assert_eq!(report.num_points, out.reconstruction.points3d.len());
     // Two initial images of one group; one without any verified pair.
     let fails = |ids: [u32; 2]| -> MapperError {
