@@ -190,7 +190,10 @@ fn image_groups_line(graph: &CorrespondenceGraph, db: &DatabaseSnapshot) -> Stri
         k => {
             let list: Vec<String> = linked
                 .iter()
-                .map(|(g, n)| format!("{n} images from id {}", g.0))
+                .map(|(g, n)| {
+                    let name = db.images.get(g).map_or("?", |img| img.name.as_str());
+                    format!("{n} images from id {} ({name})", g.0)
+                })
                 .collect();
             format!(
                 "{k} ({}): no verified pair links one to another: a `map` run registers the groups of its initial images (give one --init-image with its --init-pose per group) or of its input model",

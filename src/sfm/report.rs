@@ -531,7 +531,14 @@ impl MapReport {
             let n: usize = groups.values().sum();
             let listed: Vec<String> = groups
                 .iter()
-                .map(|(id, size)| format!("{size} images from id {id}"))
+                .map(|(id, size)| {
+                    let name = self
+                        .images
+                        .iter()
+                        .find(|r| r.image_id == *id)
+                        .map_or(String::new(), |r| format!(" ({})", r.name));
+                    format!("{size} images from id {id}{name}")
+                })
                 .collect();
             parts.push(format!(
                 "{n} in {} group{} matched among themselves but not to the model's images ({}): give one of each group's images as another --init-image, with its --init-pose, and each group is mapped from it into the same model",

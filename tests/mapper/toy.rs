@@ -1664,7 +1664,7 @@ fn toy_room_says_why_images_are_not_registered() {
     // `inspect` shows the groups before any run.
     let text = colmap_lidar::commands::inspect::summary(&scene.db, false);
     assert!(
-        text.contains("Image groups  2 (11 images from id 1, 3 images from id 101): no verified pair links one to another")
+        text.contains("Image groups  2 (11 images from id 1 (img_000.png), 3 images from id 101 (copy_1.png)): no verified pair links one to another")
             && text.contains("; 1 image in none (no verified pair)"),
         "{text}"
     );
@@ -1699,7 +1699,7 @@ fn toy_room_says_why_images_are_not_registered() {
     }
     let summary = report.not_registered_summary().expect("a summary");
     eprintln!("{summary}");
-    assert!(summary.starts_with("5 of 15 images not registered: 1 without verified matches to any image (lone.png); 3 in 1 group matched among themselves but not to the model's images (3 images from id 101)"), "{summary}");
+    assert!(summary.starts_with("5 of 15 images not registered: 1 without verified matches to any image (lone.png); 3 in 1 group matched among themselves but not to the model's images (3 images from id 101 (copy_1.png))"), "{summary}");
     assert!(
         summary.contains(
             "1 in the model's group of images but never seeing the 4 of its points a pose needs (weak.png)"
