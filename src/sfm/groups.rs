@@ -4,10 +4,10 @@
 //! the same map, so they share its frame and scale and the models go
 //! together as they are ([`crate::scene::merge`]).
 //!
-//! Each group's run is a run on the database of that group's images alone
-//! (the first also gets the images of groups without an initial image, so
-//! that images with a known pose there are placed at it and the others say
-//! why they are not in the model). A camera whose images are in two groups
+//! Each group's run is a run on the database of that group's images alone,
+//! largest group first (the first also gets the images of groups without an
+//! initial image, so that images with a known pose there are placed at it
+//! and the others say why they are not in the model). A camera whose images are in two groups
 //! keeps the intrinsics the earlier group's run gave it, and so do the
 //! cameras identical to it in the database (COLMAP gives each image its own
 //! camera unless told otherwise): the later runs hold them there, so the
@@ -57,7 +57,7 @@ pub fn map_groups(
             .get(&id)
             .map_or_else(|| format!("id {}", id.0), |img| img.name.clone())
     };
-    let sets = group_image_sets(inputs, starts)?;
+    let group_runs = group_runs(inputs, starts)?;
     if options.association.kind == AssociationKind::None {
         log::warn!(
             "without the map's planes (--no-lidar-constraints) each group's model is in its own initial pose's frame at its own initial pair's scale: the {} groups are not in one frame",
@@ -68,7 +68,7 @@ pub fn map_groups(
     let mut held = HeldIntrinsics::new(db, options);
     let mut runs: Vec<(GroupRunRecord, MapperOutput)> = Vec::with_capacity(starts.len());
     let mut done = 0usize;
-    for (start, images) in starts.iter().zip(&sets) {
+    for (start, images) in &group_runs {
         let mut group_db = db.restricted_to(images);
         let held_here = held.apply(&mut group_db);
         let known: BTreeMap<ImageId, KnownPose> = inputs
@@ -231,13 +231,14 @@ fn run_from(
     }
 }
 
-/// The images of each start's run: its group's, and for the first also
-/// those of every group without a start. An error when a start is not in
-/// the database or two starts are in one group.
-fn group_image_sets(
+/// The runs, largest group first (ties in the order given): each start and
+/// its run's images, its group's and for the first run also those of every
+/// group without a start. An error when a start is not in the database,
+/// has no verified pair, or shares its group with another start.
+fn group_runs<'s>(
     inputs: MapperInputs<'_>,
-    starts: &[GroupStart],
-) -> Result<Vec<BTreeSet<ImageId>>, MapperError> {
+    starts: &'s [GroupStart],
+) -> Result<Vec<(&'s GroupStart, BTreeSet<ImageId>)>, MapperError> {
     let db = inputs.db;
     let graph = db.correspondence_graph();
     let group_of = graph.image_groups(db.images.keys().copied());
@@ -246,7 +247,7 @@ fn group_image_sets(
         members.entry(group).or_default().insert(image);
     }
     let mut started: BTreeMap<ImageId, ImageId> = BTreeMap::new();
-    let mut sets = Vec::with_capacity(starts.len());
+    let mut runs = Vec::with_capacity(starts.len());
     for start in starts {
         let group = *group_of
             .get(&start.image)
@@ -262,14 +263,16 @@ fn group_image_sets(
                 second: db.images[&start.image].name.clone(),
             });
         }
-        sets.push(members[&group].clone());
+        runs.push((start, members[&group].clone()));
     }
+    // The largest group's run first: it sets the shared cameras' intrinsics.
+    runs.sort_by_key(|(_, images)| std::cmp::Reverse(images.len()));
     for (group, images) in &members {
         if !started.contains_key(group) {
-            sets[0].extend(images);
+            runs[0].1.extend(images);
         }
     }
-    Ok(sets)
+    Ok(runs)
 }
 
 /// The groups' models in one, with one report: the first run's, its counts,

@@ -311,10 +311,10 @@ pub struct MapReport {
     /// file's `[mapper]` sections, as JSON).
     pub options: Option<MapperOptions>,
     /// With one initial image per group of images ([`super::groups`]):
-    /// each group's run, in the order given. The counts and means, `images`,
-    /// `intrinsics` and `pose_uncertainty` above cover the whole model; the
-    /// other fields are the first group's run, and each further run's own
-    /// report is in its record.
+    /// each group's run, in the order run (largest group first, ties in the
+    /// order given). The counts and means, `images`, `intrinsics` and
+    /// `pose_uncertainty` above cover the whole model; the other fields are
+    /// the first run's, and each further run's own report is in its record.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub groups: Vec<GroupRunRecord>,
 }

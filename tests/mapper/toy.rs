@@ -1901,6 +1901,31 @@ fn toy_room_groups_mapped_in_one_run() {
         err.to_string().contains("lone.png has no verified pair"),
         "{err}"
     );
+    // The largest group runs first whatever the order given: it sets the
+    // camera's intrinsics, which the small group's run holds; the first run
+    // also gets the images of the group without an initial image.
+    let out = map_groups(
+        inputs,
+        &[start(201), start(1)],
+        None,
+        &options,
+        &mut |_, _| {},
+    )
+    .unwrap();
+    let order: Vec<(u32, usize, usize, Vec<u32>)> = out
+        .report
+        .groups
+        .iter()
+        .map(|g| {
+            (
+                g.init_image_id,
+                g.num_images,
+                g.num_registered,
+                g.cameras_held.clone(),
+            )
+        })
+        .collect();
+    assert_eq!(order, vec![(1, 21, 10, vec![]), (201, 3, 3, vec![1])]);
 }
 
 /// Two groups of images that no verified match links (the toy's 10 images
