@@ -1790,19 +1790,22 @@ fn toy_room_groups_mapped_in_one_run() {
     assert!(seen.windows(2).all(|w| w[0].0 <= w[1].0), "{seen:?}");
     assert_eq!(seen.last(), Some(&(20, 24)));
     // The runs: the first over its group, the third and the lone image.
-    let runs: Vec<(u32, usize, usize, Vec<u32>, bool)> = report
-        .groups
-        .iter()
-        .map(|g| {
-            (
-                g.init_image_id,
-                g.num_images,
-                g.num_registered,
-                g.cameras_held.clone(),
-                g.report.is_some(),
-            )
-        })
-        .collect();
+    let runs_of = |report: &colmap_lidar::sfm::report::MapReport| {
+        report
+            .groups
+            .iter()
+            .map(|g| {
+                (
+                    g.init_image_id,
+                    g.num_images,
+                    g.num_registered,
+                    g.cameras_held.clone(),
+                    g.report.is_some(),
+                )
+            })
+            .collect::<Vec<_>>()
+    };
+    let runs = runs_of(report);
     assert_eq!(
         runs,
         vec![(1, 14, 10, vec![], false), (101, 10, 10, vec![2], true)]
@@ -1912,20 +1915,10 @@ fn toy_room_groups_mapped_in_one_run() {
         &mut |_, _| {},
     )
     .unwrap();
-    let order: Vec<(u32, usize, usize, Vec<u32>)> = out
-        .report
-        .groups
-        .iter()
-        .map(|g| {
-            (
-                g.init_image_id,
-                g.num_images,
-                g.num_registered,
-                g.cameras_held.clone(),
-            )
-        })
-        .collect();
-    assert_eq!(order, vec![(1, 21, 10, vec![]), (201, 3, 3, vec![1])]);
+    assert_eq!(
+        runs_of(&out.report),
+        vec![(1, 21, 10, vec![], false), (201, 3, 3, vec![1], true)]
+    );
 }
 
 /// Two groups of images that no verified match links (the toy's 10 images
