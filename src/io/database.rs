@@ -164,35 +164,28 @@ impl DatabaseSnapshot {
     /// between two of them and their pose priors; every camera stays (an
     /// unused one costs nothing).
     pub fn restricted_to(&self, keep: &BTreeSet<ImageId>) -> DatabaseSnapshot {
-        let kept = |id: &ImageId| keep.contains(id);
+        fn kept<V: Clone>(
+            map: &BTreeMap<ImageId, V>,
+            keep: &BTreeSet<ImageId>,
+        ) -> BTreeMap<ImageId, V> {
+            map.iter()
+                .filter(|(id, _)| keep.contains(id))
+                .map(|(&id, v)| (id, v.clone()))
+                .collect()
+        }
         DatabaseSnapshot {
             path: self.path.clone(),
             schema: self.schema.clone(),
             cameras: self.cameras.clone(),
-            images: self
-                .images
-                .iter()
-                .filter(|(id, _)| kept(id))
-                .map(|(&id, img)| (id, img.clone()))
-                .collect(),
-            keypoints: self
-                .keypoints
-                .iter()
-                .filter(|(id, _)| kept(id))
-                .map(|(&id, k)| (id, k.clone()))
-                .collect(),
+            images: kept(&self.images, keep),
+            keypoints: kept(&self.keypoints, keep),
             two_view_geometries: self
                 .two_view_geometries
                 .iter()
-                .filter(|g| kept(&g.image_id1) && kept(&g.image_id2))
+                .filter(|g| keep.contains(&g.image_id1) && keep.contains(&g.image_id2))
                 .cloned()
                 .collect(),
-            pose_priors: self
-                .pose_priors
-                .iter()
-                .filter(|(id, _)| kept(id))
-                .map(|(&id, p)| (id, p.clone()))
-                .collect(),
+            pose_priors: kept(&self.pose_priors, keep),
             cameras_without_focal_prior: self.cameras_without_focal_prior.clone(),
         }
     }

@@ -20,6 +20,7 @@ use super::mapper::{KnownPose, MapperError, MapperInputs, MapperOutput, Progress
 use super::options::{AssociationKind, IntrinsicsRefinement, MapperOptions};
 use super::report::{GroupRunRecord, IntrinsicsRecord, MapReport, UncertaintySummary};
 use super::runs::{run_mapper_from_pose, run_mapper_searching};
+use super::state::{intrinsics_key, IntrinsicsKey};
 use crate::io::database::DatabaseSnapshot;
 use crate::scene::merge::merge_models;
 use crate::scene::{CameraId, ImageId, Rigid3};
@@ -131,12 +132,8 @@ struct HeldIntrinsics<'a> {
     share: bool,
     guessed_apart: bool,
     by_id: BTreeMap<CameraId, Vec<f64>>,
-    by_kind: BTreeMap<CameraKind, Vec<f64>>,
+    by_kind: BTreeMap<IntrinsicsKey, Vec<f64>>,
 }
-
-/// A camera as the database describes it: model, size, parameter bits and
-/// whether its focal length is a guess.
-type CameraKind = (&'static str, u32, u32, Vec<u64>, bool);
 
 impl<'a> HeldIntrinsics<'a> {
     fn new(db: &'a DatabaseSnapshot, options: &MapperOptions) -> Self {
@@ -149,15 +146,10 @@ impl<'a> HeldIntrinsics<'a> {
         }
     }
 
-    fn kind(&self, id: CameraId) -> Option<CameraKind> {
+    fn kind(&self, id: CameraId) -> Option<IntrinsicsKey> {
         let c = self.db.cameras.get(&id)?;
-        Some((
-            c.model.name(),
-            c.width,
-            c.height,
-            c.params.iter().map(|p| p.to_bits()).collect(),
-            self.guessed_apart && self.db.cameras_without_focal_prior.contains(&id),
-        ))
+        let guessed = self.guessed_apart && self.db.cameras_without_focal_prior.contains(&id);
+        Some(intrinsics_key(c, guessed))
     }
 
     /// The held intrinsics for camera `id`, if an earlier run gave them.
@@ -323,20 +315,13 @@ fn merge_runs(
     };
     report.intrinsics = intrinsics.records();
     report.images.sort_by_key(|r| r.image_id);
-    report.num_images = db.images.len();
-    report.num_registered = reconstruction.num_registered_images();
-    report.num_points = reconstruction.points3d.len();
-    report.num_observations = observations;
-    report.mean_track_length = if report.num_points > 0 {
-        observations as f64 / report.num_points as f64
-    } else {
-        0.0
-    };
-    report.mean_reprojection_error_px = if observations > 0 {
-        error_sum / observations as f64
-    } else {
-        0.0
-    };
+    report.set_totals(
+        db.images.len(),
+        reconstruction.num_registered_images(),
+        reconstruction.points3d.len(),
+        observations,
+        error_sum,
+    );
     report.pose_uncertainty = merged_uncertainty(&report, &uncertainties);
     report.groups = records;
     Ok(MapperOutput {

@@ -565,6 +565,32 @@ impl MapReport {
         ))
     }
 
+    /// The model's counts, with the mean track length and reprojection
+    /// error from the observations and their summed reprojection errors.
+    pub fn set_totals(
+        &mut self,
+        num_images: usize,
+        num_registered: usize,
+        num_points: usize,
+        observations: usize,
+        error_sum_px: f64,
+    ) {
+        self.num_images = num_images;
+        self.num_registered = num_registered;
+        self.num_points = num_points;
+        self.num_observations = observations;
+        self.mean_track_length = if num_points > 0 {
+            observations as f64 / num_points as f64
+        } else {
+            0.0
+        };
+        self.mean_reprojection_error_px = if observations > 0 {
+            error_sum_px / observations as f64
+        } else {
+            0.0
+        };
+    }
+
     pub fn record_mut(&mut self, image: ImageId) -> Option<&mut ImageRecord> {
         self.images.iter_mut().find(|r| r.image_id == image.0)
     }
@@ -618,20 +644,13 @@ impl MapReport {
             total_err += sum;
             total_obs += n;
         }
-        self.num_images = state.images.len();
-        self.num_registered = state.num_registered();
-        self.num_points = state.points.len();
-        self.num_observations = total_obs;
-        self.mean_track_length = if self.num_points > 0 {
-            total_obs as f64 / self.num_points as f64
-        } else {
-            0.0
-        };
-        self.mean_reprojection_error_px = if total_obs > 0 {
-            total_err / total_obs as f64
-        } else {
-            0.0
-        };
+        self.set_totals(
+            state.images.len(),
+            state.num_registered(),
+            state.points.len(),
+            total_obs,
+            total_err,
+        );
         for rec in &mut self.intrinsics {
             if let Some(c) = state.cameras.get(&CameraId(rec.camera_id)) {
                 let before = Camera {

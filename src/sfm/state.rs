@@ -239,18 +239,10 @@ impl MapState {
         guessed: &BTreeSet<CameraId>,
         apart: &BTreeSet<CameraId>,
     ) -> usize {
-        type Key<'a> = (&'a str, u32, u32, Vec<u64>, bool, bool);
-        let mut first: BTreeMap<Key, CameraId> = BTreeMap::new();
+        let mut first: BTreeMap<(IntrinsicsKey, bool), CameraId> = BTreeMap::new();
         self.shared_intrinsics.clear();
         for (id, c) in &self.cameras {
-            let key = (
-                c.model.name(),
-                c.width,
-                c.height,
-                c.params.iter().map(|p| p.to_bits()).collect(),
-                guessed.contains(id),
-                apart.contains(id),
-            );
+            let key = (intrinsics_key(c, guessed.contains(id)), apart.contains(id));
             let owner = *first.entry(key).or_insert(*id);
             if owner != *id {
                 self.shared_intrinsics.insert(*id, owner);
@@ -523,6 +515,22 @@ impl MapState {
         }
         rec
     }
+}
+
+/// What makes cameras share intrinsics in
+/// [`MapState::share_identical_intrinsics`]: model, size, parameter bits, and
+/// whether the focal length is a guess that is refined apart.
+pub(crate) type IntrinsicsKey = (&'static str, u32, u32, Vec<u64>, bool);
+
+/// The [`IntrinsicsKey`] of camera `c`.
+pub(crate) fn intrinsics_key(c: &Camera, guessed: bool) -> IntrinsicsKey {
+    (
+        c.model.name(),
+        c.width,
+        c.height,
+        c.params.iter().map(|p| p.to_bits()).collect(),
+        guessed,
+    )
 }
 
 #[cfg(test)]
