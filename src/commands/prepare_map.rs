@@ -1,21 +1,27 @@
-//! `colmap-lidar prepare-map`: reads a raw point cloud (PLY, PCD, LAS/LAZ, E57),
-//! downsamples it, estimates normals where they are missing or invalid, and
-//! writes a binary PLY with normals (and planarity) that the mapper and
-//! CloudCompare both read.
+//! `colmap-lidar prepare-map`: reads a raw point cloud (PLY, PCD, LAS/LAZ, E57)
+//! or several (the tiles of a survey, merged), downsamples it, estimates
+//! normals where they are missing or invalid, and writes a binary PLY with
+//! normals (and planarity) that the mapper and CloudCompare both read.
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
 use nalgebra::Vector3;
 
-use crate::map::io::{read_point_cloud, write_ply, LoadReport};
-use crate::map::prepare::{prepare, CropBox, NormalOrientation, PrepareOptions, PrepareReport};
+use crate::map::io::{read_point_cloud, write_ply, LoadReport, PRECISION_WARNING_OFFSET_M};
+use crate::map::prepare::{
+    prepare, CropBox, NormalOrientation, PrepareError, PrepareOptions, PrepareReport,
+};
+use crate::map::PointCloud;
 
 #[derive(clap::Args, Debug, Clone)]
 pub struct PrepareMapArgs {
-    /// Raw point cloud: .ply, .pcd, .las, .laz or .e57 (every scan, each at its pose).
-    #[arg(long, alias = "input_path")]
-    pub input: PathBuf,
+    /// Raw point cloud: .ply, .pcd, .las, .laz or .e57 (every scan, each at
+    /// its pose). Given again, or a folder (its files of these kinds, by
+    /// name), the clouds are merged into one map: the tiles of a survey,
+    /// all in one frame.
+    #[arg(long, alias = "input_path", required = true)]
+    pub input: Vec<PathBuf>,
     /// Output binary PLY with normals.
     #[arg(long, alias = "output_path")]
     pub output: PathBuf,
@@ -86,41 +92,169 @@ impl PrepareMapArgs {
     }
 }
 
-/// The library entry point of the command: read, prepare, write.
+/// The point-cloud files of a command line's `--input` values: a file as
+/// given, a folder as the files in it that a map reader reads (by extension,
+/// sorted by name). A folder without any, a file named twice, or an output
+/// inside an input folder (the next run would read it as a tile) is an
+/// error.
+pub fn input_files(inputs: &[PathBuf], output: &Path) -> anyhow::Result<Vec<PathBuf>> {
+    let output_folder = output
+        .parent()
+        .map(|p| {
+            if p.as_os_str().is_empty() {
+                Path::new(".")
+            } else {
+                p
+            }
+        })
+        .and_then(|p| p.canonicalize().ok());
+    let mut files = Vec::new();
+    for input in inputs {
+        if !input.is_dir() {
+            files.push(input.clone());
+            continue;
+        }
+        if output_folder.is_some() && input.canonicalize().ok() == output_folder {
+            anyhow::bail!(
+                "the output {} is inside the input folder {}: write it elsewhere (a later run \
+                 would read it as one of the folder's point clouds)",
+                output.display(),
+                input.display()
+            );
+        }
+        let mut found: Vec<PathBuf> = std::fs::read_dir(input)
+            .with_context(|| format!("reading the folder {}", input.display()))?
+            .filter_map(|entry| entry.ok().map(|e| e.path()))
+            .filter(|path| path.is_file() && is_point_cloud_name(path))
+            .collect();
+        if found.is_empty() {
+            anyhow::bail!(
+                "the folder {} holds no point cloud (.ply, .pcd, .las, .laz or .e57 file)",
+                input.display()
+            );
+        }
+        found.sort();
+        files.extend(found);
+    }
+    let mut seen: Vec<(PathBuf, &PathBuf)> = Vec::new();
+    for file in &files {
+        let key = file.canonicalize().unwrap_or_else(|_| file.clone());
+        if let Some((_, first)) = seen.iter().find(|(k, _)| *k == key) {
+            anyhow::bail!(
+                "the point cloud {} is given twice (also as {}): each tile once",
+                file.display(),
+                first.display()
+            );
+        }
+        seen.push((key, file));
+    }
+    Ok(files)
+}
+
+/// Whether a file name has the extension of a cloud the map readers read.
+fn is_point_cloud_name(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase())
+        .is_some_and(|e| ["ply", "pcd", "las", "laz", "e57"].contains(&e.as_str()))
+}
+
+/// The library entry point of the command for one input: read, prepare,
+/// write.
 pub fn prepare_map_file(
     input: &Path,
     output: &Path,
     options: &PrepareOptions,
 ) -> anyhow::Result<(LoadReport, PrepareReport)> {
+    let (mut loads, report) = prepare_map_files(&[input.to_path_buf()], output, options)?;
+    Ok((loads.remove(0), report))
+}
+
+/// Reads every input (each cropped on its own when a box is given, so a
+/// large survey's tiles outside it cost no memory), merges them into one
+/// cloud in the first one's local frame, prepares it and writes it. One
+/// load report per input.
+pub fn prepare_map_files(
+    inputs: &[PathBuf],
+    output: &Path,
+    options: &PrepareOptions,
+) -> anyhow::Result<(Vec<LoadReport>, PrepareReport)> {
     options.validate()?;
-    let start = Instant::now();
-    let (cloud, load) = read_point_cloud(input)?;
-    log::info!(
-        "read {} ({}): {} records, {} kept, {} dropped (NaN/inf), normals: {}{} in {:.2} s",
-        input.display(),
-        load.format,
-        load.points_read,
-        cloud.len(),
-        load.dropped_non_finite,
-        if load.had_normals { "yes" } else { "no" },
-        if load.had_normals {
-            format!(" ({} invalid)", load.normals_invalid)
-        } else {
-            String::new()
-        },
-        start.elapsed().as_secs_f64()
-    );
-    let start = Instant::now();
-    let (cloud, report) =
-        prepare(cloud, options).with_context(|| format!("preparing {}", input.display()))?;
-    if options.crop.is_some() {
+    anyhow::ensure!(!inputs.is_empty(), "no input point cloud given");
+    let mut clouds = Vec::with_capacity(inputs.len());
+    let mut loads = Vec::with_capacity(inputs.len());
+    let mut input_points = 0;
+    let mut dropped_by_crop = 0;
+    let mut spans: Option<(Vector3<f64>, Vector3<f64>)> = None;
+    for input in inputs {
+        let start = Instant::now();
+        let (mut cloud, load) = read_point_cloud(input)?;
+        log::info!(
+            "read {} ({}): {} records, {} kept, {} dropped (NaN/inf), normals: {}{} in {:.2} s",
+            input.display(),
+            load.format,
+            load.points_read,
+            cloud.len(),
+            load.dropped_non_finite,
+            if load.had_normals { "yes" } else { "no" },
+            if load.had_normals {
+                format!(" ({} invalid)", load.normals_invalid)
+            } else {
+                String::new()
+            },
+            start.elapsed().as_secs_f64()
+        );
+        input_points += cloud.len();
+        if let Some(crop) = &options.crop {
+            if let Some((lo, hi)) = cloud.bounds() {
+                spans = Some(match spans {
+                    Some((l, h)) => (l.inf(&lo), h.sup(&hi)),
+                    None => (lo, hi),
+                });
+            }
+            dropped_by_crop += crop.retain(&mut cloud);
+        }
+        clouds.push(cloud);
+        loads.push(load);
+    }
+    if let (Some(crop), Some(spans)) = (&options.crop, spans) {
+        if dropped_by_crop == input_points {
+            return Err(PrepareError::CropHoldsNothing {
+                points: input_points,
+                crop: *crop,
+                spans,
+            })
+            .with_context(|| format!("cropping {}", names(inputs)));
+        }
         log::info!(
             "crop box: {} of {} points inside, {} dropped",
-            report.input_points - report.dropped_by_crop,
-            report.input_points,
-            report.dropped_by_crop
+            input_points - dropped_by_crop,
+            input_points,
+            dropped_by_crop
         );
     }
+    let cloud = PointCloud::concatenate(clouds);
+    if inputs.len() > 1 {
+        let offset = cloud.max_offset_m();
+        if offset > PRECISION_WARNING_OFFSET_M {
+            log::warn!(
+                "the {} inputs reach {offset:.0} m from the local origin {:?}; coordinates that \
+                 far keep only {:.1} mm resolution (are they all in one frame?)",
+                inputs.len(),
+                cloud.origin.as_slice(),
+                1000.0 * offset / f64::from(1u32 << 24)
+            );
+        }
+    }
+    let start = Instant::now();
+    let cropped = PrepareOptions {
+        crop: None,
+        ..options.clone()
+    };
+    let (cloud, mut report) =
+        prepare(cloud, &cropped).with_context(|| format!("preparing {}", names(inputs)))?;
+    report.input_points = input_points;
+    report.dropped_by_crop = dropped_by_crop;
     log::info!(
         "prepared: {} -> {} points after the {} m voxel grid; normals kept {}, estimated {}, \
          failed {}; {} points dropped without a normal; {:.2} s",
@@ -134,7 +268,7 @@ pub fn prepare_map_file(
         start.elapsed().as_secs_f64()
     );
     if cloud.is_empty() {
-        anyhow::bail!("{}: no point left to write", input.display());
+        anyhow::bail!("{}: no point left to write", names(inputs));
     }
     let start = Instant::now();
     write_ply(output, &cloud)?;
@@ -144,12 +278,22 @@ pub fn prepare_map_file(
         cloud.len(),
         start.elapsed().as_secs_f64()
     );
-    Ok((load, report))
+    Ok((loads, report))
+}
+
+/// The inputs as a message names them: the file, or how many and the first.
+fn names(inputs: &[PathBuf]) -> String {
+    match inputs {
+        [one] => one.display().to_string(),
+        [first, ..] => format!("{} point clouds ({}, ...)", inputs.len(), first.display()),
+        [] => "no point cloud".into(),
+    }
 }
 
 pub fn run(args: &PrepareMapArgs) -> anyhow::Result<()> {
     let options = args.options()?;
-    let (load, report) = prepare_map_file(&args.input, &args.output, &options)?;
+    let inputs = input_files(&args.input, &args.output)?;
+    let (loads, report) = prepare_map_files(&inputs, &args.output, &options)?;
     let cropped = if options.crop.is_some() {
         format!("{} outside the crop box, ", report.dropped_by_crop)
     } else {
@@ -158,9 +302,9 @@ pub fn run(args: &PrepareMapArgs) -> anyhow::Result<()> {
     println!(
         "{}: {} points read ({} dropped as NaN/inf), {cropped}{} after voxel grid, \
          {} normals estimated ({:.3} m radius), {} kept, {} points written to {}",
-        args.input.display(),
-        load.points_read,
-        load.dropped_non_finite,
+        names(&inputs),
+        loads.iter().map(|l| l.points_read).sum::<u64>(),
+        loads.iter().map(|l| l.dropped_non_finite).sum::<u64>(),
         report.after_voxel,
         report.normals.estimated,
         report.normal_radius_m,

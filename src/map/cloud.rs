@@ -76,6 +76,64 @@ impl PointCloud {
     }
 }
 
+impl PointCloud {
+    /// One cloud of several (e.g. the tiles of a survey), in order. The
+    /// origin is the first non-empty cloud's; the others' points are
+    /// re-expressed from it (exact when the origins agree, else rounded
+    /// once to f32). Normals are kept when any cloud has them (a cloud
+    /// without gets zero normals, i.e. to be estimated); planarity only when
+    /// every non-empty cloud has it.
+    pub fn concatenate(clouds: Vec<PointCloud>) -> PointCloud {
+        let filled: Vec<PointCloud> = clouds.into_iter().filter(|c| !c.is_empty()).collect();
+        let Some(first) = filled.first() else {
+            return PointCloud::default();
+        };
+        let origin = first.origin;
+        let total: usize = filled.iter().map(PointCloud::len).sum();
+        let any_normals = filled.iter().any(|c| c.normals.is_some());
+        let all_planarity = filled.iter().all(|c| c.planarity.is_some());
+        let mut out = PointCloud {
+            origin,
+            points: Vec::with_capacity(total),
+            normals: any_normals.then(|| Vec::with_capacity(total)),
+            planarity: all_planarity.then(|| Vec::with_capacity(total)),
+        };
+        for cloud in filled {
+            let shift = cloud.origin - origin;
+            if shift == Vector3::zeros() {
+                out.points.extend_from_slice(&cloud.points);
+            } else {
+                out.points.extend(cloud.points.iter().map(|p| {
+                    [
+                        (shift.x + f64::from(p[0])) as f32,
+                        (shift.y + f64::from(p[1])) as f32,
+                        (shift.z + f64::from(p[2])) as f32,
+                    ]
+                }));
+            }
+            if let Some(normals) = &mut out.normals {
+                match &cloud.normals {
+                    Some(n) => normals.extend_from_slice(n),
+                    None => normals.resize(out.points.len(), [0.0; 3]),
+                }
+            }
+            if let (Some(values), Some(v)) = (&mut out.planarity, &cloud.planarity) {
+                values.extend_from_slice(v);
+            }
+        }
+        out
+    }
+
+    /// The largest distance of a point from the origin along any axis
+    /// (metres; 0 for an empty cloud).
+    pub fn max_offset_m(&self) -> f64 {
+        self.points
+            .par_iter()
+            .map(|p| f64::from(p[0].abs().max(p[1].abs()).max(p[2].abs())))
+            .reduce(|| 0.0, f64::max)
+    }
+}
+
 /// Smallest and largest cell (per axis) of `points` under `cell_of`, in parallel.
 /// For an empty slice: `([i64::MAX; 3], [i64::MIN; 3])`.
 pub(crate) fn cell_bounds(
@@ -101,6 +159,47 @@ pub(crate) fn cell_bounds(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn concatenated_clouds_keep_their_map_coordinates() {
+        let a = PointCloud {
+            origin: Vector3::new(500_000.0, 4_400_000.0, 200.0),
+            points: vec![[0.5, -1.25, 2.0], [3.0, 0.0, 0.0]],
+            normals: Some(vec![[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
+            planarity: Some(vec![0.9, 0.8]),
+        };
+        let b = PointCloud {
+            origin: Vector3::new(500_010.0, 4_399_998.0, 200.0),
+            points: vec![[-1.5, 2.25, 0.5]],
+            normals: None,
+            planarity: None,
+        };
+        let empty = PointCloud {
+            origin: Vector3::new(1.0, 2.0, 3.0),
+            ..Default::default()
+        };
+        let c = PointCloud::concatenate(vec![empty.clone(), a.clone(), b.clone()]);
+        assert_eq!(c.origin, a.origin);
+        assert_eq!(c.len(), 3);
+        assert_eq!(&c.points[..2], &a.points[..]);
+        // 500010 - 1.5 = 500008.5 -> 8.5 from the origin; 4399998 + 2.25 ->
+        // 0.25; all exact in f32.
+        assert_eq!(c.points[2], [8.5, 0.25, 0.5]);
+        assert_eq!(c.point_in_map(2), b.point_in_map(0));
+        assert_eq!(
+            c.normals.as_deref(),
+            Some(&[[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0; 3]][..])
+        );
+        assert_eq!(c.planarity, None);
+        assert_eq!(c.max_offset_m(), 8.5);
+        // Without normals anywhere, none; every cloud with planarity keeps it.
+        let c = PointCloud::concatenate(vec![b.clone(), b.clone()]);
+        assert_eq!((c.len(), c.normals, c.planarity), (2, None, None));
+        let c = PointCloud::concatenate(vec![a.clone(), a.clone()]);
+        assert_eq!(c.planarity, Some(vec![0.9, 0.8, 0.9, 0.8]));
+        assert_eq!(PointCloud::concatenate(vec![empty]), PointCloud::default());
+        assert_eq!(PointCloud::default().max_offset_m(), 0.0);
+    }
 
     #[test]
     fn cell_bounds_of_a_hand_made_cloud() {

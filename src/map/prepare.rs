@@ -249,10 +249,7 @@ impl CropBox {
     /// non-empty cloud's points is an error that says where the map is
     /// (most often a box in local coordinates for a georeferenced map).
     pub fn apply(&self, cloud: &mut PointCloud) -> Result<usize, PrepareError> {
-        let keep: Vec<bool> = (0..cloud.len())
-            .into_par_iter()
-            .map(|i| self.contains(&cloud.point_in_map(i)))
-            .collect();
+        let keep = self.inside_flags(cloud);
         if !keep.iter().any(|&k| k) {
             if let Some(spans) = cloud.bounds() {
                 return Err(PrepareError::CropHoldsNothing {
@@ -265,6 +262,23 @@ impl CropBox {
         let before = cloud.len();
         cloud.retain_flagged(&keep);
         Ok(before - cloud.len())
+    }
+
+    /// Keeps the points of `cloud` inside the box, as [`CropBox::apply`]
+    /// does, but a box that holds none of them is no error (one tile of
+    /// several); returns how many were dropped.
+    pub fn retain(&self, cloud: &mut PointCloud) -> usize {
+        let keep = self.inside_flags(cloud);
+        let before = cloud.len();
+        cloud.retain_flagged(&keep);
+        before - cloud.len()
+    }
+
+    fn inside_flags(&self, cloud: &PointCloud) -> Vec<bool> {
+        (0..cloud.len())
+            .into_par_iter()
+            .map(|i| self.contains(&cloud.point_in_map(i)))
+            .collect()
     }
 }
 

@@ -676,3 +676,190 @@ fn a_sparse_map_without_normals_gets_them() {
     assert_eq!(report.normal_radius_m, 0.15);
     assert_eq!(prepared.len(), 0, "{report:?}");
 }
+
+/// `prepare-map` with the tiles of a survey (a PLY and a LAZ of one
+/// georeferenced scan, split at a line, each with its own local origin):
+/// the same map as from the whole scan, given file by file or as their
+/// folder; cropped tile by tile; errors for a tile named twice, a folder
+/// without clouds and an output inside the input folder.
+#[test]
+fn prepare_map_merges_the_tiles_of_a_survey() {
+    let dir = tempfile::tempdir().unwrap();
+    let base = [512_345.0, 5_412_345.0, 230.0];
+    // The raw scan's coordinates to the millimetre, as the LAZ stores them.
+    let rows: Vec<Vec<f64>> = write_raw_scan(&dir.path().join("raw.ply"))
+        .into_iter()
+        .map(|(p, _)| {
+            (0..3)
+                .map(|a| base[a] + ((p[a] - base[a]) * 1000.0).round() / 1000.0)
+                .collect()
+        })
+        .collect();
+    let props = [("double", "x"), ("double", "y"), ("double", "z")];
+    let whole = dir.path().join("whole.ply");
+    std::fs::write(&whole, ply_bytes(Enc::Le, &props, &rows, None)).unwrap();
+    let tiles = dir.path().join("tiles");
+    std::fs::create_dir(&tiles).unwrap();
+    let (west, east): (Vec<Vec<f64>>, Vec<Vec<f64>>) =
+        rows.iter().cloned().partition(|p| p[0] < base[0] + 1.5);
+    assert!(west.len() > 20_000 && east.len() > 20_000);
+    let tile_a = tiles.join("a.ply");
+    std::fs::write(&tile_a, ply_bytes(Enc::Le, &props, &west, None)).unwrap();
+    let tile_b = tiles.join("b.laz");
+    let mut builder = las::Builder::from((1, 2));
+    builder.point_format = las::point::Format::new(0).unwrap();
+    let transform = |offset| las::Transform {
+        scale: 0.001,
+        offset,
+    };
+    builder.transforms = las::Vector {
+        x: transform(base[0] + 1.0),
+        y: transform(base[1]),
+        z: transform(0.0),
+    };
+    let mut writer = las::Writer::from_path(&tile_b, builder.into_header().unwrap()).unwrap();
+    for p in &east {
+        writer
+            .write_point(las::Point {
+                x: p[0],
+                y: p[1],
+                z: p[2],
+                ..Default::default()
+            })
+            .unwrap();
+    }
+    writer.close().unwrap();
+    drop(writer);
+    std::fs::write(tiles.join("notes.txt"), "not a cloud").unwrap();
+
+    let prepare_map = |inputs: &[&std::path::Path], out: &std::path::Path, extra: &[&str]| {
+        let mut command = std::process::Command::new(crate::common::bin());
+        command.arg("prepare-map");
+        for input in inputs {
+            command.arg("--input").arg(input);
+        }
+        command
+            .arg("--output")
+            .arg(out)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    // Every point kept (--voxel 0: on millimetre coordinates a 3 cm grid's
+    // faces hold points, which a last-bit difference of the local origins
+    // puts in either voxel), so the two maps hold the same points, in tile
+    // order; their normals come from the same neighbours.
+    let from_whole = dir.path().join("from_whole.ply");
+    let output = prepare_map(&[&whole], &from_whole, &["--voxel", "0"]);
+    assert!(output.status.success(), "{output:?}");
+    let from_tiles = dir.path().join("from_tiles.ply");
+    let output = prepare_map(&[&tile_a, &tile_b], &from_tiles, &["--voxel", "0"]);
+    assert!(output.status.success(), "{output:?}");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        stdout.contains("2 point clouds (") && stdout.contains(": 60000 points read"),
+        "{stdout}"
+    );
+    let (expected, _) = read_point_cloud(&from_whole).unwrap();
+    let (merged, _) = read_point_cloud(&from_tiles).unwrap();
+    assert_eq!(merged.len(), expected.len());
+    // The whole scan's points in the tiles' order.
+    let (mut west_first, mut east_next): (Vec<usize>, Vec<usize>) =
+        (0..expected.len()).partition(|&i| expected.point_in_map(i).x < base[0] + 1.5);
+    west_first.append(&mut east_next);
+    let (expected_normals, merged_normals) = (
+        expected.normals.as_ref().unwrap(),
+        merged.normals.as_ref().unwrap(),
+    );
+    let mut turned = 0;
+    for (i, &j) in west_first.iter().enumerate() {
+        let (p, q) = (expected.point_in_map(j), merged.point_in_map(i));
+        assert!((p - q).amax() < 1e-5, "{i}: {p:?} {q:?}");
+        let n = |v: &[f32; 3]| v.map(f64::from);
+        if angle_deg(n(&expected_normals[j]), n(&merged_normals[i]), false) > 0.5 {
+            turned += 1;
+        }
+    }
+    assert!(turned * 1000 < merged.len(), "{turned} normals differ");
+    let from_tiles = dir.path().join("from_tiles_3cm.ply");
+    let output = prepare_map(&[&tile_a, &tile_b], &from_tiles, &[]);
+    assert!(output.status.success(), "{output:?}");
+    // The folder: its clouds by name (the text file left out), the same bytes.
+    let from_folder = dir.path().join("from_folder.ply");
+    let output = prepare_map(&[&tiles], &from_folder, &[]);
+    assert!(output.status.success(), "{output:?}");
+    assert_eq!(
+        std::fs::read(&from_folder).unwrap(),
+        std::fs::read(&from_tiles).unwrap()
+    );
+
+    // Cropped tile by tile: a box in the west tile only keeps its points.
+    let cropped = dir.path().join("cropped.ply");
+    // (x bounds between the millimetres: no point on a face of the box)
+    let crop = format!(
+        "{},{},{},{},{},{}",
+        base[0] + 0.2005,
+        base[1] - 1.0,
+        base[2] - 1.0,
+        base[0] + 1.0005,
+        base[1] + 4.0,
+        base[2] + 4.0
+    );
+    let output = prepare_map(&[&tiles], &cropped, &["--voxel", "0", "--crop", &crop]);
+    assert!(output.status.success(), "{output:?}");
+    let inside = rows
+        .iter()
+        .filter(|p| p[0] > base[0] + 0.2005 && p[0] < base[0] + 1.0005)
+        .count();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        stdout.contains(&format!("{} outside the crop box", rows.len() - inside)),
+        "{stdout}"
+    );
+    // A box that holds none of the tiles' points: the error spans them all.
+    let output = prepare_map(&[&tiles], &cropped, &["--crop", "0,0,0,1,1,1"]);
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("2 point clouds")
+            && stderr.contains("holds none of the 60000 points")
+            && stderr.contains("the map spans x 512345.00..512348.00"),
+        "{stderr}"
+    );
+
+    // `map` given the folder says how to make one map of it.
+    let err = colmap_lidar::commands::map::load_map(&tiles).unwrap_err();
+    let message = format!("{err:#}");
+    assert!(
+        message.contains("is a folder") && message.contains("prepare-map --input"),
+        "{message}"
+    );
+
+    // Errors, nothing written.
+    let target = dir.path().join("bad.ply");
+    let empty = dir.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    for (inputs, out, says) in [
+        (
+            vec![tile_a.as_path(), tiles.as_path()],
+            target.clone(),
+            "is given twice",
+        ),
+        (
+            vec![empty.as_path()],
+            target.clone(),
+            "holds no point cloud",
+        ),
+        (
+            vec![tiles.as_path()],
+            tiles.join("map.ply"),
+            "inside the input folder",
+        ),
+    ] {
+        let output = prepare_map(&inputs, &out, &[]);
+        assert!(!output.status.success(), "{says}");
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(stderr.contains(says), "{says}: {stderr}");
+        assert!(!out.exists(), "{says}");
+    }
+}
