@@ -8,7 +8,9 @@ use std::time::Instant;
 use anyhow::Context;
 use nalgebra::Vector3;
 
-use crate::map::io::{read_point_cloud, write_ply, LoadReport, PRECISION_WARNING_OFFSET_M};
+use crate::map::io::{
+    read_point_cloud_with, write_ply, LoadReport, ReadOptions, PRECISION_WARNING_OFFSET_M,
+};
 use crate::map::prepare::{
     prepare, CropBox, NormalOrientation, PrepareError, PrepareOptions, PrepareReport,
 };
@@ -47,6 +49,11 @@ pub struct PrepareMapArgs {
     /// downsampling: the part of a large survey the photos show.
     #[arg(long, allow_hyphen_values = true)]
     pub crop: Option<String>,
+    /// LAS/LAZ classes whose points are left out, `c1,c2,...`, or `none`
+    /// [default: 7,18, the ASPRS noise classes; points flagged withheld are
+    /// always left out].
+    #[arg(long = "drop-classes", alias = "drop_classes")]
+    pub drop_classes: Option<String>,
     /// Keep points whose normal could not be estimated (written with a zero
     /// normal).
     #[arg(long = "keep-without-normal")]
@@ -66,7 +73,30 @@ pub fn parse_position(text: &str) -> anyhow::Result<Vector3<f64>> {
     }
 }
 
+/// Parses `--drop-classes`: `none`, or classes 0-255 separated by commas.
+pub fn parse_classes(text: &str) -> anyhow::Result<Vec<u8>> {
+    if text.trim().eq_ignore_ascii_case("none") {
+        return Ok(Vec::new());
+    }
+    text.split(',')
+        .map(|c| {
+            c.trim().parse::<u8>().map_err(|_| {
+                anyhow::anyhow!("`{text}` is not `none` or LAS classes 0-255 separated by commas")
+            })
+        })
+        .collect()
+}
+
 impl PrepareMapArgs {
+    /// What the readers leave out (validated).
+    pub fn read_options(&self) -> anyhow::Result<ReadOptions> {
+        let mut options = ReadOptions::default();
+        if let Some(classes) = &self.drop_classes {
+            options.drop_las_classes = parse_classes(classes).context("--drop-classes")?;
+        }
+        Ok(options)
+    }
+
     /// The stage options (validated).
     pub fn options(&self) -> anyhow::Result<PrepareOptions> {
         let mut options = PrepareOptions {
@@ -166,7 +196,12 @@ pub fn prepare_map_file(
     output: &Path,
     options: &PrepareOptions,
 ) -> anyhow::Result<(LoadReport, PrepareReport)> {
-    let (mut loads, report) = prepare_map_files(&[input.to_path_buf()], output, options)?;
+    let (mut loads, report) = prepare_map_files(
+        &[input.to_path_buf()],
+        output,
+        options,
+        &ReadOptions::default(),
+    )?;
     Ok((loads.remove(0), report))
 }
 
@@ -178,6 +213,7 @@ pub fn prepare_map_files(
     inputs: &[PathBuf],
     output: &Path,
     options: &PrepareOptions,
+    read: &ReadOptions,
 ) -> anyhow::Result<(Vec<LoadReport>, PrepareReport)> {
     options.validate()?;
     anyhow::ensure!(!inputs.is_empty(), "no input point cloud given");
@@ -188,7 +224,7 @@ pub fn prepare_map_files(
     let mut spans: Option<(Vector3<f64>, Vector3<f64>)> = None;
     for input in inputs {
         let start = Instant::now();
-        let (mut cloud, load) = read_point_cloud(input)?;
+        let (mut cloud, load) = read_point_cloud_with(input, read)?;
         log::info!(
             "read {} ({}): {} records, {} kept, {} dropped (NaN/inf), normals: {}{} in {:.2} s",
             input.display(),
@@ -292,15 +328,26 @@ fn names(inputs: &[PathBuf]) -> String {
 
 pub fn run(args: &PrepareMapArgs) -> anyhow::Result<()> {
     let options = args.options()?;
+    let read = args.read_options()?;
     let inputs = input_files(&args.input, &args.output)?;
-    let (loads, report) = prepare_map_files(&inputs, &args.output, &options)?;
+    let (loads, report) = prepare_map_files(&inputs, &args.output, &options, &read)?;
+    let by_class: u64 = loads.iter().map(|l| l.dropped_by_class).sum();
+    let withheld: u64 = loads.iter().map(|l| l.dropped_withheld).sum();
+    let mut left_out = String::new();
+    if by_class > 0 {
+        let classes: Vec<String> = read.drop_las_classes.iter().map(u8::to_string).collect();
+        left_out += &format!(", {by_class} of the classes {}", classes.join(","));
+    }
+    if withheld > 0 {
+        left_out += &format!(", {withheld} flagged withheld");
+    }
     let cropped = if options.crop.is_some() {
         format!("{} outside the crop box, ", report.dropped_by_crop)
     } else {
         String::new()
     };
     println!(
-        "{}: {} points read ({} dropped as NaN/inf), {cropped}{} after voxel grid, \
+        "{}: {} points read ({} dropped as NaN/inf{left_out}), {cropped}{} after voxel grid, \
          {} normals estimated ({:.3} m radius), {} kept, {} points written to {}",
         names(&inputs),
         loads.iter().map(|l| l.points_read).sum::<u64>(),

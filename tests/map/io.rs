@@ -3,7 +3,9 @@
 //! malformed and truncated files give errors that name the file.
 use std::path::{Path, PathBuf};
 
-use colmap_lidar::map::io::{read_point_cloud, write_ply, CloudFormat, MapIoError};
+use colmap_lidar::map::io::{
+    read_point_cloud, read_point_cloud_with, write_ply, CloudFormat, MapIoError, ReadOptions,
+};
 use colmap_lidar::map::PointCloud;
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
@@ -724,6 +726,97 @@ fn pcd_ascii_binary_and_compressed_read_back() {
         std::fs::write(&path, &full[..len]).unwrap();
         assert!(read_point_cloud(&path).is_err(), "cut at {len}");
     }
+}
+
+/// LAS/LAZ points of the ASPRS noise classes (7, 18) and points flagged
+/// withheld are left out by default and counted; `--drop-classes` chooses
+/// the classes (`none` keeps them all), in the legacy point formats and the
+/// extended ones (LAS 1.4, format 6), whose flags sit elsewhere.
+#[test]
+fn las_noise_classes_and_withheld_points_are_left_out() {
+    let dir = tempfile::tempdir().unwrap();
+    let classes = [2u8, 7, 18, 6];
+    let withheld = |i: usize| i % 10 == 3;
+    for (version, format, ext) in [((1, 2), 1u8, "las"), ((1, 4), 6, "laz"), ((1, 4), 6, "las")] {
+        let path = dir.path().join(format!("classes_{format}.{ext}"));
+        let mut builder = las::Builder::from(version);
+        builder.point_format = las::point::Format::new(format).unwrap();
+        builder.point_format.is_compressed = ext == "laz";
+        let mut writer = las::Writer::from_path(&path, builder.into_header().unwrap()).unwrap();
+        for i in 0..40 {
+            writer
+                .write_point(las::Point {
+                    x: i as f64,
+                    y: 2.0,
+                    z: 3.0,
+                    classification: las::point::Classification::new(classes[i % 4]).unwrap(),
+                    is_withheld: withheld(i),
+                    gps_time: Some(1.0),
+                    ..Default::default()
+                })
+                .unwrap();
+        }
+        writer.close().unwrap();
+        drop(writer);
+        let xs = |cloud: &PointCloud| -> Vec<usize> {
+            (0..cloud.len())
+                .map(|i| cloud.point_in_map(i).x as usize)
+                .collect()
+        };
+        let (cloud, report) = read_point_cloud(&path).unwrap();
+        let kept: Vec<usize> = (0..40)
+            .filter(|&i| !withheld(i) && ![7, 18].contains(&classes[i % 4]))
+            .collect();
+        assert_eq!(xs(&cloud), kept, "format {format}");
+        // 40 records: 4 withheld (3, 13, 23, 33: classes 6, 7, 6, 7), and
+        // 18 of the other 36 of a noise class.
+        assert_eq!(report.points_read, 40);
+        assert_eq!(report.dropped_withheld, 4);
+        assert_eq!(report.dropped_by_class, 18);
+        let every_class = ReadOptions {
+            drop_las_classes: Vec::new(),
+        };
+        let (cloud, report) = read_point_cloud_with(&path, &every_class).unwrap();
+        let kept: Vec<usize> = (0..40).filter(|&i| !withheld(i)).collect();
+        assert_eq!(xs(&cloud), kept, "format {format}");
+        assert_eq!((report.dropped_by_class, report.dropped_withheld), (0, 4));
+    }
+    // On the command line.
+    let path = dir.path().join("classes_1.las");
+    let out = dir.path().join("map.ply");
+    let prepare = |classes: &str| {
+        std::process::Command::new(crate::common::bin())
+            .args([
+                "prepare-map",
+                "--voxel",
+                "0",
+                "--keep-without-normal",
+                "--input",
+            ])
+            .arg(&path)
+            .arg("--output")
+            .arg(&out)
+            .args(["--drop-classes", classes])
+            .output()
+            .unwrap()
+    };
+    let output = prepare("6,18");
+    assert!(output.status.success(), "{output:?}");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        stdout.contains(
+            "40 points read (0 dropped as NaN/inf, 18 of the classes 6,18, 4 flagged withheld)"
+        ),
+        "{stdout}"
+    );
+    assert_eq!(read_point_cloud(&out).unwrap().0.len(), 18);
+    let output = prepare("7,x");
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("--drop-classes") && stderr.contains("`7,x`"),
+        "{stderr}"
+    );
 }
 
 #[test]

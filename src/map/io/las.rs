@@ -10,8 +10,9 @@ use crate::map::PointCloud;
 /// Points decoded per batch.
 const BATCH_POINTS: u64 = 1 << 16;
 
-/// Reads a LAS or LAZ file.
-pub fn read_las(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
+/// Reads a LAS or LAZ file, leaving out the points of the classes
+/// `drop_classes` and those flagged withheld (counted in the report).
+pub fn read_las(path: &Path, drop_classes: &[u8]) -> Result<(PointCloud, LoadReport), MapIoError> {
     let las_err = |source| MapIoError::Las {
         path: path.to_path_buf(),
         source,
@@ -41,6 +42,17 @@ pub fn read_las(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
     if declared > 0 && centre.iter().all(|c| c.is_finite()) {
         sink.set_origin(super::choose_origin(centre));
     }
+    let mut drop_class = [false; 256];
+    for &class in drop_classes {
+        drop_class[usize::from(class)] = true;
+    }
+    // The withheld flag: bit 7 of byte 15 in the legacy formats (0-5), bit 2
+    // of byte 15 in the extended ones (6-10).
+    let (flag_byte, withheld_bit) = if header.point_format().is_extended {
+        (15, 0b0000_0100u8)
+    } else {
+        (15, 0b1000_0000u8)
+    };
     let mut batch = ::las::PointDataBuilder::new().for_header(&header).build();
     let mut done = 0u64;
     while done < declared {
@@ -49,8 +61,18 @@ pub fn read_las(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
         if got == 0 {
             break;
         }
-        for ((x, y), z) in batch.x().zip(batch.y()).zip(batch.z()) {
-            sink.push([x, y, z], [0.0; 3], 0.0);
+        let records = batch.raw_bytes().chunks_exact(batch.record_len());
+        let coordinates = batch.x().zip(batch.y()).zip(batch.z());
+        for ((((x, y), z), class), record) in coordinates.zip(batch.classification()).zip(records) {
+            if record[flag_byte] & withheld_bit != 0 {
+                sink.report.points_read += 1;
+                sink.report.dropped_withheld += 1;
+            } else if drop_class[usize::from(class)] {
+                sink.report.points_read += 1;
+                sink.report.dropped_by_class += 1;
+            } else {
+                sink.push([x, y, z], [0.0; 3], 0.0);
+            }
         }
         done += got;
     }

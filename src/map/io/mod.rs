@@ -166,6 +166,12 @@ pub struct LoadReport {
     /// Kept points whose normal was zero, NaN, infinite or not unit length
     /// (stored as `[0, 0, 0]`).
     pub normals_invalid: u64,
+    /// LAS/LAZ records dropped for their class ([`ReadOptions::drop_las_classes`],
+    /// by default the ASPRS noise classes).
+    pub dropped_by_class: u64,
+    /// LAS/LAZ records flagged withheld (to be treated as deleted, says the
+    /// format's specification), always dropped.
+    pub dropped_withheld: u64,
     /// Largest coordinate of a kept point relative to the chosen origin
     /// (metres, any axis). Above [`PRECISION_WARNING_OFFSET_M`] the f32
     /// offsets lose millimetres (a far-away first point chose the origin);
@@ -185,6 +191,8 @@ impl LoadReport {
             dropped_non_finite: 0,
             had_normals: false,
             normals_invalid: 0,
+            dropped_by_class: 0,
+            dropped_withheld: 0,
             max_offset_m: 0.0,
         }
     }
@@ -293,7 +301,43 @@ impl CloudSink {
 /// `.pcd`, `.las`, `.laz`, `.e57`, any case) or, failing that, from the file's first
 /// bytes.
 pub fn read_point_cloud(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
-    let (cloud, report) = read_any(path)?;
+    read_point_cloud_with(path, &ReadOptions::default())
+}
+
+/// ASPRS LAS classes of noise: 7 (low point), 18 (high noise).
+pub const LAS_NOISE_CLASSES: [u8; 2] = [7, 18];
+
+/// What the readers leave out.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ReadOptions {
+    /// LAS/LAZ classification values whose points are dropped (default
+    /// [`LAS_NOISE_CLASSES`]; empty keeps every class).
+    pub drop_las_classes: Vec<u8>,
+}
+
+impl Default for ReadOptions {
+    fn default() -> Self {
+        ReadOptions {
+            drop_las_classes: LAS_NOISE_CLASSES.to_vec(),
+        }
+    }
+}
+
+/// [`read_point_cloud`] with other [`ReadOptions`].
+pub fn read_point_cloud_with(
+    path: &Path,
+    options: &ReadOptions,
+) -> Result<(PointCloud, LoadReport), MapIoError> {
+    let (cloud, report) = read_any(path, options)?;
+    if report.dropped_by_class > 0 || report.dropped_withheld > 0 {
+        log::info!(
+            "{}: {} points of the classes {:?} and {} flagged withheld left out",
+            path.display(),
+            report.dropped_by_class,
+            options.drop_las_classes,
+            report.dropped_withheld
+        );
+    }
     if report.max_offset_m > PRECISION_WARNING_OFFSET_M {
         log::warn!(
             "{}: points lie up to {:.0} m from the local origin {:?} chosen from the first point; \
@@ -307,7 +351,7 @@ pub fn read_point_cloud(path: &Path) -> Result<(PointCloud, LoadReport), MapIoEr
     Ok((cloud, report))
 }
 
-fn read_any(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
+fn read_any(path: &Path, options: &ReadOptions) -> Result<(PointCloud, LoadReport), MapIoError> {
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
@@ -315,7 +359,7 @@ fn read_any(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
     match ext.as_deref() {
         Some("ply") => return ply::read_ply(path),
         Some("pcd") => return pcd::read_pcd(path),
-        Some("las") | Some("laz") => return las::read_las(path),
+        Some("las") | Some("laz") => return las::read_las(path, &options.drop_las_classes),
         Some("e57") => return e57::read_e57(path),
         _ => {}
     }
@@ -335,7 +379,7 @@ fn read_any(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
     if magic.starts_with(b"ply\n") || magic.starts_with(b"ply\r\n") {
         ply::read_ply(path)
     } else if magic.starts_with(b"LASF") {
-        las::read_las(path)
+        las::read_las(path, &options.drop_las_classes)
     } else if magic.starts_with(b"ASTM-E57") {
         e57::read_e57(path)
     } else if magic.starts_with(b"# .PCD") || magic.starts_with(b"VERSION") {
