@@ -461,14 +461,6 @@ pub(crate) fn check_output(dir: &Path) -> Result<()> {
 /// Reads the map; estimates normals where missing, over a radius that
 /// follows the map's spacing ([`widen_normal_radius`]).
 pub fn load_map(path: &Path) -> Result<PointCloud> {
-    if path.is_dir() {
-        bail!(
-            "the LiDAR map {} is a folder: merge its point clouds into one map first, with \
-             `colmap-lidar prepare-map --input {} --output map.ply`",
-            path.display(),
-            path.display()
-        );
-    }
     let (mut cloud, load) = read_point_cloud(path)
         .with_context(|| format!("reading the LiDAR map {}", path.display()))?;
     if cloud.is_empty() {

@@ -124,9 +124,10 @@ impl PrepareMapArgs {
 
 /// The point-cloud files of a command line's `--input` values: a file as
 /// given, a folder as the files in it that a map reader reads (by extension,
-/// sorted by name). A folder without any, a file named twice, or an output
-/// inside an input folder (the next run would read it as a tile) is an
-/// error.
+/// sorted by name; hidden files and subfolders left out). A folder without
+/// any, a file named twice, an output that is one of the inputs, or an
+/// output inside an input folder (the next run would read it as a tile) is
+/// an error.
 pub fn input_files(inputs: &[PathBuf], output: &Path) -> anyhow::Result<Vec<PathBuf>> {
     let output_folder = output
         .parent()
@@ -152,31 +153,47 @@ pub fn input_files(inputs: &[PathBuf], output: &Path) -> anyhow::Result<Vec<Path
                 input.display()
             );
         }
-        let mut found: Vec<PathBuf> = std::fs::read_dir(input)
-            .with_context(|| format!("reading the folder {}", input.display()))?
-            .filter_map(|entry| entry.ok().map(|e| e.path()))
-            .filter(|path| path.is_file() && is_point_cloud_name(path))
-            .collect();
+        let listing = || format!("reading the folder {}", input.display());
+        let mut found = Vec::new();
+        for entry in std::fs::read_dir(input).with_context(listing)? {
+            let path = entry.with_context(listing)?.path();
+            let hidden = path
+                .file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with('.'));
+            if !hidden && path.is_file() && is_point_cloud_name(&path) {
+                found.push(path);
+            }
+        }
         if found.is_empty() {
             anyhow::bail!(
-                "the folder {} holds no point cloud (.ply, .pcd, .las, .laz or .e57 file)",
+                "the folder {} holds no point cloud (.ply, .pcd, .las, .laz or .e57 file; \
+                 subfolders are not searched)",
                 input.display()
             );
         }
         found.sort();
         files.extend(found);
     }
+    let key = |path: &Path| path.canonicalize().unwrap_or_else(|_| path.to_path_buf());
+    let output_key = output.exists().then(|| key(output));
     let mut seen: Vec<(PathBuf, &PathBuf)> = Vec::new();
     for file in &files {
-        let key = file.canonicalize().unwrap_or_else(|_| file.clone());
-        if let Some((_, first)) = seen.iter().find(|(k, _)| *k == key) {
+        let file_key = key(file);
+        if output_key.as_ref() == Some(&file_key) {
+            anyhow::bail!(
+                "the output {} is one of the inputs: write the map elsewhere",
+                output.display()
+            );
+        }
+        if let Some((_, first)) = seen.iter().find(|(k, _)| *k == file_key) {
             anyhow::bail!(
                 "the point cloud {} is given twice (also as {}): each tile once",
                 file.display(),
                 first.display()
             );
         }
-        seen.push((key, file));
+        seen.push((file_key, file));
     }
     Ok(files)
 }
@@ -206,9 +223,10 @@ pub fn prepare_map_file(
 }
 
 /// Reads every input (each cropped on its own when a box is given, so a
-/// large survey's tiles outside it cost no memory), merges them into one
-/// cloud in the first one's local frame, prepares it and writes it. One
-/// load report per input.
+/// large survey's points outside it are held only while their tile is
+/// read), merges them into one cloud ([`PointCloud::concatenate`]: for a
+/// moment the kept points twice), prepares it and writes it. One load
+/// report per input.
 pub fn prepare_map_files(
     inputs: &[PathBuf],
     output: &Path,

@@ -77,18 +77,31 @@ impl PointCloud {
 }
 
 impl PointCloud {
-    /// One cloud of several (e.g. the tiles of a survey), in order. The
-    /// origin is the first non-empty cloud's; the others' points are
-    /// re-expressed from it (exact when the origins agree, else rounded
-    /// once to f32). Normals are kept when any cloud has them (a cloud
-    /// without gets zero normals, i.e. to be estimated); planarity only when
-    /// every non-empty cloud has it.
+    /// One cloud of several (e.g. the tiles of a survey), in order. When
+    /// the non-empty clouds share a local origin it is kept and their points
+    /// are copied as they are; otherwise the origin is the middle of their
+    /// bounds ([`crate::map::io::choose_origin`]: whole metres), so the
+    /// largest offset is half the span, and every point is re-expressed from
+    /// it (a second f32 rounding, under one f32 step at that offset).
+    /// Normals are kept when any cloud has them (a cloud without gets zero
+    /// normals, i.e. to be estimated); planarity only when every non-empty
+    /// cloud has it.
     pub fn concatenate(clouds: Vec<PointCloud>) -> PointCloud {
         let filled: Vec<PointCloud> = clouds.into_iter().filter(|c| !c.is_empty()).collect();
         let Some(first) = filled.first() else {
             return PointCloud::default();
         };
-        let origin = first.origin;
+        let origin = if filled.iter().all(|c| c.origin == first.origin) {
+            first.origin
+        } else {
+            let (lo, hi) = filled
+                .iter()
+                .filter_map(PointCloud::bounds)
+                .reduce(|(l, h), (lo, hi)| (l.inf(&lo), h.sup(&hi)))
+                .unwrap_or((first.origin, first.origin));
+            let middle = 0.5 * (lo + hi);
+            crate::map::io::choose_origin([middle.x, middle.y, middle.z])
+        };
         let total: usize = filled.iter().map(PointCloud::len).sum();
         let any_normals = filled.iter().any(|c| c.normals.is_some());
         let all_planarity = filled.iter().all(|c| c.planarity.is_some());
@@ -179,23 +192,28 @@ mod tests {
             ..Default::default()
         };
         let c = PointCloud::concatenate(vec![empty.clone(), a.clone(), b.clone()]);
-        assert_eq!(c.origin, a.origin);
+        // The bounds: x 500000.5..500008.5, y 4399998.75..4400000.25, z
+        // 200..202; the middle rounded to whole metres (halves away from 0).
+        assert_eq!(c.origin, Vector3::new(500_005.0, 4_400_000.0, 201.0));
         assert_eq!(c.len(), 3);
-        assert_eq!(&c.points[..2], &a.points[..]);
-        // 500010 - 1.5 = 500008.5 -> 8.5 from the origin; 4399998 + 2.25 ->
-        // 0.25; all exact in f32.
-        assert_eq!(c.points[2], [8.5, 0.25, 0.5]);
-        assert_eq!(c.point_in_map(2), b.point_in_map(0));
+        // All exact in f32: the same points in the map frame.
+        for (i, (cloud, j)) in [(&a, 0), (&a, 1), (&b, 0)].into_iter().enumerate() {
+            assert_eq!(c.point_in_map(i), cloud.point_in_map(j), "{i}");
+        }
+        assert_eq!(c.points[2], [3.5, 0.25, -0.5]);
         assert_eq!(
             c.normals.as_deref(),
             Some(&[[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0; 3]][..])
         );
         assert_eq!(c.planarity, None);
-        assert_eq!(c.max_offset_m(), 8.5);
+        assert_eq!(c.max_offset_m(), 4.5);
         // Without normals anywhere, none; every cloud with planarity keeps it.
         let c = PointCloud::concatenate(vec![b.clone(), b.clone()]);
         assert_eq!((c.len(), c.normals, c.planarity), (2, None, None));
+        // One origin: kept, the points copied bit for bit.
         let c = PointCloud::concatenate(vec![a.clone(), a.clone()]);
+        assert_eq!(c.origin, a.origin);
+        assert_eq!(c.points, [a.points.clone(), a.points.clone()].concat());
         assert_eq!(c.planarity, Some(vec![0.9, 0.8, 0.9, 0.8]));
         assert_eq!(PointCloud::concatenate(vec![empty]), PointCloud::default());
         assert_eq!(PointCloud::default().max_offset_m(), 0.0);

@@ -729,8 +729,9 @@ fn pcd_ascii_binary_and_compressed_read_back() {
 }
 
 /// LAS/LAZ points of the ASPRS noise classes (7, 18) and points flagged
-/// withheld are left out by default and counted; `--drop-classes` chooses
-/// the classes (`none` keeps them all), in the legacy point formats and the
+/// withheld are left out by default and counted (the other flags, set on a
+/// third of the points, change nothing); `--drop-classes` chooses the
+/// classes (`none` keeps them all), in the legacy point formats and the
 /// extended ones (LAS 1.4, format 6), whose flags sit elsewhere.
 #[test]
 fn las_noise_classes_and_withheld_points_are_left_out() {
@@ -751,6 +752,12 @@ fn las_noise_classes_and_withheld_points_are_left_out() {
                     z: 3.0,
                     classification: las::point::Classification::new(classes[i % 4]).unwrap(),
                     is_withheld: withheld(i),
+                    // The flags beside withheld, which must not count as it.
+                    is_synthetic: i % 3 == 0,
+                    is_key_point: i % 3 == 0,
+                    is_edge_of_flight_line: i % 3 == 0,
+                    is_overlap: format >= 6 && i % 3 == 0,
+                    scanner_channel: if format >= 6 { (i % 4) as u8 } else { 0 },
                     gps_time: Some(1.0),
                     ..Default::default()
                 })

@@ -731,6 +731,8 @@ fn prepare_map_merges_the_tiles_of_a_survey() {
     writer.close().unwrap();
     drop(writer);
     std::fs::write(tiles.join("notes.txt"), "not a cloud").unwrap();
+    // A hidden file (macOS leaves `._NAME` beside copied files) is not read.
+    std::fs::write(tiles.join("._b.laz"), "not a cloud either").unwrap();
 
     let prepare_map = |inputs: &[&std::path::Path], out: &std::path::Path, extra: &[&str]| {
         let mut command = std::process::Command::new(crate::common::bin());
@@ -839,6 +841,7 @@ fn prepare_map_merges_the_tiles_of_a_survey() {
     let target = dir.path().join("bad.ply");
     let empty = dir.path().join("empty");
     std::fs::create_dir(&empty).unwrap();
+    let slashed = std::path::PathBuf::from(format!("{}/", tiles.display()));
     for (inputs, out, says) in [
         (
             vec![tile_a.as_path(), tiles.as_path()],
@@ -855,6 +858,11 @@ fn prepare_map_merges_the_tiles_of_a_survey() {
             tiles.join("map.ply"),
             "inside the input folder",
         ),
+        (
+            vec![slashed.as_path()],
+            tiles.join("map.ply"),
+            "inside the input folder",
+        ),
     ] {
         let output = prepare_map(&inputs, &out, &[]);
         assert!(!output.status.success(), "{says}");
@@ -862,4 +870,11 @@ fn prepare_map_merges_the_tiles_of_a_survey() {
         assert!(stderr.contains(says), "{says}: {stderr}");
         assert!(!out.exists(), "{says}");
     }
+    // An output that is one of the inputs: refused, the tile kept as it was.
+    let before = std::fs::read(&tile_b).unwrap();
+    let output = prepare_map(&[&tile_a, &tile_b], &tile_b, &[]);
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("is one of the inputs"), "{stderr}");
+    assert_eq!(std::fs::read(&tile_b).unwrap(), before);
 }

@@ -56,6 +56,13 @@ pub enum MapIoError {
         path.display()
     )]
     UnknownFormat { path: PathBuf },
+    #[error(
+        "{} is a folder: merge its point clouds into one map first, with \
+         `colmap-lidar prepare-map --input {} --output MAP.ply` (MAP.ply outside the folder)",
+        path.display(),
+        path.display()
+    )]
+    Folder { path: PathBuf },
     #[error("{}: bad header: {message}", path.display())]
     Header { path: PathBuf, message: String },
     #[error("{}: the point records have no `{name}` coordinate", path.display())]
@@ -328,6 +335,11 @@ pub fn read_point_cloud_with(
     path: &Path,
     options: &ReadOptions,
 ) -> Result<(PointCloud, LoadReport), MapIoError> {
+    if path.is_dir() {
+        return Err(MapIoError::Folder {
+            path: path.to_path_buf(),
+        });
+    }
     let (cloud, report) = read_any(path, options)?;
     if report.dropped_by_class > 0 || report.dropped_withheld > 0 {
         log::info!(
