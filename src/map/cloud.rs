@@ -79,7 +79,7 @@ impl PointCloud {
 impl PointCloud {
     /// One cloud of several (e.g. the tiles of a survey), in order. When
     /// the non-empty clouds share a local origin it is kept and their points
-    /// are copied as they are; otherwise the origin is the middle of their
+    /// are appended as they are to the first one's; otherwise the origin is the middle of their
     /// bounds ([`crate::map::io::choose_origin`]: whole metres), so the
     /// largest offset is half the span, and every point is re-expressed from
     /// it (a second f32 rounding, under one f32 step at that offset).
@@ -91,27 +91,40 @@ impl PointCloud {
         let Some(first) = filled.first() else {
             return PointCloud::default();
         };
-        let origin = if filled.iter().all(|c| c.origin == first.origin) {
-            first.origin
+        let first_origin = first.origin;
+        let origin = if filled.iter().all(|c| c.origin == first_origin) {
+            first_origin
         } else {
             let (lo, hi) = filled
                 .iter()
                 .filter_map(PointCloud::bounds)
                 .reduce(|(l, h), (lo, hi)| (l.inf(&lo), h.sup(&hi)))
-                .unwrap_or((first.origin, first.origin));
+                .unwrap_or((first_origin, first_origin));
             let middle = 0.5 * (lo + hi);
             crate::map::io::choose_origin([middle.x, middle.y, middle.z])
         };
         let total: usize = filled.iter().map(PointCloud::len).sum();
         let any_normals = filled.iter().any(|c| c.normals.is_some());
         let all_planarity = filled.iter().all(|c| c.planarity.is_some());
-        let mut out = PointCloud {
-            origin,
-            points: Vec::with_capacity(total),
-            normals: any_normals.then(|| Vec::with_capacity(total)),
-            planarity: all_planarity.then(|| Vec::with_capacity(total)),
+        let mut clouds = filled.into_iter();
+        // Sharing the origin, the first cloud's buffers grow in place (one
+        // cloud: returned as it is); else the points go into new ones.
+        let mut out = if origin == first_origin {
+            clouds.next().expect("a non-empty cloud")
+        } else {
+            PointCloud {
+                origin,
+                ..Default::default()
+            }
         };
-        for cloud in filled {
+        out.points.reserve(total - out.len());
+        if any_normals && out.normals.is_none() {
+            out.normals = Some(vec![[0.0; 3]; out.len()]);
+        }
+        if !all_planarity {
+            out.planarity = None;
+        }
+        for cloud in clouds {
             let shift = cloud.origin - origin;
             if shift == Vector3::zeros() {
                 out.points.extend_from_slice(&cloud.points);
@@ -215,6 +228,21 @@ mod tests {
         assert_eq!(c.origin, a.origin);
         assert_eq!(c.points, [a.points.clone(), a.points.clone()].concat());
         assert_eq!(c.planarity, Some(vec![0.9, 0.8, 0.9, 0.8]));
+        // Sharing the origin: a first cloud without normals gets zero ones, and
+        // planarity goes when a later cloud has none.
+        let mut with_normal = b.clone();
+        with_normal.normals = Some(vec![[0.0, 1.0, 0.0]]);
+        let c = PointCloud::concatenate(vec![b.clone(), with_normal]);
+        assert_eq!(c.normals, Some(vec![[0.0; 3], [0.0, 1.0, 0.0]]));
+        let mut without_planarity = a.clone();
+        without_planarity.planarity = None;
+        let c = PointCloud::concatenate(vec![a.clone(), without_planarity]);
+        assert_eq!(
+            (c.len(), c.normals.map(|n| n.len()), c.planarity),
+            (4, Some(4), None)
+        );
+        // One cloud comes back as it is.
+        assert_eq!(PointCloud::concatenate(vec![empty.clone(), a.clone()]), a);
         assert_eq!(PointCloud::concatenate(vec![empty]), PointCloud::default());
         assert_eq!(PointCloud::default().max_offset_m(), 0.0);
     }

@@ -48,10 +48,10 @@ pub fn read_las(path: &Path, drop_classes: &[u8]) -> Result<(PointCloud, LoadRep
     }
     // The withheld flag: bit 7 of byte 15 in the legacy formats (0-5), bit 2
     // of byte 15 in the extended ones (6-10).
-    let (flag_byte, withheld_bit) = if header.point_format().is_extended {
-        (15, 0b0000_0100u8)
+    let withheld_bit = if header.point_format().is_extended {
+        0b0000_0100u8
     } else {
-        (15, 0b1000_0000u8)
+        0b1000_0000u8
     };
     let mut batch = ::las::PointDataBuilder::new().for_header(&header).build();
     let mut done = 0u64;
@@ -64,7 +64,7 @@ pub fn read_las(path: &Path, drop_classes: &[u8]) -> Result<(PointCloud, LoadRep
         let records = batch.raw_bytes().chunks_exact(batch.record_len());
         let coordinates = batch.x().zip(batch.y()).zip(batch.z());
         for ((((x, y), z), class), record) in coordinates.zip(batch.classification()).zip(records) {
-            if record[flag_byte] & withheld_bit != 0 {
+            if record[15] & withheld_bit != 0 {
                 sink.report.points_read += 1;
                 sink.report.dropped_withheld += 1;
             } else if drop_class[usize::from(class)] {
