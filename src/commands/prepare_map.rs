@@ -224,9 +224,8 @@ pub fn prepare_map_file(
 
 /// Reads every input (each cropped on its own when a box is given, so a
 /// large survey's points outside it are held only while their tile is
-/// read), merges them into one cloud ([`PointCloud::concatenate`]: for a
-/// moment the kept points twice), prepares it and writes it. One load
-/// report per input.
+/// read), merges them into one cloud ([`PointCloud::concatenate`]), prepares
+/// it and writes it. One load report per input.
 pub fn prepare_map_files(
     inputs: &[PathBuf],
     output: &Path,
