@@ -728,6 +728,23 @@ fn pcd_ascii_binary_and_compressed_read_back() {
     }
 }
 
+/// A LAS 1.2 header, point format 1, millimetre coordinates offset to a UTM
+/// square (512000, 5412000).
+fn utm_millimetre_header() -> las::Header {
+    let mut builder = las::Builder::from((1, 2));
+    builder.point_format = las::point::Format::new(1).unwrap();
+    let millimetres = |offset| las::Transform {
+        scale: 0.001,
+        offset,
+    };
+    builder.transforms = las::Vector {
+        x: millimetres(512_000.0),
+        y: millimetres(5_412_000.0),
+        z: millimetres(0.0),
+    };
+    builder.into_header().unwrap()
+}
+
 /// LAS/LAZ points of the ASPRS noise classes (7, 18) and points flagged
 /// withheld are left out by default and counted (the other flags, set on a
 /// third of the points, change nothing); `--drop-classes` chooses the
@@ -788,6 +805,37 @@ fn las_noise_classes_and_withheld_points_are_left_out() {
         assert_eq!(xs(&cloud), kept, "format {format}");
         assert_eq!((report.dropped_by_class, report.dropped_withheld), (0, 4));
     }
+    // A noise point far below the survey stretches the header's bounds
+    // (here 100 km): the origin then comes from the points kept, which
+    // keep their coordinates to the micrometre.
+    let path = dir.path().join("outlier.las");
+    let mut writer = las::Writer::from_path(&path, utm_millimetre_header()).unwrap();
+    let survey = |i: usize| [512_100.0 + i as f64 * 0.25, 5_412_200.5, 230.125];
+    for i in 0..20 {
+        let [x, y, z] = survey(i);
+        let (z, class) = if i == 0 { (-99_770.0, 7) } else { (z, 2) };
+        writer
+            .write_point(las::Point {
+                x,
+                y,
+                z,
+                classification: las::point::Classification::new(class).unwrap(),
+                gps_time: Some(1.0),
+                ..Default::default()
+            })
+            .unwrap();
+    }
+    writer.close().unwrap();
+    drop(writer);
+    let (cloud, report) = read_point_cloud(&path).unwrap();
+    assert_eq!((cloud.len(), report.dropped_by_class), (19, 1));
+    assert!(report.max_offset_m < 10.0, "{report:?}");
+    for i in 0..19 {
+        let p = cloud.point_in_map(i);
+        let q = survey(i + 1);
+        assert!((0..3).all(|a| (p[a] - q[a]).abs() < 1e-6), "{p:?} {q:?}");
+    }
+
     // On the command line.
     let path = dir.path().join("classes_1.las");
     let out = dir.path().join("map.ply");
@@ -841,23 +889,7 @@ fn las_and_laz_written_by_the_las_crate_read_back() {
         .collect();
     for ext in ["las", "laz"] {
         let path = dir.path().join(format!("cloud.{ext}"));
-        let mut builder = las::Builder::from((1, 2));
-        builder.point_format = las::point::Format::new(1).unwrap();
-        builder.transforms = las::Vector {
-            x: las::Transform {
-                scale: 0.001,
-                offset: 512_000.0,
-            },
-            y: las::Transform {
-                scale: 0.001,
-                offset: 5_412_000.0,
-            },
-            z: las::Transform {
-                scale: 0.001,
-                offset: 0.0,
-            },
-        };
-        let header = builder.into_header().unwrap();
+        let header = utm_millimetre_header();
         let mut writer = las::Writer::from_path(&path, header).unwrap();
         for p in &pts {
             writer

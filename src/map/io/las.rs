@@ -32,14 +32,25 @@ pub fn read_las(path: &Path, drop_classes: &[u8]) -> Result<(PointCloud, LoadRep
     let record = u64::from(header.point_format().len()).max(1);
     let hint = declared.min(file_len / record + 1) as usize;
     let mut sink = CloudSink::new(format, hint, false, false);
-    // The header's bounds give an origin near the middle of the cloud.
+    // The header's bounds give an origin near the middle of the cloud,
+    // unless they span more than f32 offsets from their middle keep to a
+    // millimetre: then an outlier (often a noise point, left out below)
+    // stretched them, and the first point kept sets the origin.
     let bounds = header.bounds();
     let centre = [
         0.5 * (bounds.min.x + bounds.max.x),
         0.5 * (bounds.min.y + bounds.max.y),
         0.5 * (bounds.min.z + bounds.max.z),
     ];
-    if declared > 0 && centre.iter().all(|c| c.is_finite()) {
+    let spans = [
+        bounds.max.x - bounds.min.x,
+        bounds.max.y - bounds.min.y,
+        bounds.max.z - bounds.min.z,
+    ];
+    let tight = spans
+        .iter()
+        .all(|s| s.is_finite() && *s <= 2.0 * super::PRECISION_WARNING_OFFSET_M);
+    if declared > 0 && tight && centre.iter().all(|c| c.is_finite()) {
         sink.set_origin(super::choose_origin(centre));
     }
     let mut drop_class = [false; 256];
