@@ -827,13 +827,21 @@ fn las_noise_classes_and_withheld_points_are_left_out() {
     }
     writer.close().unwrap();
     drop(writer);
-    let (cloud, report) = read_point_cloud(&path).unwrap();
-    assert_eq!((cloud.len(), report.dropped_by_class), (19, 1));
-    assert!(report.max_offset_m < 10.0, "{report:?}");
-    for i in 0..19 {
-        let p = cloud.point_in_map(i);
-        let q = survey(i + 1);
-        assert!((0..3).all(|a| (p[a] - q[a]).abs() < 1e-6), "{p:?} {q:?}");
+    // The same file with the header's bounds zeroed (a writer that left
+    // them unset; LAS 1.2 keeps them at bytes 179-226): no origin at zero.
+    let unset = dir.path().join("unset_bounds.las");
+    let mut bytes = std::fs::read(&path).unwrap();
+    bytes[179..227].fill(0);
+    std::fs::write(&unset, bytes).unwrap();
+    for path in [&path, &unset] {
+        let (cloud, report) = read_point_cloud(path).unwrap();
+        assert_eq!((cloud.len(), report.dropped_by_class), (19, 1));
+        assert!(report.max_offset_m < 10.0, "{report:?}");
+        for i in 0..19 {
+            let p = cloud.point_in_map(i);
+            let q = survey(i + 1);
+            assert!((0..3).all(|a| (p[a] - q[a]).abs() < 1e-6), "{p:?} {q:?}");
+        }
     }
 
     // On the command line.

@@ -34,8 +34,9 @@ pub fn read_las(path: &Path, drop_classes: &[u8]) -> Result<(PointCloud, LoadRep
     let mut sink = CloudSink::new(format, hint, false, false);
     // The header's bounds give an origin near the middle of the cloud,
     // unless they span more than f32 offsets from their middle keep to a
-    // millimetre: then an outlier (often a noise point, left out below)
-    // stretched them, and the first point kept sets the origin.
+    // millimetre (an outlier, often a noise point left out below, stretched
+    // them) or they put the origin at zero (small coordinates, or bounds a
+    // writer left unset): then the first point kept sets the origin.
     let bounds = header.bounds();
     let centre = [
         0.5 * (bounds.min.x + bounds.max.x),
@@ -51,7 +52,10 @@ pub fn read_las(path: &Path, drop_classes: &[u8]) -> Result<(PointCloud, LoadRep
         .iter()
         .all(|s| s.is_finite() && *s <= 2.0 * super::PRECISION_WARNING_OFFSET_M);
     if declared > 0 && tight && centre.iter().all(|c| c.is_finite()) {
-        sink.set_origin(super::choose_origin(centre));
+        let origin = super::choose_origin(centre);
+        if origin != nalgebra::Vector3::zeros() {
+            sink.set_origin(origin);
+        }
     }
     let mut drop_class = [false; 256];
     for &class in drop_classes {
