@@ -11,7 +11,7 @@ use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::{ply_bytes, Enc};
+use super::{millimetre_las_header, ply_bytes, write_millimetre_las, Enc};
 
 fn write(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
     let path = dir.join(name);
@@ -728,23 +728,6 @@ fn pcd_ascii_binary_and_compressed_read_back() {
     }
 }
 
-/// A LAS 1.2 header, point format 1, millimetre coordinates offset to a UTM
-/// square (512000, 5412000).
-fn utm_millimetre_header() -> las::Header {
-    let mut builder = las::Builder::from((1, 2));
-    builder.point_format = las::point::Format::new(1).unwrap();
-    let millimetres = |offset| las::Transform {
-        scale: 0.001,
-        offset,
-    };
-    builder.transforms = las::Vector {
-        x: millimetres(512_000.0),
-        y: millimetres(5_412_000.0),
-        z: millimetres(0.0),
-    };
-    builder.into_header().unwrap()
-}
-
 /// LAS/LAZ points of the ASPRS noise classes (7, 18) and points flagged
 /// withheld are left out by default and counted (the other flags, set on a
 /// third of the points, change nothing); `--drop-classes` chooses the
@@ -809,7 +792,8 @@ fn las_noise_classes_and_withheld_points_are_left_out() {
     // (here 100 km): the origin then comes from the points kept, which
     // keep their coordinates to the micrometre.
     let path = dir.path().join("outlier.las");
-    let mut writer = las::Writer::from_path(&path, utm_millimetre_header()).unwrap();
+    let utm = [512_000.0, 5_412_000.0, 0.0];
+    let mut writer = las::Writer::from_path(&path, millimetre_las_header(utm)).unwrap();
     let survey = |i: usize| [512_100.0 + i as f64 * 0.25, 5_412_200.5, 230.125];
     for i in 0..20 {
         let [x, y, z] = survey(i);
@@ -897,21 +881,7 @@ fn las_and_laz_written_by_the_las_crate_read_back() {
         .collect();
     for ext in ["las", "laz"] {
         let path = dir.path().join(format!("cloud.{ext}"));
-        let header = utm_millimetre_header();
-        let mut writer = las::Writer::from_path(&path, header).unwrap();
-        for p in &pts {
-            writer
-                .write_point(las::Point {
-                    x: p[0],
-                    y: p[1],
-                    z: p[2],
-                    gps_time: Some(1.0),
-                    ..Default::default()
-                })
-                .unwrap();
-        }
-        writer.close().unwrap();
-        drop(writer);
+        write_millimetre_las(&path, [512_000.0, 5_412_000.0, 0.0], &pts);
         let (cloud, report) = read_point_cloud(&path).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(
             report.format,

@@ -104,3 +104,38 @@ pub fn angle_deg(a: [f64; 3], b: [f64; 3], unsigned: bool) -> f64 {
     }
     c.clamp(-1.0, 1.0).acos().to_degrees()
 }
+
+/// A LAS 1.2 header, point format 1 (with GPS time), millimetre coordinates
+/// from `offsets` (x, y, z).
+pub fn millimetre_las_header(offsets: [f64; 3]) -> las::Header {
+    let mut builder = las::Builder::from((1, 2));
+    builder.point_format = las::point::Format::new(1).unwrap();
+    let millimetres = |offset| las::Transform {
+        scale: 0.001,
+        offset,
+    };
+    builder.transforms = las::Vector {
+        x: millimetres(offsets[0]),
+        y: millimetres(offsets[1]),
+        z: millimetres(offsets[2]),
+    };
+    builder.into_header().unwrap()
+}
+
+/// Writes `points` as a LAS or LAZ file (by the extension) with
+/// [`millimetre_las_header`].
+pub fn write_millimetre_las(path: &std::path::Path, offsets: [f64; 3], points: &[[f64; 3]]) {
+    let mut writer = las::Writer::from_path(path, millimetre_las_header(offsets)).unwrap();
+    for p in points {
+        writer
+            .write_point(las::Point {
+                x: p[0],
+                y: p[1],
+                z: p[2],
+                gps_time: Some(1.0),
+                ..Default::default()
+            })
+            .unwrap();
+    }
+    writer.close().unwrap();
+}

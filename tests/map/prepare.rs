@@ -13,7 +13,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
-use super::{angle_deg, ply_bytes, Enc};
+use super::{angle_deg, ply_bytes, write_millimetre_las, Enc};
 
 const NOISE_M: f64 = 0.015;
 
@@ -706,30 +706,8 @@ fn prepare_map_merges_the_tiles_of_a_survey() {
     let tile_a = tiles.join("a.ply");
     std::fs::write(&tile_a, ply_bytes(Enc::Le, &props, &west, None)).unwrap();
     let tile_b = tiles.join("b.laz");
-    let mut builder = las::Builder::from((1, 2));
-    builder.point_format = las::point::Format::new(0).unwrap();
-    let transform = |offset| las::Transform {
-        scale: 0.001,
-        offset,
-    };
-    builder.transforms = las::Vector {
-        x: transform(base[0] + 1.0),
-        y: transform(base[1]),
-        z: transform(0.0),
-    };
-    let mut writer = las::Writer::from_path(&tile_b, builder.into_header().unwrap()).unwrap();
-    for p in &east {
-        writer
-            .write_point(las::Point {
-                x: p[0],
-                y: p[1],
-                z: p[2],
-                ..Default::default()
-            })
-            .unwrap();
-    }
-    writer.close().unwrap();
-    drop(writer);
+    let east: Vec<[f64; 3]> = east.iter().map(|p| [p[0], p[1], p[2]]).collect();
+    write_millimetre_las(&tile_b, [base[0] + 1.0, base[1], 0.0], &east);
     std::fs::write(tiles.join("notes.txt"), "not a cloud").unwrap();
     // A hidden file (macOS leaves `._NAME` beside copied files) is not read.
     std::fs::write(tiles.join("._b.laz"), "not a cloud either").unwrap();
