@@ -9,7 +9,8 @@ use anyhow::Context;
 use nalgebra::Vector3;
 
 use crate::map::io::{
-    read_point_cloud_with, write_ply, LoadReport, ReadOptions, PRECISION_WARNING_OFFSET_M,
+    read_point_cloud_with, write_ply, InputUnits, LoadReport, ReadOptions,
+    PRECISION_WARNING_OFFSET_M,
 };
 use crate::map::prepare::{
     prepare, CropBox, NormalOrientation, PrepareError, PrepareOptions, PrepareReport,
@@ -45,8 +46,9 @@ pub struct PrepareMapArgs {
     #[arg(long)]
     pub sensor: Option<String>,
     /// Keep only the points inside this box, `xmin,ymin,zmin,xmax,ymax,zmax`
-    /// (map frame, metres, in the input's own coordinates), before
-    /// downsampling: the part of a large survey the photos show.
+    /// (the input's own coordinates, in metres: converted like the points
+    /// when they are in feet, see --input-units), before downsampling: the
+    /// part of a large survey the photos show.
     #[arg(long, allow_hyphen_values = true)]
     pub crop: Option<String>,
     /// LAS/LAZ classes whose points are left out, `c1,c2,...`, or `none`
@@ -54,6 +56,13 @@ pub struct PrepareMapArgs {
     /// always left out].
     #[arg(long = "drop-classes", alias = "drop_classes")]
     pub drop_classes: Option<String>,
+    /// The inputs' length unit: auto (a LAS/LAZ file's coordinate reference
+    /// system; metres for the other formats and LAS files without one), m,
+    /// ft (0.3048 m) or us-ft (1200/3937 m). Coordinates are converted to
+    /// metres; a LAS file in longitude and latitude is refused unless a unit
+    /// is given.
+    #[arg(long = "input-units", alias = "input_units", default_value = "auto")]
+    pub input_units: String,
     /// Keep points whose normal could not be estimated (written with a zero
     /// normal).
     #[arg(long = "keep-without-normal")]
@@ -94,6 +103,9 @@ impl PrepareMapArgs {
         if let Some(classes) = &self.drop_classes {
             options.drop_las_classes = parse_classes(classes).context("--drop-classes")?;
         }
+        options.units = InputUnits::parse(&self.input_units)
+            .map_err(anyhow::Error::msg)
+            .context("--input-units")?;
         Ok(options)
     }
 
@@ -376,5 +388,13 @@ pub fn run(args: &PrepareMapArgs) -> anyhow::Result<()> {
         report.output_points,
         args.output.display()
     );
+    for (input, load) in inputs.iter().zip(&loads) {
+        if let Some(units) = &load.units {
+            println!(
+                "{}: coordinates in {units}, converted to metres",
+                input.display()
+            );
+        }
+    }
     Ok(())
 }

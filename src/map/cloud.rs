@@ -150,6 +150,17 @@ impl PointCloud {
         out
     }
 
+    /// Scales every coordinate by `factor` (a change of length unit: feet to
+    /// metres, say), the origin with them; normals and planarity stay.
+    pub fn scale_coordinates(&mut self, factor: f64) {
+        self.origin *= factor;
+        self.points.par_iter_mut().for_each(|p| {
+            for c in p.iter_mut() {
+                *c = (f64::from(*c) * factor) as f32;
+            }
+        });
+    }
+
     /// The largest distance of a point from the origin along any axis
     /// (metres; 0 for an empty cloud).
     pub fn max_offset_m(&self) -> f64 {

@@ -4,7 +4,8 @@
 use std::path::{Path, PathBuf};
 
 use colmap_lidar::map::io::{
-    read_point_cloud, read_point_cloud_with, write_ply, CloudFormat, MapIoError, ReadOptions,
+    read_point_cloud, read_point_cloud_with, write_ply, CloudFormat, InputUnits, MapIoError,
+    ReadOptions,
 };
 use colmap_lidar::map::PointCloud;
 use nalgebra::Vector3;
@@ -782,6 +783,7 @@ fn las_noise_classes_and_withheld_points_are_left_out() {
         assert_eq!(report.dropped_by_class, 18);
         let every_class = ReadOptions {
             drop_las_classes: Vec::new(),
+            ..Default::default()
         };
         let (cloud, report) = read_point_cloud_with(&path, &every_class).unwrap();
         let kept: Vec<usize> = (0..40).filter(|&i| !withheld(i)).collect();
@@ -1067,4 +1069,196 @@ fn e57_spherical_scans_are_converted_and_posed() {
         let q = cloud.point_in_map(i);
         assert!((q - expect).norm() < 1e-5, "point {i}: {q} vs {expect}");
     }
+}
+
+/// A LAS file in feet (its coordinate reference system in a WKT record or in
+/// GeoTIFF keys, or the unit given) is read in metres: x and y by the
+/// horizontal unit, z by the vertical one; a geographic CRS (longitude and
+/// latitude) is an error that names the file, unless a unit is given; a PLY
+/// given in feet is scaled too.
+#[test]
+fn las_coordinates_in_feet_are_read_as_metres() {
+    const US_FT: f64 = 1200.0 / 3937.0;
+    let dir = tempfile::tempdir().unwrap();
+    // State-plane-sized coordinates on a millimetre grid.
+    let survey: Vec<[f64; 3]> = (0..30)
+        .map(|i| {
+            let i = i as f64;
+            [1_012_345.5 + 0.5 * i, 201_234.25 + i, 35.5 + 0.125 * i]
+        })
+        .collect();
+    let write = |name: &str, version: (u8, u8), vlrs: Vec<las::Vlr>, wkt: Option<&str>| {
+        let path = dir.path().join(name);
+        let mut builder = las::Builder::from(version);
+        builder.point_format = las::point::Format::new(if version.1 >= 4 { 6 } else { 1 }).unwrap();
+        let millimetres = |offset| las::Transform {
+            scale: 0.001,
+            offset,
+        };
+        builder.transforms = las::Vector {
+            x: millimetres(1_000_000.0),
+            y: millimetres(200_000.0),
+            z: millimetres(0.0),
+        };
+        builder.vlrs = vlrs;
+        let mut header = builder.into_header().unwrap();
+        if let Some(wkt) = wkt {
+            header.set_wkt_crs(wkt.as_bytes().to_vec()).unwrap();
+        }
+        let mut writer = las::Writer::from_path(&path, header).unwrap();
+        for &[x, y, z] in &survey {
+            writer
+                .write_point(las::Point {
+                    x,
+                    y,
+                    z,
+                    gps_time: Some(1.0),
+                    ..Default::default()
+                })
+                .unwrap();
+        }
+        writer.close().unwrap();
+        path
+    };
+    let geotiff = |keys: &[(u16, u16)]| {
+        let mut data = Vec::new();
+        for v in [1u16, 1, 0, keys.len() as u16] {
+            data.extend_from_slice(&v.to_le_bytes());
+        }
+        for &(id, value) in keys {
+            for v in [id, 0, 1, value] {
+                data.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        vec![las::Vlr {
+            user_id: "LASF_Projection".to_string(),
+            record_id: 34735,
+            description: String::new(),
+            data,
+        }]
+    };
+    let check = |path: &Path, options: &ReadOptions, xy: f64, z: f64| {
+        let (cloud, report) = read_point_cloud_with(path, options).unwrap();
+        assert_eq!(cloud.len(), survey.len());
+        for (i, q) in survey.iter().enumerate() {
+            let p = cloud.point_in_map(i);
+            let want = [q[0] * xy, q[1] * xy, q[2] * z];
+            assert!(
+                (0..3).all(|a| (p[a] - want[a]).abs() < 1e-6),
+                "{}: {p:?} {want:?}",
+                path.display()
+            );
+        }
+        assert_eq!(report.metres_per_unit, [xy, z], "{}", path.display());
+        assert_eq!(report.units.is_some(), xy != 1.0 || z != 1.0);
+        report
+    };
+    let auto = ReadOptions::default();
+    let geogcs = r#"GEOGCS["NAD83",DATUM["North_American_Datum_1983",SPHEROID["GRS 1980",6378137,298.257222101]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]]"#;
+    let projcs = format!(
+        r#"PROJCS["NAD83 / New York Long Island (ftUS)",{geogcs},PROJECTION["Lambert_Conformal_Conic_2SP"],PARAMETER["false_easting",984250],UNIT["US survey foot",0.3048006096012192,AUTHORITY["EPSG","9003"]],AUTHORITY["EPSG","2263"]]"#
+    );
+    // WKT (LAS 1.4): feet throughout, then feet with heights in metres.
+    let path = write("wkt.las", (1, 4), Vec::new(), Some(&projcs));
+    let report = check(&path, &auto, 0.3048006096012192, 0.3048006096012192);
+    assert!(
+        report
+            .units
+            .as_deref()
+            .unwrap()
+            .contains("US survey foot (from its WKT record)"),
+        "{report:?}"
+    );
+    let compound = format!(
+        r#"COMPD_CS["NY + NAVD88",{projcs},VERT_CS["NAVD88 height",VERT_DATUM["NAVD88",2005],UNIT["metre",1]]]"#
+    );
+    let path = write("compound.laz", (1, 4), Vec::new(), Some(&compound));
+    check(&path, &auto, 0.3048006096012192, 1.0);
+    // GeoTIFF keys (LAS 1.2): only the projected CRS's EPSG code (2263, in
+    // US survey feet), or a unit key, or a CRS in metres.
+    let path = write(
+        "epsg2263.las",
+        (1, 2),
+        geotiff(&[(1024, 1), (3072, 2263)]),
+        None,
+    );
+    check(&path, &auto, US_FT, US_FT);
+    let path = write(
+        "unitkey.las",
+        (1, 2),
+        geotiff(&[(1024, 1), (3076, 9002), (4099, 9001)]),
+        None,
+    );
+    check(&path, &auto, 0.3048, 1.0);
+    let path = write(
+        "utm.las",
+        (1, 2),
+        geotiff(&[(1024, 1), (3072, 32618)]),
+        None,
+    );
+    check(&path, &auto, 1.0, 1.0);
+    // No CRS record: metres, unless a unit is given.
+    let path = write("plain.las", (1, 2), Vec::new(), None);
+    check(&path, &auto, 1.0, 1.0);
+    let given = ReadOptions {
+        units: InputUnits::UsSurveyFoot,
+        ..Default::default()
+    };
+    let report = check(&path, &given, US_FT, US_FT);
+    assert_eq!(report.units.as_deref(), Some("US survey foot (as given)"));
+    // Longitude and latitude: an error naming the file and the CRS, in
+    // either record; a unit given overrides the record.
+    for path in [
+        write(
+            "lonlat.las",
+            (1, 2),
+            geotiff(&[(1024, 2), (2048, 4269)]),
+            None,
+        ),
+        write("lonlat_wkt.las", (1, 4), Vec::new(), Some(geogcs)),
+    ] {
+        let err = read_err(&path).to_string();
+        assert!(
+            err.contains("is geographic") && err.contains("--input-units m"),
+            "{err}"
+        );
+        let metres = ReadOptions {
+            units: InputUnits::Metre,
+            ..Default::default()
+        };
+        check(&path, &metres, 1.0, 1.0);
+    }
+    // A unit code this reader does not size: an error naming it.
+    let path = write(
+        "fathoms.las",
+        (1, 2),
+        geotiff(&[(1024, 1), (3076, 9014)]),
+        None,
+    );
+    let err = read_err(&path).to_string();
+    assert!(
+        err.contains("EPSG:9014") && err.contains("--input-units"),
+        "{err}"
+    );
+    // A PLY given in feet: scaled, normals kept.
+    let cloud = PointCloud {
+        origin: Vector3::zeros(),
+        points: vec![[10.0, -20.0, 3.0], [1.0, 2.0, 4.0]],
+        normals: Some(vec![[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]]),
+        planarity: None,
+    };
+    let ply = dir.path().join("feet.ply");
+    write_ply(&ply, &cloud).unwrap();
+    let feet = ReadOptions {
+        units: InputUnits::Foot,
+        ..Default::default()
+    };
+    let (read, report) = read_point_cloud_with(&ply, &feet).unwrap();
+    assert_eq!(report.metres_per_unit, [0.3048, 0.3048]);
+    assert_eq!(report.units.as_deref(), Some("foot (as given)"));
+    for i in 0..2 {
+        let want = cloud.point_in_map(i) * 0.3048;
+        assert!((read.point_in_map(i) - want).norm() < 1e-6, "{i}");
+    }
+    assert_eq!(read.normals, cloud.normals);
 }

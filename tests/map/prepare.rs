@@ -508,6 +508,52 @@ fn prepare_map_cli_end_to_end() {
         .status()
         .unwrap();
     assert!(!status.success());
+    // The raw scan given in feet: the map is the same scan scaled to
+    // metres, and the run says so; a unit not known is an error.
+    let feet = dir.path().join("feet.ply");
+    let output = std::process::Command::new(crate::common::bin())
+        .args(["prepare-map", "--input"])
+        .arg(&raw)
+        .arg("--output")
+        .arg(&feet)
+        .args([
+            "--voxel",
+            "0",
+            "--keep-without-normal",
+            "--input-units",
+            "ft",
+        ])
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{output:?}");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        stdout.contains("coordinates in foot (as given), converted to metres"),
+        "{stdout}"
+    );
+    let (scan, _) = read_point_cloud(&raw).unwrap();
+    let (scaled, _) = read_point_cloud(&feet).unwrap();
+    assert_eq!(scaled.len(), scan.len());
+    for i in (0..scan.len()).step_by(97) {
+        let want = scan.point_in_map(i) * 0.3048;
+        assert!((scaled.point_in_map(i) - want).norm() < 1e-3, "{i}");
+    }
+    let target = dir.path().join("yards.ply");
+    let output = std::process::Command::new(crate::common::bin())
+        .args(["prepare-map", "--input"])
+        .arg(&raw)
+        .arg("--output")
+        .arg(&target)
+        .args(["--input-units", "yards"])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("--input-units") && stderr.contains("`yards`"),
+        "{stderr}"
+    );
+    assert!(!target.exists());
 }
 
 /// `prepare-map --crop`: exactly the raw points inside the box (bounds in

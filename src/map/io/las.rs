@@ -1,18 +1,26 @@
 //! LAS and LAZ reader, through the `las` crate (with `laz` for compressed
 //! files). LAS stores scaled integer coordinates; they are converted to f64 by
-//! the header's scale and offset, then to the cloud's local origin. LAS has
-//! no normals.
+//! the header's scale and offset, to metres when the file's coordinate
+//! reference system says feet ([`super::units`]), then to the cloud's local
+//! origin. LAS has no normals.
 use std::path::Path;
 
-use super::{CloudFormat, CloudSink, LoadReport, MapIoError};
+use super::units::{las_units, CrsUnits, LengthUnit};
+use super::{CloudFormat, CloudSink, LoadReport, MapIoError, ReadOptions};
 use crate::map::PointCloud;
 
 /// Points decoded per batch.
 const BATCH_POINTS: u64 = 1 << 16;
 
 /// Reads a LAS or LAZ file, leaving out the points of the classes
-/// `drop_classes` and those flagged withheld (counted in the report).
-pub fn read_las(path: &Path, drop_classes: &[u8]) -> Result<(PointCloud, LoadReport), MapIoError> {
+/// `options.drop_las_classes` and those flagged withheld (counted in the
+/// report), in metres: the unit `options.units` gives, else the one the
+/// file's coordinate reference system gives (longitude and latitude are an
+/// error).
+pub fn read_las(
+    path: &Path,
+    options: &ReadOptions,
+) -> Result<(PointCloud, LoadReport), MapIoError> {
     let las_err = |source| MapIoError::Las {
         path: path.to_path_buf(),
         source,
@@ -32,6 +40,42 @@ pub fn read_las(path: &Path, drop_classes: &[u8]) -> Result<(PointCloud, LoadRep
     let record = u64::from(header.point_format().len()).max(1);
     let hint = declared.min(file_len / record + 1) as usize;
     let mut sink = CloudSink::new(format, hint, false, false);
+    let units_err = |message: String| MapIoError::Units {
+        path: path.to_path_buf(),
+        message,
+    };
+    let (horizontal, vertical, source) = match options.units.unit() {
+        Some(unit) => (unit.clone(), unit, "as given".to_string()),
+        None => match las_units(&header).map_err(|e| {
+            units_err(format!("{e}; give the unit with `prepare-map --input-units`"))
+        })? {
+            CrsUnits::Unstated => (LengthUnit::metre(), LengthUnit::metre(), String::new()),
+            CrsUnits::Linear {
+                horizontal,
+                vertical,
+                source,
+            } => (horizontal, vertical, format!("from {source}")),
+            CrsUnits::Geographic { name, source } => {
+                return Err(units_err(format!(
+                    "the coordinate reference system of {source} is geographic ({name}): longitude \
+                     and latitude in degrees, not metres; reproject the cloud to a projected CRS in \
+                     metres (UTM, say) first, or give `prepare-map --input-units m` if the record is wrong"
+                )))
+            }
+        },
+    };
+    let to_metres = [horizontal.metres, horizontal.metres, vertical.metres];
+    if !horizontal.is_metre() || !vertical.is_metre() {
+        sink.report.metres_per_unit = [horizontal.metres, vertical.metres];
+        sink.report.units = Some(if horizontal == vertical {
+            format!("{} ({source})", horizontal.name)
+        } else {
+            format!(
+                "{} horizontally and {} vertically ({source})",
+                horizontal.name, vertical.name
+            )
+        });
+    }
     // The header's bounds give an origin near the middle of the cloud,
     // unless they span more than f32 offsets from their middle keep to a
     // millimetre (an outlier, often a noise point left out below, stretched
@@ -39,14 +83,14 @@ pub fn read_las(path: &Path, drop_classes: &[u8]) -> Result<(PointCloud, LoadRep
     // writer left unset): then the first point kept sets the origin.
     let bounds = header.bounds();
     let centre = [
-        0.5 * (bounds.min.x + bounds.max.x),
-        0.5 * (bounds.min.y + bounds.max.y),
-        0.5 * (bounds.min.z + bounds.max.z),
+        0.5 * (bounds.min.x + bounds.max.x) * to_metres[0],
+        0.5 * (bounds.min.y + bounds.max.y) * to_metres[1],
+        0.5 * (bounds.min.z + bounds.max.z) * to_metres[2],
     ];
     let spans = [
-        bounds.max.x - bounds.min.x,
-        bounds.max.y - bounds.min.y,
-        bounds.max.z - bounds.min.z,
+        (bounds.max.x - bounds.min.x) * to_metres[0],
+        (bounds.max.y - bounds.min.y) * to_metres[1],
+        (bounds.max.z - bounds.min.z) * to_metres[2],
     ];
     let tight = spans
         .iter()
@@ -58,7 +102,7 @@ pub fn read_las(path: &Path, drop_classes: &[u8]) -> Result<(PointCloud, LoadRep
         }
     }
     let mut drop_class = [false; 256];
-    for &class in drop_classes {
+    for &class in &options.drop_las_classes {
         drop_class[usize::from(class)] = true;
     }
     // The withheld flag: bit 7 of byte 15 in the legacy formats (0-5), bit 2
@@ -86,7 +130,8 @@ pub fn read_las(path: &Path, drop_classes: &[u8]) -> Result<(PointCloud, LoadRep
                 sink.report.points_read += 1;
                 sink.report.dropped_by_class += 1;
             } else {
-                sink.push([x, y, z], [0.0; 3], 0.0);
+                let p = [x * to_metres[0], y * to_metres[1], z * to_metres[2]];
+                sink.push(p, [0.0; 3], 0.0);
             }
         }
         done += got;

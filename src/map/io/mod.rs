@@ -27,8 +27,10 @@ pub mod e57;
 pub mod las;
 pub mod pcd;
 pub mod ply;
+pub mod units;
 
 pub use ply::{write_ply, PlyEncoding};
+pub use units::InputUnits;
 
 /// A normal whose length differs from 1 by more than this is invalid.
 pub const NORMAL_UNIT_TOLERANCE: f64 = 1e-2;
@@ -93,6 +95,8 @@ pub enum MapIoError {
     },
     #[error("{}: unsupported: {message}", path.display())]
     Unsupported { path: PathBuf, message: String },
+    #[error("{}: {message}", path.display())]
+    Units { path: PathBuf, message: String },
     #[error("{}: LAS/LAZ: {source}", path.display())]
     Las {
         path: PathBuf,
@@ -184,6 +188,11 @@ pub struct LoadReport {
     /// offsets lose millimetres (a far-away first point chose the origin);
     /// readers then log a warning.
     pub max_offset_m: f64,
+    /// Metres per coordinate unit, horizontal (x, y) and vertical (z), as
+    /// applied while reading: `[1, 1]` for metres.
+    pub metres_per_unit: [f64; 2],
+    /// The units converted from and where they were read (`None`: metres).
+    pub units: Option<String>,
 }
 
 /// Offsets beyond this (metres) are stored with a resolution coarser than
@@ -201,6 +210,8 @@ impl LoadReport {
             dropped_by_class: 0,
             dropped_withheld: 0,
             max_offset_m: 0.0,
+            metres_per_unit: [1.0, 1.0],
+            units: None,
         }
     }
 }
@@ -314,18 +325,22 @@ pub fn read_point_cloud(path: &Path) -> Result<(PointCloud, LoadReport), MapIoEr
 /// ASPRS LAS classes of noise: 7 (low point), 18 (high noise).
 pub const LAS_NOISE_CLASSES: [u8; 2] = [7, 18];
 
-/// What the readers leave out.
+/// What the readers leave out, and the unit of the coordinates.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ReadOptions {
     /// LAS/LAZ classification values whose points are dropped (default
     /// [`LAS_NOISE_CLASSES`]; empty keeps every class).
     pub drop_las_classes: Vec<u8>,
+    /// The coordinates' length unit (default: as the file says, see
+    /// [`units`]); coordinates are converted to metres as they are read.
+    pub units: InputUnits,
 }
 
 impl Default for ReadOptions {
     fn default() -> Self {
         ReadOptions {
             drop_las_classes: LAS_NOISE_CLASSES.to_vec(),
+            units: InputUnits::Auto,
         }
     }
 }
@@ -340,7 +355,25 @@ pub fn read_point_cloud_with(
             path: path.to_path_buf(),
         });
     }
-    let (cloud, report) = read_any(path, options)?;
+    let (mut cloud, mut report) = read_any(path, options)?;
+    let is_las = matches!(report.format, CloudFormat::Las | CloudFormat::Laz);
+    if let (false, Some(unit)) = (is_las, options.units.unit()) {
+        if !unit.is_metre() {
+            cloud.scale_coordinates(unit.metres);
+            report.max_offset_m *= unit.metres;
+            report.metres_per_unit = [unit.metres; 2];
+            report.units = Some(format!("{} (as given)", unit.name));
+        }
+    }
+    if let Some(units) = &report.units {
+        log::warn!(
+            "{}: coordinates in {units}, converted to metres (x {:.10}, z {:.10}): the map, the \
+             model, --init-pose, --pose-priors and --crop are in metres",
+            path.display(),
+            report.metres_per_unit[0],
+            report.metres_per_unit[1]
+        );
+    }
     if report.dropped_by_class > 0 || report.dropped_withheld > 0 {
         log::info!(
             "{}: {} points of the classes {:?} and {} flagged withheld left out",
@@ -371,7 +404,7 @@ fn read_any(path: &Path, options: &ReadOptions) -> Result<(PointCloud, LoadRepor
     match ext.as_deref() {
         Some("ply") => return ply::read_ply(path),
         Some("pcd") => return pcd::read_pcd(path),
-        Some("las") | Some("laz") => return las::read_las(path, &options.drop_las_classes),
+        Some("las") | Some("laz") => return las::read_las(path, options),
         Some("e57") => return e57::read_e57(path),
         _ => {}
     }
@@ -391,7 +424,7 @@ fn read_any(path: &Path, options: &ReadOptions) -> Result<(PointCloud, LoadRepor
     if magic.starts_with(b"ply\n") || magic.starts_with(b"ply\r\n") {
         ply::read_ply(path)
     } else if magic.starts_with(b"LASF") {
-        las::read_las(path, &options.drop_las_classes)
+        las::read_las(path, options)
     } else if magic.starts_with(b"ASTM-E57") {
         e57::read_e57(path)
     } else if magic.starts_with(b"# .PCD") || magic.starts_with(b"VERSION") {

@@ -1,0 +1,704 @@
+//! The length unit of a point cloud's coordinates.
+//!
+//! PLY, PCD and E57 files name no unit (E57 is metres by its standard; the
+//! others are read as metres). A LAS/LAZ file names its coordinate reference
+//! system in a WKT record or in GeoTIFF keys, and surveys of the United States
+//! are often in US survey feet. Every threshold of the tool is metric, so
+//! coordinates in feet are converted to metres as they are read
+//! ([`crate::map::io::read_point_cloud_with`] logs it), and longitude and
+//! latitude in degrees are refused: no scale turns them into metres.
+//! `prepare-map --input-units` overrides what the file says.
+use las::crs::GeoTiffData;
+
+/// Metres in a US survey foot (1200/3937 m, EPSG unit 9003).
+pub const US_SURVEY_FOOT_M: f64 = 1200.0 / 3937.0;
+/// Metres in an international foot (EPSG unit 9002).
+pub const FOOT_M: f64 = 0.3048;
+
+/// A unit's size is taken as one metre when it is within this (relative).
+const METRE_TOLERANCE: f64 = 1e-9;
+
+/// WKT nesting deeper than this is refused (a real CRS nests under 10).
+const MAX_WKT_DEPTH: usize = 64;
+
+/// The length unit of the input's coordinates (`--input-units`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum InputUnits {
+    /// As the file says: a LAS/LAZ file's coordinate reference system;
+    /// metres for the other formats and for LAS files without one.
+    #[default]
+    Auto,
+    Metre,
+    /// The international foot, 0.3048 m.
+    Foot,
+    /// The US survey foot, 1200/3937 m.
+    UsSurveyFoot,
+}
+
+impl InputUnits {
+    /// Parses `auto`, `m`, `ft` or `us-ft` (and the units' spelled-out names).
+    pub fn parse(text: &str) -> Result<Self, String> {
+        match text.trim().to_ascii_lowercase().as_str() {
+            "auto" => Ok(InputUnits::Auto),
+            "m" | "metre" | "metres" | "meter" | "meters" => Ok(InputUnits::Metre),
+            "ft" | "foot" | "feet" => Ok(InputUnits::Foot),
+            "us-ft" | "us-foot" | "us-feet" | "us-survey-foot" | "us-survey-feet" => {
+                Ok(InputUnits::UsSurveyFoot)
+            }
+            _ => Err(format!(
+                "`{text}` is not a unit: auto (as the file says), m, ft (0.3048 m) or us-ft (1200/3937 m)"
+            )),
+        }
+    }
+
+    /// The unit given, or `None` for [`InputUnits::Auto`].
+    pub fn unit(self) -> Option<LengthUnit> {
+        match self {
+            InputUnits::Auto => None,
+            InputUnits::Metre => Some(LengthUnit::metre()),
+            InputUnits::Foot => Some(LengthUnit::new("foot", FOOT_M)),
+            InputUnits::UsSurveyFoot => Some(LengthUnit::new("US survey foot", US_SURVEY_FOOT_M)),
+        }
+    }
+}
+
+/// A length unit: its name and its size in metres.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LengthUnit {
+    pub name: String,
+    pub metres: f64,
+}
+
+impl LengthUnit {
+    fn new(name: &str, metres: f64) -> Self {
+        LengthUnit {
+            name: name.to_string(),
+            metres,
+        }
+    }
+
+    pub(crate) fn metre() -> Self {
+        LengthUnit::new("metre", 1.0)
+    }
+
+    /// True for a unit of one metre.
+    pub fn is_metre(&self) -> bool {
+        (self.metres - 1.0).abs() <= METRE_TOLERANCE
+    }
+}
+
+/// A file's coordinate units as its coordinate reference system gives them.
+#[derive(Clone, Debug, PartialEq)]
+pub enum CrsUnits {
+    /// No CRS record, or one that names no length unit: metres are assumed.
+    Unstated,
+    /// The horizontal (x, y) and vertical (z) units, and where they were read.
+    Linear {
+        horizontal: LengthUnit,
+        vertical: LengthUnit,
+        source: String,
+    },
+    /// Longitude and latitude in degrees: the CRS's name and where it was read.
+    Geographic { name: String, source: String },
+}
+
+/// The units of a LAS/LAZ file's coordinates, from its WKT record (preferred
+/// when the header's global encoding says WKT, or when there are no GeoTIFF
+/// keys) or its GeoTIFF keys. An error is a unit this reader cannot size
+/// (the message says which); a record it cannot read is logged and taken as
+/// unstated.
+pub fn las_units(header: &las::Header) -> Result<CrsUnits, String> {
+    let geotiff = header.get_geotiff_crs();
+    let wkt = header.get_wkt_crs_bytes();
+    if let Some(bytes) = wkt {
+        if header.has_wkt_crs() || !matches!(geotiff, Ok(Some(_))) {
+            let text = String::from_utf8_lossy(bytes);
+            let text = text.trim_end_matches(['\0', ' ', '\n', '\r', '\t']);
+            return match parse_wkt(text) {
+                Ok(root) => Ok(wkt_units(&root)),
+                Err(e) => {
+                    log::warn!(
+                        "the coordinate-system record (WKT) cannot be read ({e}); coordinates are read as metres"
+                    );
+                    Ok(CrsUnits::Unstated)
+                }
+            };
+        }
+    }
+    match geotiff {
+        Ok(Some(keys)) => geotiff_units(&keys.entries),
+        Ok(None) => Ok(CrsUnits::Unstated),
+        Err(e) => {
+            log::warn!(
+                "the coordinate-system record (GeoTIFF keys) cannot be read ({e}); coordinates are read as metres"
+            );
+            Ok(CrsUnits::Unstated)
+        }
+    }
+}
+
+// ---------------------------------------------------------------- GeoTIFF keys
+
+const GT_MODEL_TYPE: u16 = 1024;
+const GEODETIC_CRS: u16 = 2048;
+const GEOG_LINEAR_UNITS: u16 = 2052;
+const PROJECTED_CRS: u16 = 3072;
+const PROJ_LINEAR_UNITS: u16 = 3076;
+const PROJ_LINEAR_UNIT_SIZE: u16 = 3077;
+const VERTICAL_UNITS: u16 = 4099;
+/// A GeoTIFF key value meaning "user-defined".
+const USER_DEFINED: u16 = 32767;
+
+/// The EPSG length units a GeoTIFF key may name.
+fn epsg_length_unit(code: u16) -> Option<LengthUnit> {
+    Some(match code {
+        9001 => LengthUnit::metre(),
+        9002 => LengthUnit::new("foot", FOOT_M),
+        9003 => LengthUnit::new("US survey foot", US_SURVEY_FOOT_M),
+        9005 => LengthUnit::new("Clarke's foot", 0.304_797_265_4),
+        9036 => LengthUnit::new("kilometre", 1000.0),
+        _ => return None,
+    })
+}
+
+fn geotiff_units(entries: &[las::crs::GeoTiffKeyEntry]) -> Result<CrsUnits, String> {
+    let short = |id: u16| {
+        entries
+            .iter()
+            .find(|e| e.id == id)
+            .and_then(|e| match e.data {
+                GeoTiffData::U16(v) => Some(v),
+                _ => None,
+            })
+    };
+    let double = |id: u16| {
+        entries
+            .iter()
+            .find(|e| e.id == id)
+            .and_then(|e| match &e.data {
+                GeoTiffData::Doubles(v) => v.first().copied(),
+                _ => None,
+            })
+    };
+    let source = "its GeoTIFF keys".to_string();
+    let unit_key = |id: u16| -> Result<Option<LengthUnit>, String> {
+        match short(id) {
+            None | Some(0) => Ok(None),
+            Some(USER_DEFINED) => match double(PROJ_LINEAR_UNIT_SIZE) {
+                Some(m) if m.is_finite() && m > 0.0 && id == PROJ_LINEAR_UNITS => {
+                    Ok(Some(LengthUnit::new("user-defined unit", m)))
+                }
+                _ => Err(format!(
+                    "its GeoTIFF key {id} gives a user-defined length unit without a valid size"
+                )),
+            },
+            Some(code) => epsg_length_unit(code).map(Some).ok_or_else(|| {
+                format!(
+                    "its GeoTIFF key {id} gives the length unit EPSG:{code}, which this reader does not \
+                     size (it knows metre 9001, foot 9002, US survey foot 9003, Clarke's foot 9005, \
+                     kilometre 9036)"
+                )
+            }),
+        }
+    };
+    let model = short(GT_MODEL_TYPE);
+    let projected = short(PROJECTED_CRS).filter(|&c| c != 0);
+    let geodetic = short(GEODETIC_CRS).filter(|&c| c != 0);
+    let crs_name =
+        |code: Option<u16>| code.map_or_else(|| "unnamed".to_string(), |c| format!("EPSG:{c}"));
+    if model == Some(2) || (model.is_none() && projected.is_none() && geodetic.is_some()) {
+        return Ok(CrsUnits::Geographic {
+            name: crs_name(geodetic),
+            source,
+        });
+    }
+    let horizontal = if model == Some(3) {
+        unit_key(GEOG_LINEAR_UNITS)?
+    } else {
+        match unit_key(PROJ_LINEAR_UNITS)? {
+            Some(unit) => Some(unit),
+            None => match projected.filter(|&c| (1024..USER_DEFINED).contains(&c)) {
+                Some(code) => match epsg_crs_unit(code)? {
+                    EpsgCrsUnit::Linear(unit) => Some(unit),
+                    EpsgCrsUnit::Geographic => {
+                        return Ok(CrsUnits::Geographic {
+                            name: format!("EPSG:{code}"),
+                            source,
+                        })
+                    }
+                    EpsgCrsUnit::Unknown => None,
+                },
+                None => None,
+            },
+        }
+    };
+    let vertical = unit_key(VERTICAL_UNITS)?;
+    Ok(linear(horizontal, vertical, source))
+}
+
+/// The unit of an EPSG CRS code, from its PROJ definition.
+enum EpsgCrsUnit {
+    Linear(LengthUnit),
+    Geographic,
+    Unknown,
+}
+
+fn epsg_crs_unit(code: u16) -> Result<EpsgCrsUnit, String> {
+    let Some(def) = crs_definitions::from_code(code) else {
+        return Ok(EpsgCrsUnit::Unknown);
+    };
+    proj4_unit(def.proj4).map_err(|e| format!("its GeoTIFF keys name the CRS EPSG:{code}, {e}"))
+}
+
+/// The length unit of a PROJ definition (`+units=`, `+to_meter=`; metres
+/// when neither is given), or geographic for `+proj=longlat`.
+fn proj4_unit(proj4: &str) -> Result<EpsgCrsUnit, String> {
+    let mut unit = LengthUnit::metre();
+    for token in proj4.split_whitespace() {
+        match token.split_once('=') {
+            Some(("+proj", "longlat" | "latlong" | "lonlat" | "latlon")) => {
+                return Ok(EpsgCrsUnit::Geographic)
+            }
+            Some(("+units", name)) => {
+                unit = match name {
+                    "m" => LengthUnit::metre(),
+                    "km" => LengthUnit::new("kilometre", 1000.0),
+                    "ft" => LengthUnit::new("foot", FOOT_M),
+                    "us-ft" => LengthUnit::new("US survey foot", US_SURVEY_FOOT_M),
+                    other => return Err(format!("whose unit `{other}` this reader does not size")),
+                }
+            }
+            Some(("+to_meter", size)) => match size.parse::<f64>() {
+                Ok(m) if m.is_finite() && m > 0.0 => unit = LengthUnit::new("unit", m),
+                _ => return Err(format!("whose unit size `{size}` is not a number")),
+            },
+            _ => {}
+        }
+    }
+    Ok(EpsgCrsUnit::Linear(unit))
+}
+
+/// The units found; a vertical unit not given is the horizontal one, a
+/// horizontal one not given is the metre.
+fn linear(
+    horizontal: Option<LengthUnit>,
+    vertical: Option<LengthUnit>,
+    source: String,
+) -> CrsUnits {
+    match (horizontal, vertical) {
+        (None, None) => CrsUnits::Unstated,
+        (Some(h), None) => CrsUnits::Linear {
+            vertical: h.clone(),
+            horizontal: h,
+            source,
+        },
+        (h, Some(v)) => CrsUnits::Linear {
+            horizontal: h.unwrap_or_else(LengthUnit::metre),
+            vertical: v,
+            source,
+        },
+    }
+}
+
+// ------------------------------------------------------------------------- WKT
+
+/// A WKT element: a keyword with its bracketed items, a quoted text, or a
+/// bare word or number.
+#[derive(Clone, Debug, PartialEq)]
+enum Wkt {
+    Node(WktNode),
+    Text(String),
+    Word(String),
+}
+
+#[derive(Clone, Debug, PartialEq)]
+struct WktNode {
+    /// Upper case.
+    keyword: String,
+    items: Vec<Wkt>,
+}
+
+impl WktNode {
+    fn children(&self) -> impl Iterator<Item = &WktNode> {
+        self.items.iter().filter_map(|i| match i {
+            Wkt::Node(n) => Some(n),
+            _ => None,
+        })
+    }
+
+    fn child(&self, keywords: &[&str]) -> Option<&WktNode> {
+        self.children()
+            .find(|n| keywords.contains(&n.keyword.as_str()))
+    }
+
+    /// The first quoted text (a CRS's or a unit's name).
+    fn name(&self) -> String {
+        self.items
+            .iter()
+            .find_map(|i| match i {
+                Wkt::Text(t) => Some(t.clone()),
+                _ => None,
+            })
+            .unwrap_or_else(|| "unnamed".to_string())
+    }
+}
+
+/// Parses WKT 1 or 2 (square brackets or parentheses; keywords in any case).
+fn parse_wkt(text: &str) -> Result<WktNode, String> {
+    let mut parser = WktParser {
+        s: text.as_bytes(),
+        i: 0,
+    };
+    parser.skip_space();
+    let word = parser.word();
+    if word.is_empty() {
+        return Err("it does not start with a keyword".to_string());
+    }
+    let root = parser.node(word, 0)?;
+    parser.skip_space();
+    if parser.i < parser.s.len() {
+        return Err(format!("text after the end, at byte {}", parser.i));
+    }
+    Ok(root)
+}
+
+struct WktParser<'a> {
+    s: &'a [u8],
+    i: usize,
+}
+
+impl WktParser<'_> {
+    fn peek(&self) -> Option<u8> {
+        self.s.get(self.i).copied()
+    }
+
+    fn skip_space(&mut self) {
+        while self.peek().is_some_and(|c| c.is_ascii_whitespace()) {
+            self.i += 1;
+        }
+    }
+
+    /// A bare word or number (anything up to a delimiter).
+    fn word(&mut self) -> String {
+        let start = self.i;
+        while self
+            .peek()
+            .is_some_and(|c| !c.is_ascii_whitespace() && !b",[]()\"".contains(&c))
+        {
+            self.i += 1;
+        }
+        String::from_utf8_lossy(&self.s[start..self.i]).into_owned()
+    }
+
+    /// The bracketed items after `keyword`.
+    fn node(&mut self, keyword: String, depth: usize) -> Result<WktNode, String> {
+        if depth > MAX_WKT_DEPTH {
+            return Err(format!("nested deeper than {MAX_WKT_DEPTH}"));
+        }
+        self.skip_space();
+        let close = match self.peek() {
+            Some(b'[') => b']',
+            Some(b'(') => b')',
+            _ => {
+                return Err(format!(
+                    "`{keyword}` is not followed by `[`, at byte {}",
+                    self.i
+                ))
+            }
+        };
+        self.i += 1;
+        let mut items = Vec::new();
+        loop {
+            self.skip_space();
+            match self.peek() {
+                Some(c) if c == close && items.is_empty() => {
+                    self.i += 1;
+                    break;
+                }
+                Some(b'"') => items.push(Wkt::Text(self.text()?)),
+                Some(_) => {
+                    let word = self.word();
+                    if word.is_empty() {
+                        return Err(format!("an empty item at byte {}", self.i));
+                    }
+                    self.skip_space();
+                    if matches!(self.peek(), Some(b'[' | b'(')) {
+                        items.push(Wkt::Node(self.node(word, depth + 1)?));
+                    } else {
+                        items.push(Wkt::Word(word));
+                    }
+                }
+                None => return Err(format!("`{keyword}` is not closed")),
+            }
+            self.skip_space();
+            match self.peek() {
+                Some(b',') => self.i += 1,
+                Some(c) if c == close => {
+                    self.i += 1;
+                    break;
+                }
+                _ => return Err(format!("`{keyword}` is not closed, at byte {}", self.i)),
+            }
+        }
+        Ok(WktNode {
+            keyword: keyword.to_ascii_uppercase(),
+            items,
+        })
+    }
+
+    /// A quoted text (`""` inside is one quote).
+    fn text(&mut self) -> Result<String, String> {
+        let start = self.i;
+        self.i += 1;
+        let mut out = Vec::new();
+        loop {
+            match self.peek() {
+                Some(b'"') if self.s.get(self.i + 1) == Some(&b'"') => {
+                    out.push(b'"');
+                    self.i += 2;
+                }
+                Some(b'"') => {
+                    self.i += 1;
+                    return Ok(String::from_utf8_lossy(&out).into_owned());
+                }
+                Some(c) => {
+                    out.push(c);
+                    self.i += 1;
+                }
+                None => return Err(format!("a text opened at byte {start} is not closed")),
+            }
+        }
+    }
+}
+
+const GEOGRAPHIC: [&str; 3] = ["GEOGCS", "GEOGCRS", "GEOGRAPHICCRS"];
+const GEODETIC: [&str; 2] = ["GEODCRS", "GEODETICCRS"];
+const VERTICAL: [&str; 3] = ["VERT_CS", "VERTCRS", "VERTICALCRS"];
+const UNIT: [&str; 2] = ["UNIT", "LENGTHUNIT"];
+
+/// A bound CRS (WKT 2) stands for its source CRS.
+fn unbound(node: &WktNode) -> &WktNode {
+    if node.keyword == "BOUNDCRS" {
+        if let Some(inner) = node.child(&["SOURCECRS"]).and_then(|s| s.children().next()) {
+            return inner;
+        }
+    }
+    node
+}
+
+/// A `UNIT`/`LENGTHUNIT` node's name and size in metres.
+fn unit_of(node: &WktNode) -> Option<LengthUnit> {
+    let metres = node.items.iter().find_map(|i| match i {
+        Wkt::Word(w) => w.parse::<f64>().ok(),
+        _ => None,
+    })?;
+    (metres.is_finite() && metres > 0.0).then(|| LengthUnit::new(&node.name(), metres))
+}
+
+/// A CRS node's length unit: its own `UNIT` (WKT 1, and WKT 2's short form)
+/// or its first axis's (WKT 2). A projection's parameters (WKT 2's
+/// `CONVERSION`) carry their own units and are not looked into.
+fn crs_length_unit(crs: &WktNode) -> Option<LengthUnit> {
+    crs.child(&UNIT)
+        .or_else(|| {
+            crs.children()
+                .filter(|n| n.keyword == "AXIS")
+                .find_map(|a| a.child(&UNIT))
+        })
+        .and_then(unit_of)
+}
+
+/// True for a WKT 2 geodetic CRS on an ellipsoidal coordinate system.
+fn is_ellipsoidal(crs: &WktNode) -> bool {
+    crs.child(&["CS"]).is_some_and(|cs| {
+        cs.items
+            .iter()
+            .any(|i| matches!(i, Wkt::Word(w) if w.eq_ignore_ascii_case("ellipsoidal")))
+    })
+}
+
+fn wkt_units(root: &WktNode) -> CrsUnits {
+    let source = "its WKT record".to_string();
+    let root = unbound(root);
+    let (horizontal, vertical) = if ["COMPD_CS", "COMPOUNDCRS"].contains(&root.keyword.as_str()) {
+        let parts: Vec<&WktNode> = root.children().map(unbound).collect();
+        (
+            parts.iter().copied().find(|n| {
+                !VERTICAL.contains(&n.keyword.as_str())
+                    && n.keyword != "AUTHORITY"
+                    && n.keyword != "ID"
+            }),
+            parts
+                .iter()
+                .copied()
+                .find(|n| VERTICAL.contains(&n.keyword.as_str())),
+        )
+    } else if VERTICAL.contains(&root.keyword.as_str()) {
+        (None, Some(root))
+    } else {
+        (Some(root), None)
+    };
+    let horizontal_unit = match horizontal {
+        Some(h)
+            if GEOGRAPHIC.contains(&h.keyword.as_str())
+                || (GEODETIC.contains(&h.keyword.as_str()) && is_ellipsoidal(h)) =>
+        {
+            return CrsUnits::Geographic {
+                name: h.name(),
+                source,
+            }
+        }
+        Some(h) => crs_length_unit(h),
+        None => None,
+    };
+    linear(horizontal_unit, vertical.and_then(crs_length_unit), source)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn units(wkt: &str) -> CrsUnits {
+        wkt_units(&parse_wkt(wkt).unwrap())
+    }
+
+    fn sizes(u: &CrsUnits) -> (f64, f64) {
+        match u {
+            CrsUnits::Linear {
+                horizontal,
+                vertical,
+                ..
+            } => (horizontal.metres, vertical.metres),
+            other => panic!("not linear: {other:?}"),
+        }
+    }
+
+    const GEOGCS_NAD83: &str = r#"GEOGCS["NAD83",DATUM["North_American_Datum_1983",SPHEROID["GRS 1980",6378137,298.257222101]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433,AUTHORITY["EPSG","9122"]]]"#;
+
+    #[test]
+    fn wkt1_projected_in_us_survey_feet_with_a_vertical_crs_in_metres() {
+        let projcs = format!(
+            r#"PROJCS["NAD83 / New York Long Island (ftUS)",{GEOGCS_NAD83},PROJECTION["Lambert_Conformal_Conic_2SP"],PARAMETER["false_easting",984250],UNIT["US survey foot",0.3048006096012192,AUTHORITY["EPSG","9003"]],AXIS["X",EAST],AUTHORITY["EPSG","2263"]]"#
+        );
+        let u = units(&projcs);
+        assert_eq!(sizes(&u), (0.3048006096012192, 0.3048006096012192));
+        // The vertical part of a compound CRS has its own unit.
+        let compound = format!(
+            r#"COMPD_CS["NY + NAVD88",{projcs},VERT_CS["NAVD88 height",VERT_DATUM["North American Vertical Datum 1988",2005],UNIT["metre",1],AXIS["Up",UP]]]"#
+        );
+        assert_eq!(sizes(&units(&compound)), (0.3048006096012192, 1.0));
+        // Parentheses, lower case, spaces, a text with a quote in it.
+        let loose =
+            r#" projcs ( "a ""quoted"" name" , unit ( "Foot_US" , 0.30480060960121924 ) ) "#;
+        assert_eq!(sizes(&units(loose)).0, 0.30480060960121924);
+    }
+
+    #[test]
+    fn wkt2_units_come_from_the_axes_not_the_projection_parameters() {
+        let wkt = r#"PROJCRS["NAD83(2011) / California zone 3 (ftUS)",BASEGEOGCRS["NAD83(2011)",DATUM["NAD83 (National Spatial Reference System 2011)",ELLIPSOID["GRS 1980",6378137,298.257222101,LENGTHUNIT["metre",1]]],ANGLEUNIT["degree",0.0174532925199433]],CONVERSION["SPCS83 California zone 3 (US survey foot)",METHOD["Lambert Conic Conformal (2SP)"],PARAMETER["False easting",2000000,LENGTHUNIT["metre",1]]],CS[Cartesian,2],AXIS["easting (X)",east,ORDER[1],LENGTHUNIT["US survey foot",0.304800609601219]],AXIS["northing (Y)",north,ORDER[2],LENGTHUNIT["US survey foot",0.304800609601219]],ID["EPSG",6420]]"#;
+        assert_eq!(sizes(&units(wkt)), (0.304800609601219, 0.304800609601219));
+        let utm = r#"PROJCRS["WGS 84 / UTM zone 33N",BASEGEOGCRS["WGS 84",DATUM["World Geodetic System 1984",ELLIPSOID["WGS 84",6378137,298.257223563]]],CONVERSION["UTM zone 33N",METHOD["Transverse Mercator"]],CS[Cartesian,2],AXIS["(E)",east],AXIS["(N)",north],LENGTHUNIT["metre",1]]"#;
+        assert_eq!(sizes(&units(utm)), (1.0, 1.0));
+        let bound = format!(
+            r#"BOUNDCRS[SOURCECRS[{wkt}],TARGETCRS[{utm}],ABRIDGEDTRANSFORMATION["x",METHOD["y"]]]"#
+        );
+        assert_eq!(sizes(&units(&bound)).0, 0.304800609601219);
+    }
+
+    #[test]
+    fn geographic_crs_are_told_apart_from_geocentric_ones() {
+        assert!(
+            matches!(units(GEOGCS_NAD83), CrsUnits::Geographic { name, .. } if name == "NAD83")
+        );
+        let geog2 = r#"GEOGCRS["WGS 84",DATUM["World Geodetic System 1984",ELLIPSOID["WGS 84",6378137,298.257223563]],CS[ellipsoidal,2],AXIS["latitude",north],AXIS["longitude",east],ANGLEUNIT["degree",0.0174532925199433]]"#;
+        assert!(matches!(units(geog2), CrsUnits::Geographic { .. }));
+        let geocentric = r#"GEODCRS["WGS 84",DATUM["World Geodetic System 1984",ELLIPSOID["WGS 84",6378137,298.257223563]],CS[Cartesian,3],AXIS["(X)",geocentricX],LENGTHUNIT["metre",1]]"#;
+        assert_eq!(sizes(&units(geocentric)), (1.0, 1.0));
+        // A compound CRS on a geographic base.
+        let compound = format!(r#"COMPD_CS["x",{GEOGCS_NAD83},VERT_CS["h",UNIT["metre",1]]]"#);
+        assert!(matches!(units(&compound), CrsUnits::Geographic { .. }));
+        // A CRS without a length unit says nothing.
+        assert_eq!(units(r#"LOCAL_CS["site"]"#), CrsUnits::Unstated);
+    }
+
+    #[test]
+    fn malformed_wkt_is_an_error_not_a_panic() {
+        for bad in [
+            "",
+            "PROJCS",
+            r#"PROJCS["a""#,
+            r#"PROJCS["a",UNIT["ft",0.3]"#,
+            r#"PROJCS["a"] trailing"#,
+            r#"PROJCS["a",,]"#,
+        ] {
+            assert!(parse_wkt(bad).is_err(), "{bad:?}");
+        }
+        let deep = format!("{}{}", "A[".repeat(200), "]".repeat(200));
+        assert!(parse_wkt(&deep).is_err());
+    }
+
+    #[test]
+    fn geotiff_keys_give_units_by_code_or_by_the_crs_code() {
+        let keys = |pairs: &[(u16, u16)]| -> Vec<las::crs::GeoTiffKeyEntry> {
+            pairs
+                .iter()
+                .map(|&(id, v)| las::crs::GeoTiffKeyEntry {
+                    id,
+                    data: GeoTiffData::U16(v),
+                })
+                .collect()
+        };
+        // Units stated by key.
+        let u = geotiff_units(&keys(&[
+            (1024, 1),
+            (3072, 32767),
+            (3076, 9002),
+            (4099, 9001),
+        ]))
+        .unwrap();
+        assert_eq!(sizes(&u), (FOOT_M, 1.0));
+        // Only the projected CRS's EPSG code: NY Long Island in US survey
+        // feet, UTM 33N in metres, and 4326, geographic.
+        let u = geotiff_units(&keys(&[(1024, 1), (3072, 2263)])).unwrap();
+        assert_eq!(sizes(&u), (US_SURVEY_FOOT_M, US_SURVEY_FOOT_M));
+        assert_eq!(
+            sizes(&geotiff_units(&keys(&[(3072, 32633)])).unwrap()),
+            (1.0, 1.0)
+        );
+        assert!(matches!(
+            geotiff_units(&keys(&[(3072, 4326)])).unwrap(),
+            CrsUnits::Geographic { name, .. } if name == "EPSG:4326"
+        ));
+        assert!(matches!(
+            geotiff_units(&keys(&[(1024, 2), (2048, 4269)])).unwrap(),
+            CrsUnits::Geographic { .. }
+        ));
+        // A unit code not known is an error that names it; no keys, unstated.
+        let err = geotiff_units(&keys(&[(3076, 9014)])).unwrap_err();
+        assert!(err.contains("EPSG:9014"), "{err}");
+        assert_eq!(geotiff_units(&[]).unwrap(), CrsUnits::Unstated);
+        // A user-defined unit with its size.
+        let mut user = keys(&[(3076, 32767)]);
+        user.push(las::crs::GeoTiffKeyEntry {
+            id: 3077,
+            data: GeoTiffData::Doubles(vec![0.5]),
+        });
+        assert_eq!(sizes(&geotiff_units(&user).unwrap()), (0.5, 0.5));
+    }
+
+    #[test]
+    fn input_units_parse() {
+        assert_eq!(
+            InputUnits::parse("us-ft").unwrap(),
+            InputUnits::UsSurveyFoot
+        );
+        assert_eq!(InputUnits::parse(" FT ").unwrap(), InputUnits::Foot);
+        assert_eq!(InputUnits::parse("meters").unwrap(), InputUnits::Metre);
+        assert_eq!(InputUnits::parse("auto").unwrap(), InputUnits::Auto);
+        assert!(InputUnits::parse("yards").unwrap_err().contains("`yards`"));
+        assert_eq!(
+            InputUnits::UsSurveyFoot.unit().unwrap().metres,
+            1200.0 / 3937.0
+        );
+    }
+}
