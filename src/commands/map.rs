@@ -24,7 +24,7 @@ use crate::io::database::{read_database, DatabaseSnapshot};
 use crate::io::images::{check_image_folder, colour_points, ExpectedImage};
 use crate::io::model::{read_model, write_model, ModelFormat};
 use crate::io::pose_ply::{format_model_pose_ply, read_pose_ply};
-use crate::map::io::read_point_cloud;
+use crate::map::io::{read_point_cloud, LoadReport};
 use crate::map::prepare::{estimate_normals, widen_normal_radius, NormalOptions};
 use crate::map::PointCloud;
 use crate::scene::{BodyPose, ImageId, Rigid3};
@@ -461,6 +461,11 @@ pub(crate) fn check_output(dir: &Path) -> Result<()> {
 /// Reads the map; estimates normals where missing, over a radius that
 /// follows the map's spacing ([`widen_normal_radius`]).
 pub fn load_map(path: &Path) -> Result<PointCloud> {
+    Ok(load_map_reporting(path)?.0)
+}
+
+/// [`load_map`], with what the reader saw.
+pub fn load_map_reporting(path: &Path) -> Result<(PointCloud, LoadReport)> {
     let (mut cloud, load) = read_point_cloud(path)
         .with_context(|| format!("reading the LiDAR map {}", path.display()))?;
     if cloud.is_empty() {
@@ -479,7 +484,7 @@ pub fn load_map(path: &Path) -> Result<PointCloud> {
             report.failed
         );
     }
-    Ok(cloud)
+    Ok((cloud, load))
 }
 
 pub fn run(args: &MapArgs) -> Result<()> {
@@ -525,7 +530,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
         }
         None => RunStart::InitialPoses(group_starts(&db, &config, &known_poses)?),
     };
-    let cloud = load_map(&config.lidar)?;
+    let (cloud, load) = load_map_reporting(&config.lidar)?;
     let total = db.images.len();
     let bar = std::io::stderr().is_terminal().then(|| {
         let bar = indicatif::ProgressBar::new(total as u64);
@@ -569,6 +574,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
     out.report.mapping_s = Some(mapping.elapsed().as_secs_f64());
     out.report.map_file = Some(config.lidar.display().to_string());
     out.report.map_points = Some(cloud.len());
+    out.report.map_units = load.units;
     if let Some(bar) = &bar {
         bar.finish_and_clear();
     }
@@ -590,10 +596,9 @@ pub fn run(args: &MapArgs) -> Result<()> {
                 summary.unread.len()
             );
         }
-        out.report.stages.push(StageRecord {
-            name: "point colours".to_string(),
-            time_s,
-        });
+        out.report
+            .stages
+            .push(StageRecord::new("point colours", time_s));
         out.report.point_colours = Some(summary);
     }
     let report_json =

@@ -590,11 +590,12 @@ struct Stages {
 impl Stages {
     fn done(&mut self, name: &str) {
         let t = self.start.elapsed().as_secs_f64();
-        log::info!("stage {}: {name} ({t:.2} s)", self.records.len() + 1);
-        self.records.push(StageRecord {
-            name: name.to_owned(),
-            time_s: t,
-        });
+        let record = StageRecord::new(name, t);
+        let peak = record
+            .peak_memory_mb
+            .map_or_else(String::new, |mb| format!(", peak memory {mb:.0} MB"));
+        log::info!("stage {}: {name} ({t:.2} s{peak})", self.records.len() + 1);
+        self.records.push(record);
         self.start = Instant::now();
     }
 }

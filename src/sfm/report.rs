@@ -192,6 +192,28 @@ pub struct AlignmentRecord {
 pub struct StageRecord {
     pub name: String,
     pub time_s: f64,
+    /// The process's peak resident memory at the stage's end, MB (the most
+    /// it held so far, not what the stage added; Linux only).
+    pub peak_memory_mb: Option<f64>,
+}
+
+impl StageRecord {
+    pub fn new(name: &str, time_s: f64) -> Self {
+        StageRecord {
+            name: name.to_owned(),
+            time_s,
+            peak_memory_mb: peak_memory_mb(),
+        }
+    }
+}
+
+/// The process's peak resident memory so far, MB (`VmHWM` of
+/// `/proc/self/status`; `None` where there is none).
+pub fn peak_memory_mb() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find_map(|l| l.strip_prefix("VmHWM:"))?;
+    let kb: f64 = line.trim().strip_suffix("kB")?.trim().parse().ok()?;
+    Some(kb / 1024.0)
 }
 
 /// The whole report.
@@ -305,6 +327,10 @@ pub struct MapReport {
     /// maps).
     pub map_file: Option<String>,
     pub map_points: Option<usize>,
+    /// When the map file's coordinates were not in metres: the unit they
+    /// were converted from, and where it was read (the model, like the map
+    /// as loaded, is in metres; [`crate::map::io::units`]).
+    pub map_units: Option<String>,
     /// The points' colours from the images (`--image-path`), when given.
     pub point_colours: Option<crate::io::images::ColourSummary>,
     /// The options the run used, adapted to the map's spacing (the TOML
