@@ -590,14 +590,16 @@ fn toy_room_registers_in_the_map_frame() {
     );
     // And says the process's peak memory so far (Linux): a high-water
     // mark, so never falling, and more than a megabyte.
-    let peaks: Vec<f64> = out
-        .report
-        .stages
-        .iter()
-        .map(|s| s.peak_memory_mb.expect("peak memory"))
-        .collect();
-    assert!(peaks.windows(2).all(|w| w[0] <= w[1]), "{peaks:?}");
-    assert!(peaks[0] > 1.0, "{peaks:?}");
+    if cfg!(target_os = "linux") {
+        let peaks: Vec<f64> = out
+            .report
+            .stages
+            .iter()
+            .map(|s| s.peak_memory_mb.expect("peak memory"))
+            .collect();
+        assert!(peaks.windows(2).all(|w| w[0] <= w[1]), "{peaks:?}");
+        assert!(peaks[0] > 1.0, "{peaks:?}");
+    }
     // Nearly every point lies on the wall its images see there.
     let seen = out.report.points_on_seen_surface_share.unwrap();
     assert!(seen > 0.9, "points on the seen surface: {seen}");

@@ -46,7 +46,7 @@ pub fn read_las(
     };
     let (horizontal, vertical, source) = match options.units.unit() {
         Some(unit) => (unit.clone(), unit, "as given".to_string()),
-        None => match las_units(&header).map_err(|e| {
+        None => match las_units(&header, path).map_err(|e| {
             units_err(format!("{e}; give the unit with `prepare-map --input-units`"))
         })? {
             CrsUnits::Unstated => (LengthUnit::metre(), LengthUnit::metre(), String::new()),

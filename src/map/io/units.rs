@@ -8,7 +8,7 @@
 //! ([`crate::map::io::read_point_cloud_with`] logs it), and longitude and
 //! latitude in degrees are refused: no scale turns them into metres.
 //! `prepare-map --input-units` overrides what the file says.
-use las::crs::GeoTiffData;
+use std::path::Path;
 
 /// Metres in a US survey foot (1200/3937 m, EPSG unit 9003).
 pub const US_SURVEY_FOOT_M: f64 = 1200.0 / 3937.0;
@@ -102,39 +102,40 @@ pub enum CrsUnits {
     Geographic { name: String, source: String },
 }
 
-/// The units of a LAS/LAZ file's coordinates, from its WKT record (preferred
-/// when the header's global encoding says WKT, or when there are no GeoTIFF
-/// keys) or its GeoTIFF keys. An error is a unit this reader cannot size
-/// (the message says which); a record it cannot read is logged and taken as
-/// unstated.
-pub fn las_units(header: &las::Header) -> Result<CrsUnits, String> {
-    let geotiff = header.get_geotiff_crs();
-    let wkt = header.get_wkt_crs_bytes();
-    if let Some(bytes) = wkt {
-        if header.has_wkt_crs() || !matches!(geotiff, Ok(Some(_))) {
-            let text = String::from_utf8_lossy(bytes);
-            let text = text.trim_end_matches(['\0', ' ', '\n', '\r', '\t']);
-            return match parse_wkt(text) {
-                Ok(root) => Ok(wkt_units(&root)),
-                Err(e) => {
-                    log::warn!(
-                        "the coordinate-system record (WKT) cannot be read ({e}); coordinates are read as metres"
-                    );
-                    Ok(CrsUnits::Unstated)
-                }
-            };
+/// The units of a LAS/LAZ file's coordinates, from its CRS records: the WKT
+/// record first when the header says WKT (always for point formats 6-10),
+/// else the GeoTIFF keys first; the other record when the first gives no
+/// unit or cannot be read. An error is a record that cannot be read, or a
+/// unit this reader cannot size, with no other record giving the unit (the
+/// message says which).
+pub fn las_units(header: &las::Header, path: &Path) -> Result<CrsUnits, String> {
+    let wkt = header.get_wkt_crs_bytes().map(wkt_record_units);
+    let geotiff = geotiff_record(header).map(|keys| keys.and_then(|k| geotiff_units(&k, path)));
+    let records = if header.has_wkt_crs() {
+        [wkt, geotiff]
+    } else {
+        [geotiff, wkt]
+    };
+    let mut error = None;
+    for record in records.into_iter().flatten() {
+        match record {
+            Ok(CrsUnits::Unstated) => {}
+            Ok(units) => return Ok(units),
+            Err(e) => {
+                error.get_or_insert(e);
+            }
         }
     }
-    match geotiff {
-        Ok(Some(keys)) => geotiff_units(&keys.entries),
-        Ok(None) => Ok(CrsUnits::Unstated),
-        Err(e) => {
-            log::warn!(
-                "the coordinate-system record (GeoTIFF keys) cannot be read ({e}); coordinates are read as metres"
-            );
-            Ok(CrsUnits::Unstated)
-        }
-    }
+    error.map_or(Ok(CrsUnits::Unstated), Err)
+}
+
+/// The units of a WKT record's bytes (text up to the first NUL).
+fn wkt_record_units(bytes: &[u8]) -> Result<CrsUnits, String> {
+    let end = bytes.iter().position(|&b| b == 0).unwrap_or(bytes.len());
+    let text = String::from_utf8_lossy(&bytes[..end]);
+    parse_wkt(&text)
+        .map(|root| wkt_units(&root))
+        .map_err(|e| format!("its coordinate-system record (WKT) cannot be read: {e}"))
 }
 
 // ---------------------------------------------------------------- GeoTIFF keys
@@ -142,9 +143,11 @@ pub fn las_units(header: &las::Header) -> Result<CrsUnits, String> {
 const GT_MODEL_TYPE: u16 = 1024;
 const GEODETIC_CRS: u16 = 2048;
 const GEOG_LINEAR_UNITS: u16 = 2052;
+const GEOG_LINEAR_UNIT_SIZE: u16 = 2053;
 const PROJECTED_CRS: u16 = 3072;
 const PROJ_LINEAR_UNITS: u16 = 3076;
 const PROJ_LINEAR_UNIT_SIZE: u16 = 3077;
+const VERTICAL_CRS: u16 = 4096;
 const VERTICAL_UNITS: u16 = 4099;
 /// A GeoTIFF key value meaning "user-defined".
 const USER_DEFINED: u16 = 32767;
@@ -161,35 +164,96 @@ fn epsg_length_unit(code: u16) -> Option<LengthUnit> {
     })
 }
 
-fn geotiff_units(entries: &[las::crs::GeoTiffKeyEntry]) -> Result<CrsUnits, String> {
+/// A GeoTIFF key: its id and its value, when stored in the key directory
+/// itself (a short) or in the doubles record (its first double).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct GeoKey {
+    id: u16,
+    value: GeoValue,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum GeoValue {
+    Short(u16),
+    Double(f64),
+    /// Text, or a value past the end of its record.
+    Other,
+}
+
+/// The keys of the file's GeoTIFF key directory (`LASF_Projection` 34735),
+/// `None` when it has none. Read here rather than through the `las` crate,
+/// which refuses the whole directory for one bad entry (a citation's text
+/// past the end of its record, say); only whole entries are read.
+fn geotiff_record(header: &las::Header) -> Option<Result<Vec<GeoKey>, String>> {
+    let record = |id: u16| {
+        header
+            .all_vlrs()
+            .find(|v| v.user_id.eq_ignore_ascii_case("LASF_Projection") && v.record_id == id)
+            .map(|v| v.data.as_slice())
+    };
+    let directory = record(34735)?;
+    let shorts: Vec<u16> = directory
+        .chunks_exact(2)
+        .map(|b| u16::from_le_bytes([b[0], b[1]]))
+        .collect();
+    if shorts.len() < 4 {
+        return Some(Err(format!(
+            "its GeoTIFF key directory cannot be read: it holds {} bytes, less than its 8-byte header",
+            directory.len()
+        )));
+    }
+    let doubles: Vec<f64> = record(34736)
+        .unwrap_or_default()
+        .chunks_exact(8)
+        .map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes")))
+        .collect();
+    let keys = shorts[4..]
+        .chunks_exact(4)
+        .take(usize::from(shorts[3]))
+        .map(|e| GeoKey {
+            id: e[0],
+            value: match e[1] {
+                0 => GeoValue::Short(e[3]),
+                34736 => doubles
+                    .get(usize::from(e[3]))
+                    .map_or(GeoValue::Other, |&d| GeoValue::Double(d)),
+                _ => GeoValue::Other,
+            },
+        })
+        .collect();
+    Some(Ok(keys))
+}
+
+/// The units the GeoTIFF keys give (`path` names the file in a warning).
+fn geotiff_units(keys: &[GeoKey], path: &Path) -> Result<CrsUnits, String> {
     let short = |id: u16| {
-        entries
-            .iter()
-            .find(|e| e.id == id)
-            .and_then(|e| match e.data {
-                GeoTiffData::U16(v) => Some(v),
+        keys.iter()
+            .find(|k| k.id == id)
+            .and_then(|k| match k.value {
+                GeoValue::Short(v) => Some(v),
                 _ => None,
             })
     };
     let double = |id: u16| {
-        entries
-            .iter()
-            .find(|e| e.id == id)
-            .and_then(|e| match &e.data {
-                GeoTiffData::Doubles(v) => v.first().copied(),
+        keys.iter()
+            .find(|k| k.id == id)
+            .and_then(|k| match k.value {
+                GeoValue::Double(v) => Some(v),
                 _ => None,
             })
     };
     let source = "its GeoTIFF keys".to_string();
-    let unit_key = |id: u16| -> Result<Option<LengthUnit>, String> {
+    // A unit key's unit; `size` is the key holding a user-defined unit's
+    // size in metres, where GeoTIFF has one.
+    let unit_key = |id: u16, size: Option<u16>| -> Result<Option<LengthUnit>, String> {
         match short(id) {
             None | Some(0) => Ok(None),
-            Some(USER_DEFINED) => match double(PROJ_LINEAR_UNIT_SIZE) {
-                Some(m) if m.is_finite() && m > 0.0 && id == PROJ_LINEAR_UNITS => {
+            Some(USER_DEFINED) => match size.and_then(double) {
+                Some(m) if m.is_finite() && m > 0.0 => {
                     Ok(Some(LengthUnit::new("user-defined unit", m)))
                 }
                 _ => Err(format!(
-                    "its GeoTIFF key {id} gives a user-defined length unit without a valid size"
+                    "its GeoTIFF key {id} gives a user-defined length unit whose size it does not give"
                 )),
             },
             Some(code) => epsg_length_unit(code).map(Some).ok_or_else(|| {
@@ -213,9 +277,9 @@ fn geotiff_units(entries: &[las::crs::GeoTiffKeyEntry]) -> Result<CrsUnits, Stri
         });
     }
     let horizontal = if model == Some(3) {
-        unit_key(GEOG_LINEAR_UNITS)?
+        unit_key(GEOG_LINEAR_UNITS, Some(GEOG_LINEAR_UNIT_SIZE))?
     } else {
-        match unit_key(PROJ_LINEAR_UNITS)? {
+        match unit_key(PROJ_LINEAR_UNITS, Some(PROJ_LINEAR_UNIT_SIZE))? {
             Some(unit) => Some(unit),
             None => match projected.filter(|&c| (1024..USER_DEFINED).contains(&c)) {
                 Some(code) => match epsg_crs_unit(code)? {
@@ -232,8 +296,41 @@ fn geotiff_units(entries: &[las::crs::GeoTiffKeyEntry]) -> Result<CrsUnits, Stri
             },
         }
     };
-    let vertical = unit_key(VERTICAL_UNITS)?;
+    let vertical = match unit_key(VERTICAL_UNITS, None)? {
+        Some(unit) => Some(unit),
+        None => match short(VERTICAL_CRS).filter(|&c| c != 0) {
+            Some(code) => match vertical_crs_unit(code) {
+                Some(unit) => Some(unit),
+                None => {
+                    log::warn!(
+                        "{}: its GeoTIFF keys give the vertical CRS EPSG:{code} and no vertical \
+                         unit; heights are taken in the horizontal unit",
+                        path.display()
+                    );
+                    None
+                }
+            },
+            None => None,
+        },
+    };
     Ok(linear(horizontal, vertical, source))
+}
+
+/// The height unit of common vertical CRS codes (`crs-definitions` has no
+/// vertical CRSs), for GeoTIFF keys that give a vertical CRS but no
+/// vertical unit.
+fn vertical_crs_unit(code: u16) -> Option<LengthUnit> {
+    Some(match code {
+        // NAVD88, NGVD29... in US survey feet; NAVD88 in feet.
+        5702 | 6358 | 6360 => LengthUnit::new("US survey foot", US_SURVEY_FOOT_M),
+        8228 => LengthUnit::new("foot", FOOT_M),
+        // NAVD88, ODN, AHD, MSL, EGM96, EGM2008, NAP, DHHN92, DHHN2016,
+        // Baltic 1977, NAVD88 depth: metres.
+        3855 | 5701 | 5703 | 5705 | 5709 | 5711 | 5714 | 5773 | 5783 | 6357 | 7837 => {
+            LengthUnit::metre()
+        }
+        _ => return None,
+    })
 }
 
 /// The unit of an EPSG CRS code, from its PROJ definition.
@@ -344,22 +441,36 @@ impl WktNode {
 }
 
 /// Parses WKT 1 or 2 (square brackets or parentheses; keywords in any case).
+/// Several root elements separated by commas (ESRI's way of writing a
+/// projected and a vertical CRS) are read as one compound CRS.
 fn parse_wkt(text: &str) -> Result<WktNode, String> {
     let mut parser = WktParser {
         s: text.as_bytes(),
         i: 0,
     };
-    parser.skip_space();
-    let word = parser.word();
-    if word.is_empty() {
-        return Err("it does not start with a keyword".to_string());
+    let mut roots = Vec::new();
+    loop {
+        parser.skip_space();
+        let word = parser.word();
+        if word.is_empty() {
+            return Err(format!("no keyword at byte {}", parser.i));
+        }
+        roots.push(parser.node(word, 0)?);
+        parser.skip_space();
+        match parser.peek() {
+            None => break,
+            Some(b',') => parser.i += 1,
+            Some(_) => return Err(format!("text after the end, at byte {}", parser.i)),
+        }
     }
-    let root = parser.node(word, 0)?;
-    parser.skip_space();
-    if parser.i < parser.s.len() {
-        return Err(format!("text after the end, at byte {}", parser.i));
-    }
-    Ok(root)
+    Ok(if roots.len() == 1 {
+        roots.remove(0)
+    } else {
+        WktNode {
+            keyword: "COMPD_CS".to_string(),
+            items: roots.into_iter().map(Wkt::Node).collect(),
+        }
+    })
 }
 
 struct WktParser<'a> {
@@ -473,7 +584,7 @@ impl WktParser<'_> {
 
 const GEOGRAPHIC: [&str; 3] = ["GEOGCS", "GEOGCRS", "GEOGRAPHICCRS"];
 const GEODETIC: [&str; 2] = ["GEODCRS", "GEODETICCRS"];
-const VERTICAL: [&str; 3] = ["VERT_CS", "VERTCRS", "VERTICALCRS"];
+const VERTICAL: [&str; 4] = ["VERT_CS", "VERTCS", "VERTCRS", "VERTICALCRS"];
 const UNIT: [&str; 2] = ["UNIT", "LENGTHUNIT"];
 
 /// A bound CRS (WKT 2) stands for its source CRS.
@@ -558,6 +669,10 @@ fn wkt_units(root: &WktNode) -> CrsUnits {
 mod tests {
     use super::*;
 
+    fn gt(keys: &[GeoKey]) -> Result<CrsUnits, String> {
+        geotiff_units(keys, Path::new("test.las"))
+    }
+
     fn units(wkt: &str) -> CrsUnits {
         wkt_units(&parse_wkt(wkt).unwrap())
     }
@@ -639,17 +754,17 @@ mod tests {
 
     #[test]
     fn geotiff_keys_give_units_by_code_or_by_the_crs_code() {
-        let keys = |pairs: &[(u16, u16)]| -> Vec<las::crs::GeoTiffKeyEntry> {
+        let keys = |pairs: &[(u16, u16)]| -> Vec<GeoKey> {
             pairs
                 .iter()
-                .map(|&(id, v)| las::crs::GeoTiffKeyEntry {
+                .map(|&(id, v)| GeoKey {
                     id,
-                    data: GeoTiffData::U16(v),
+                    value: GeoValue::Short(v),
                 })
                 .collect()
         };
         // Units stated by key.
-        let u = geotiff_units(&keys(&[
+        let u = gt(&keys(&[
             (1024, 1),
             (3072, 32767),
             (3076, 9002),
@@ -659,31 +774,49 @@ mod tests {
         assert_eq!(sizes(&u), (FOOT_M, 1.0));
         // Only the projected CRS's EPSG code: NY Long Island in US survey
         // feet, UTM 33N in metres, and 4326, geographic.
-        let u = geotiff_units(&keys(&[(1024, 1), (3072, 2263)])).unwrap();
+        let u = gt(&keys(&[(1024, 1), (3072, 2263)])).unwrap();
         assert_eq!(sizes(&u), (US_SURVEY_FOOT_M, US_SURVEY_FOOT_M));
-        assert_eq!(
-            sizes(&geotiff_units(&keys(&[(3072, 32633)])).unwrap()),
-            (1.0, 1.0)
-        );
+        assert_eq!(sizes(&gt(&keys(&[(3072, 32633)])).unwrap()), (1.0, 1.0));
         assert!(matches!(
-            geotiff_units(&keys(&[(3072, 4326)])).unwrap(),
+            gt(&keys(&[(3072, 4326)])).unwrap(),
             CrsUnits::Geographic { name, .. } if name == "EPSG:4326"
         ));
         assert!(matches!(
-            geotiff_units(&keys(&[(1024, 2), (2048, 4269)])).unwrap(),
+            gt(&keys(&[(1024, 2), (2048, 4269)])).unwrap(),
             CrsUnits::Geographic { .. }
         ));
         // A unit code not known is an error that names it; no keys, unstated.
-        let err = geotiff_units(&keys(&[(3076, 9014)])).unwrap_err();
+        let err = gt(&keys(&[(3076, 9014)])).unwrap_err();
         assert!(err.contains("EPSG:9014"), "{err}");
-        assert_eq!(geotiff_units(&[]).unwrap(), CrsUnits::Unstated);
+        assert_eq!(gt(&[]).unwrap(), CrsUnits::Unstated);
         // A user-defined unit with its size.
         let mut user = keys(&[(3076, 32767)]);
-        user.push(las::crs::GeoTiffKeyEntry {
+        user.push(GeoKey {
             id: 3077,
-            data: GeoTiffData::Doubles(vec![0.5]),
+            value: GeoValue::Double(0.5),
         });
-        assert_eq!(sizes(&geotiff_units(&user).unwrap()), (0.5, 0.5));
+        assert_eq!(sizes(&gt(&user).unwrap()), (0.5, 0.5));
+        // A vertical CRS without a vertical unit key: its unit from the
+        // table (NAVD88 in metres under US-feet coordinates), else the
+        // horizontal unit; a user-defined vertical unit has no size key.
+        let u = gt(&keys(&[(1024, 1), (3072, 2263), (4096, 5703)])).unwrap();
+        assert_eq!(sizes(&u), (US_SURVEY_FOOT_M, 1.0));
+        let u = gt(&keys(&[(1024, 1), (3076, 9001), (4096, 6360)])).unwrap();
+        assert_eq!(sizes(&u), (1.0, US_SURVEY_FOOT_M));
+        let u = gt(&keys(&[(1024, 1), (3076, 9002), (4096, 9999)])).unwrap();
+        assert_eq!(sizes(&u), (FOOT_M, FOOT_M));
+        let err = gt(&keys(&[(3076, 9001), (4099, 32767)])).unwrap_err();
+        assert!(err.contains("key 4099") && err.contains("size"), "{err}");
+    }
+
+    #[test]
+    fn esri_wkt_with_a_vertical_crs_beside_the_projected_one() {
+        // ArcGIS writes the two CRSs side by side, not in a COMPD_CS.
+        let esri = r#"PROJCS["NAD_1983_StatePlane_New_York_Long_Island_FIPS_3104_Feet",GEOGCS["GCS_North_American_1983",DATUM["D_North_American_1983",SPHEROID["GRS_1980",6378137.0,298.257222101]],PRIMEM["Greenwich",0.0],UNIT["Degree",0.0174532925199433]],PROJECTION["Lambert_Conformal_Conic"],PARAMETER["False_Easting",984250.0],UNIT["Foot_US",0.3048006096012192]],VERTCS["NAVD_1988",VDATUM["North_American_Vertical_Datum_1988"],PARAMETER["Vertical_Shift",0.0],PARAMETER["Direction",1.0],UNIT["Meter",1.0]]"#;
+        assert_eq!(sizes(&units(esri)), (0.3048006096012192, 1.0));
+        // A VERTCS alone sets z only.
+        let vertcs = r#"VERTCS["NAVD_1988",VDATUM["x"],UNIT["Foot_US",0.3048006096012192]]"#;
+        assert_eq!(sizes(&units(vertcs)), (1.0, 0.3048006096012192));
     }
 
     #[test]
