@@ -623,6 +623,13 @@ pub fn run(args: &MapArgs) -> Result<()> {
         config.output.display()
     );
     for g in &out.report.groups {
+        if let Some(error) = &g.error {
+            println!(
+                "  group of {}: FAILED, its {} images left out of the model ({:.1} s): {error}",
+                g.init_image, g.num_images, g.mapping_s
+            );
+            continue;
+        }
         println!(
             "  group of {}: {}/{} images, {} points, {:.1} s{}",
             g.init_image,

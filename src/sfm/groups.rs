@@ -18,7 +18,9 @@ use std::time::Instant;
 use super::localise::SearchRegion;
 use super::mapper::{KnownPose, MapperError, MapperInputs, MapperOutput, Progress};
 use super::options::{AssociationKind, IntrinsicsRefinement, MapperOptions};
-use super::report::{GroupRunRecord, IntrinsicsRecord, MapReport, UncertaintySummary};
+use super::report::{
+    GroupRunRecord, ImageRecord, IntrinsicsRecord, MapReport, NotRegistered, UncertaintySummary,
+};
 use super::runs::{run_mapper_from_pose, run_mapper_searching};
 use super::state::{intrinsics_key, IntrinsicsKey};
 use crate::io::database::DatabaseSnapshot;
@@ -68,6 +70,7 @@ pub fn map_groups(
     let total = db.images.len();
     let mut held = HeldIntrinsics::new(db, options);
     let mut runs: Vec<(GroupRunRecord, MapperOutput)> = Vec::with_capacity(starts.len());
+    let mut failed: Vec<FailedRun> = Vec::new();
     let mut done = 0usize;
     for (start, images) in &group_runs {
         let mut group_db = db.restricted_to(images);
@@ -91,12 +94,33 @@ pub fn map_groups(
         );
         let started = Instant::now();
         let mut group_progress = |registered: usize, _: usize| progress(done + registered, total);
-        let mut out =
-            run(group_inputs, start, &mut group_progress).map_err(|e| MapperError::Group {
-                image: name(start.image),
-                images: images.len(),
-                error: Box::new(e),
-            })?;
+        let mut out = match run(group_inputs, start, &mut group_progress) {
+            Ok(out) => out,
+            Err(e) => {
+                let error = MapperError::Group {
+                    image: name(start.image),
+                    images: images.len(),
+                    error: Box::new(e),
+                };
+                log::warn!("{error}: its images are left out of the model");
+                failed.push((
+                    GroupRunRecord {
+                        init_image_id: start.image.0,
+                        init_image: name(start.image),
+                        num_images: images.len(),
+                        num_registered: 0,
+                        num_points: 0,
+                        cameras_held: held_here.iter().map(|c| c.0).collect(),
+                        mapping_s: started.elapsed().as_secs_f64(),
+                        error: None,
+                        report: None,
+                    },
+                    images.clone(),
+                    error,
+                ));
+                continue;
+            }
+        };
         // Registration order goes on from the earlier groups'.
         for rec in &mut out.report.images {
             if let Some(k) = &mut rec.registration_index {
@@ -113,11 +137,55 @@ pub fn map_groups(
             num_points: out.report.num_points,
             cameras_held: held_here.iter().map(|c| c.0).collect(),
             mapping_s: started.elapsed().as_secs_f64(),
+            error: None,
             report: None,
         };
         runs.push((record, out));
     }
-    merge_runs(db, runs)
+    if runs.is_empty() {
+        // Every run failed: the first's error.
+        let (_, _, error) = failed
+            .into_iter()
+            .next()
+            .ok_or(MapperError::NoInitialImage)?;
+        return Err(error);
+    }
+    let mut out = merge_runs(db, runs)?;
+    add_failed_runs(db, &mut out.report, failed);
+    Ok(out)
+}
+
+/// A failed group's run (its record, its images, its error).
+type FailedRun = (GroupRunRecord, BTreeSet<ImageId>, MapperError);
+
+/// Lists the failed runs in `report.groups` (after the runs in the model)
+/// with their errors, and each of their images not in the report as not
+/// registered for that reason.
+fn add_failed_runs(db: &DatabaseSnapshot, report: &mut MapReport, failed: Vec<FailedRun>) {
+    for (mut record, images, error) in failed {
+        let message = match &error {
+            MapperError::Group { error, .. } => error.to_string(),
+            other => other.to_string(),
+        };
+        let listed: BTreeSet<u32> = report.images.iter().map(|r| r.image_id).collect();
+        for id in images.iter().filter(|id| !listed.contains(&id.0)) {
+            report.images.push(ImageRecord {
+                image_id: id.0,
+                name: db
+                    .images
+                    .get(id)
+                    .map_or_else(String::new, |i| i.name.clone()),
+                not_registered: Some(NotRegistered::GroupFailed {
+                    init_image: record.init_image.clone(),
+                    error: message.clone(),
+                }),
+                ..Default::default()
+            });
+        }
+        record.error = Some(message);
+        report.groups.push(record);
+    }
+    report.images.sort_by_key(|r| r.image_id);
 }
 
 /// The intrinsics earlier groups' runs gave the cameras of their registered

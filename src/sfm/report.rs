@@ -73,6 +73,10 @@ pub enum NotRegistered {
     /// A pose was tried and not found (`attempts`, `num_correspondences`
     /// and `pnp_inliers` of the last attempt).
     PoseNotFound,
+    /// Given to the run of another group's initial image `init_image` (one
+    /// `--init-image` per group, [`super::groups`]), and that run failed
+    /// with `error`; the other groups' runs are in the model.
+    GroupFailed { init_image: String, error: String },
 }
 
 /// The model a run extended, as it came.
@@ -361,6 +365,9 @@ pub struct GroupRunRecord {
     pub cameras_held: Vec<u32>,
     /// Wall time of the group's runs, seconds.
     pub mapping_s: f64,
+    /// Why the run failed (its images are then left out of the model, each
+    /// saying so); `None` for a run in the model.
+    pub error: Option<String>,
     /// The run's own report (`None` for the first, which is the top level).
     pub report: Option<Box<MapReport>>,
 }
@@ -571,6 +578,12 @@ impl MapReport {
                 groups.len(),
                 if groups.len() == 1 { "" } else { "s" },
                 first_few(listed, "; ")
+            ));
+        }
+        let (n, list) = names(&|w| matches!(w, NotRegistered::GroupFailed { .. }));
+        if n > 0 {
+            parts.push(format!(
+                "{n} given to a group's run that failed ({list}; report.json: groups[].error)"
             ));
         }
         let (n, list) = names(&|w| matches!(w, NotRegistered::TooFewModelPoints { .. }));

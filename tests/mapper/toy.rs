@@ -1738,7 +1738,8 @@ fn toy_room_says_why_images_are_not_registered() {
 /// refined by the first group's run and held by the second's for the
 /// identical camera), a report over all 24 images with a record per run;
 /// two initial images in one group, or one without any verified pair, are
-/// refused.
+/// refused; a group whose run fails is left out with its error, the others
+/// kept.
 #[test]
 fn toy_room_groups_mapped_in_one_run() {
     use colmap_lidar::sfm::report::NotRegistered;
@@ -1916,6 +1917,79 @@ fn toy_room_groups_mapped_in_one_run() {
         err.to_string().contains("lone.png has no verified pair"),
         "{err}"
     );
+    // A group whose run fails (its initial pose 30 m outside the room,
+    // facing away) is left out, each of its images saying why, and the
+    // other group's model is kept; when every run fails, the first's error.
+    let away = BodyPose::from_degrees(origin() + Vector3::new(0.0, -30.0, 1.5), 0.0, 0.0, -90.0)
+        .to_cam_from_world();
+    let lost = |id: u32| GroupStart {
+        image: ImageId(id),
+        cam_from_world: away,
+    };
+    let out = map_groups(
+        inputs,
+        &[start(1), lost(101)],
+        None,
+        &options,
+        &mut |_, _| {},
+    )
+    .unwrap();
+    assert_eq!((out.report.num_registered, out.report.num_images), (10, 24));
+    assert_eq!(out.reconstruction.num_registered_images(), 10);
+    assert!(out
+        .reconstruction
+        .images
+        .keys()
+        .all(|id| id.0 <= 10 || id.0 > 200));
+    let failed = &out.report.groups[1];
+    assert_eq!(
+        (
+            failed.init_image_id,
+            failed.num_images,
+            failed.num_registered
+        ),
+        (101, 10, 0)
+    );
+    let error = failed.error.clone().expect("the failed run's error");
+    assert!(
+        error.contains("`copy_001.png` (id 101) sees no usable map point"),
+        "{error}"
+    );
+    assert!(out.report.groups[0].error.is_none());
+    let ids: Vec<u32> = out.report.images.iter().map(|r| r.image_id).collect();
+    assert_eq!(ids, want);
+    for rec in out
+        .report
+        .images
+        .iter()
+        .filter(|r| (101..=110).contains(&r.image_id))
+    {
+        assert_eq!(
+            rec.not_registered,
+            Some(NotRegistered::GroupFailed {
+                init_image: "copy_001.png".to_string(),
+                error: error.clone(),
+            })
+        );
+    }
+    let summary = out.report.not_registered_summary().unwrap();
+    assert!(
+        summary.contains("10 given to a group's run that failed"),
+        "{summary}"
+    );
+    match map_groups(
+        inputs,
+        &[lost(1), lost(101)],
+        None,
+        &options,
+        &mut |_, _| {},
+    ) {
+        Ok(_) => panic!("mapped from two lost poses"),
+        Err(e) => assert!(
+            matches!(e, MapperError::Group { ref image, .. } if image == "img_000.png"),
+            "{e}"
+        ),
+    }
     // The largest group runs first whatever the order given: it sets the
     // camera's intrinsics, which the small group's run holds; the first run
     // also gets the images of the group without an initial image.
