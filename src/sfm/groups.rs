@@ -162,13 +162,13 @@ type FailedRun = (GroupRunRecord, BTreeSet<ImageId>, MapperError);
 /// with their errors, and each of their images not in the report as not
 /// registered for that reason.
 fn add_failed_runs(db: &DatabaseSnapshot, report: &mut MapReport, failed: Vec<FailedRun>) {
+    let mut listed: BTreeSet<u32> = report.images.iter().map(|r| r.image_id).collect();
     for (mut record, images, error) in failed {
         let message = match &error {
             MapperError::Group { error, .. } => error.to_string(),
             other => other.to_string(),
         };
-        let listed: BTreeSet<u32> = report.images.iter().map(|r| r.image_id).collect();
-        for id in images.iter().filter(|id| !listed.contains(&id.0)) {
+        for id in images.iter().filter(|id| listed.insert(id.0)) {
             report.images.push(ImageRecord {
                 image_id: id.0,
                 name: db

@@ -481,6 +481,26 @@ fn prepare_map_library_entry_point_end_to_end() {
     assert!(format!("{err:#}").contains("missing.ply"));
 }
 
+/// Runs the real binary's `prepare-map` on `inputs` (each its own
+/// `--input`) into `out` with the `extra` arguments.
+fn prepare_map_cli(
+    inputs: &[&std::path::Path],
+    out: &std::path::Path,
+    extra: &[&str],
+) -> std::process::Output {
+    let mut command = std::process::Command::new(crate::common::bin());
+    command.arg("prepare-map");
+    for input in inputs {
+        command.arg("--input").arg(input);
+    }
+    command
+        .arg("--output")
+        .arg(out)
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
 /// The real binary, end to end.
 #[test]
 fn prepare_map_cli_end_to_end() {
@@ -488,43 +508,33 @@ fn prepare_map_cli_end_to_end() {
     let raw = dir.path().join("raw.ply");
     write_raw_scan(&raw);
     let out = dir.path().join("map.ply");
-    let status = std::process::Command::new(crate::common::bin())
-        .args(["prepare-map", "--input"])
-        .arg(&raw)
-        .arg("--output")
-        .arg(&out)
-        .args(["--voxel", "0.03", "--normal-radius", "0.15"])
-        .status()
-        .unwrap();
+    let status = prepare_map_cli(
+        &[&raw],
+        &out,
+        &["--voxel", "0.03", "--normal-radius", "0.15"],
+    )
+    .status;
     assert!(status.success());
     let (map, _) = read_point_cloud(&out).unwrap();
     assert!(map.len() > 10_000);
     assert!(map.normals.unwrap().iter().all(|n| n != &[0.0; 3]));
-    let status = std::process::Command::new(crate::common::bin())
-        .args(["prepare-map", "--input"])
-        .arg(dir.path().join("missing.ply"))
-        .arg("--output")
-        .arg(&out)
-        .status()
-        .unwrap();
+    let missing = dir.path().join("missing.ply");
+    let status = prepare_map_cli(&[&missing], &out, &[]).status;
     assert!(!status.success());
     // The raw scan given in feet: the map is the same scan scaled to
     // metres, and the run says so; a unit not known is an error.
     let feet = dir.path().join("feet.ply");
-    let output = std::process::Command::new(crate::common::bin())
-        .args(["prepare-map", "--input"])
-        .arg(&raw)
-        .arg("--output")
-        .arg(&feet)
-        .args([
+    let output = prepare_map_cli(
+        &[&raw],
+        &feet,
+        &[
             "--voxel",
             "0",
             "--keep-without-normal",
             "--input-units",
             "ft",
-        ])
-        .output()
-        .unwrap();
+        ],
+    );
     assert!(output.status.success(), "{output:?}");
     let stdout = String::from_utf8_lossy(&output.stdout);
     assert!(
@@ -539,14 +549,7 @@ fn prepare_map_cli_end_to_end() {
         assert!((scaled.point_in_map(i) - want).norm() < 1e-3, "{i}");
     }
     let target = dir.path().join("yards.ply");
-    let output = std::process::Command::new(crate::common::bin())
-        .args(["prepare-map", "--input"])
-        .arg(&raw)
-        .arg("--output")
-        .arg(&target)
-        .args(["--input-units", "yards"])
-        .output()
-        .unwrap();
+    let output = prepare_map_cli(&[&raw], &target, &["--input-units", "yards"]);
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(
@@ -584,14 +587,11 @@ fn prepare_map_crops_to_a_box_in_map_coordinates() {
         "{},{},{},{},{},{}",
         lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
     );
-    let output = std::process::Command::new(crate::common::bin())
-        .args(["prepare-map", "--input"])
-        .arg(&raw)
-        .arg("--output")
-        .arg(&out)
-        .args(["--voxel", "0", "--keep-without-normal", "--crop", &crop])
-        .output()
-        .unwrap();
+    let output = prepare_map_cli(
+        &[&raw],
+        &out,
+        &["--voxel", "0", "--keep-without-normal", "--crop", &crop],
+    );
     assert!(output.status.success(), "{output:?}");
     let stdout = String::from_utf8_lossy(&output.stdout);
     let dropped = rows.len() - inside.len();
@@ -626,14 +626,7 @@ fn prepare_map_crops_to_a_box_in_map_coordinates() {
         ("0,0,0,inf,1,1", "not finite"),
     ] {
         let target = dir.path().join("bad.ply");
-        let output = std::process::Command::new(crate::common::bin())
-            .args(["prepare-map", "--input"])
-            .arg(&raw)
-            .arg("--output")
-            .arg(&target)
-            .args(["--crop", bad])
-            .output()
-            .unwrap();
+        let output = prepare_map_cli(&[&raw], &target, &["--crop", bad]);
         assert!(!output.status.success(), "{bad}");
         let stderr = String::from_utf8_lossy(&output.stderr);
         assert!(
@@ -644,14 +637,7 @@ fn prepare_map_crops_to_a_box_in_map_coordinates() {
     }
     // A box that holds no point: an error, nothing written.
     let target = dir.path().join("empty.ply");
-    let output = std::process::Command::new(crate::common::bin())
-        .args(["prepare-map", "--input"])
-        .arg(&raw)
-        .arg("--output")
-        .arg(&target)
-        .args(["--crop", "0,0,0,1,1,1"])
-        .output()
-        .unwrap();
+    let output = prepare_map_cli(&[&raw], &target, &["--crop", "0,0,0,1,1,1"]);
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(
@@ -758,28 +744,15 @@ fn prepare_map_merges_the_tiles_of_a_survey() {
     // A hidden file (macOS leaves `._NAME` beside copied files) is not read.
     std::fs::write(tiles.join("._b.laz"), "not a cloud either").unwrap();
 
-    let prepare_map = |inputs: &[&std::path::Path], out: &std::path::Path, extra: &[&str]| {
-        let mut command = std::process::Command::new(crate::common::bin());
-        command.arg("prepare-map");
-        for input in inputs {
-            command.arg("--input").arg(input);
-        }
-        command
-            .arg("--output")
-            .arg(out)
-            .args(extra)
-            .output()
-            .unwrap()
-    };
     // Every point kept (--voxel 0: on millimetre coordinates a 3 cm grid's
     // faces hold points, which a last-bit difference of the local origins
     // puts in either voxel), so the two maps hold the same points, in tile
     // order; their normals come from the same neighbours.
     let from_whole = dir.path().join("from_whole.ply");
-    let output = prepare_map(&[&whole], &from_whole, &["--voxel", "0"]);
+    let output = prepare_map_cli(&[&whole], &from_whole, &["--voxel", "0"]);
     assert!(output.status.success(), "{output:?}");
     let from_tiles = dir.path().join("from_tiles.ply");
-    let output = prepare_map(&[&tile_a, &tile_b], &from_tiles, &["--voxel", "0"]);
+    let output = prepare_map_cli(&[&tile_a, &tile_b], &from_tiles, &["--voxel", "0"]);
     assert!(output.status.success(), "{output:?}");
     let stdout = String::from_utf8_lossy(&output.stdout);
     assert!(
@@ -808,11 +781,11 @@ fn prepare_map_merges_the_tiles_of_a_survey() {
     }
     assert!(turned * 1000 < merged.len(), "{turned} normals differ");
     let from_tiles = dir.path().join("from_tiles_3cm.ply");
-    let output = prepare_map(&[&tile_a, &tile_b], &from_tiles, &[]);
+    let output = prepare_map_cli(&[&tile_a, &tile_b], &from_tiles, &[]);
     assert!(output.status.success(), "{output:?}");
     // The folder: its clouds by name (the text file left out), the same bytes.
     let from_folder = dir.path().join("from_folder.ply");
-    let output = prepare_map(&[&tiles], &from_folder, &[]);
+    let output = prepare_map_cli(&[&tiles], &from_folder, &[]);
     assert!(output.status.success(), "{output:?}");
     assert_eq!(
         std::fs::read(&from_folder).unwrap(),
@@ -831,7 +804,7 @@ fn prepare_map_merges_the_tiles_of_a_survey() {
         base[1] + 4.0,
         base[2] + 4.0
     );
-    let output = prepare_map(&[&tiles], &cropped, &["--voxel", "0", "--crop", &crop]);
+    let output = prepare_map_cli(&[&tiles], &cropped, &["--voxel", "0", "--crop", &crop]);
     assert!(output.status.success(), "{output:?}");
     let inside = rows
         .iter()
@@ -843,7 +816,7 @@ fn prepare_map_merges_the_tiles_of_a_survey() {
         "{stdout}"
     );
     // A box that holds none of the tiles' points: the error spans them all.
-    let output = prepare_map(&[&tiles], &cropped, &["--crop", "0,0,0,1,1,1"]);
+    let output = prepare_map_cli(&[&tiles], &cropped, &["--crop", "0,0,0,1,1,1"]);
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(
@@ -888,7 +861,7 @@ fn prepare_map_merges_the_tiles_of_a_survey() {
             "inside the input folder",
         ),
     ] {
-        let output = prepare_map(&inputs, &out, &[]);
+        let output = prepare_map_cli(&inputs, &out, &[]);
         assert!(!output.status.success(), "{says}");
         let stderr = String::from_utf8_lossy(&output.stderr);
         assert!(stderr.contains(says), "{says}: {stderr}");
@@ -896,7 +869,7 @@ fn prepare_map_merges_the_tiles_of_a_survey() {
     }
     // An output that is one of the inputs: refused, the tile kept as it was.
     let before = std::fs::read(&tile_b).unwrap();
-    let output = prepare_map(&[&tile_a, &tile_b], &tile_b, &[]);
+    let output = prepare_map_cli(&[&tile_a, &tile_b], &tile_b, &[]);
     assert!(!output.status.success());
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("is one of the inputs"), "{stderr}");

@@ -226,21 +226,14 @@ fn geotiff_record(header: &las::Header) -> Option<Result<Vec<GeoKey>, String>> {
 
 /// The units the GeoTIFF keys give (`path` names the file in a warning).
 fn geotiff_units(keys: &[GeoKey], path: &Path) -> Result<CrsUnits, String> {
-    let short = |id: u16| {
-        keys.iter()
-            .find(|k| k.id == id)
-            .and_then(|k| match k.value {
-                GeoValue::Short(v) => Some(v),
-                _ => None,
-            })
+    let value = |id: u16| keys.iter().find(|k| k.id == id).map(|k| k.value);
+    let short = |id: u16| match value(id) {
+        Some(GeoValue::Short(v)) => Some(v),
+        _ => None,
     };
-    let double = |id: u16| {
-        keys.iter()
-            .find(|k| k.id == id)
-            .and_then(|k| match k.value {
-                GeoValue::Double(v) => Some(v),
-                _ => None,
-            })
+    let double = |id: u16| match value(id) {
+        Some(GeoValue::Double(v)) => Some(v),
+        _ => None,
     };
     let source = "its GeoTIFF keys".to_string();
     // A unit key's unit; `size` is the key holding a user-defined unit's
