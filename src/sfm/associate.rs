@@ -105,12 +105,15 @@ pub struct NearestNeighbourAssociator<'a> {
     pub index: &'a MapIndex,
     pub options: AssociationOptions,
     /// [`Self::plane_offset_at`] per map point, once computed: the f32 bits
-    /// of the offset minus the point's own `n . l`; [`NOT_YET`] before.
+    /// of the offset minus the point's own `n . l`; [`NOT_YET`] before,
+    /// [`NO_PLANE`] for a point without enough support.
     offsets: Vec<AtomicU32>,
 }
 
 /// Marks an offset not computed yet (a NaN no arithmetic produces).
 const NOT_YET: u32 = u32::MAX;
+/// Marks a map point that gives no plane (another such NaN).
+const NO_PLANE: u32 = u32::MAX - 1;
 
 impl<'a> NearestNeighbourAssociator<'a> {
     pub fn new(cloud: &'a PointCloud, index: &'a MapIndex, options: AssociationOptions) -> Self {
@@ -216,7 +219,10 @@ impl NearestNeighbourAssociator<'_> {
     /// over the map points `l` with (about) the same normal inside a
     /// cylinder along `n` of radius `plane_radius_m`, reaching
     /// `plane_window_m` either side of the plane (the window re-centred on
-    /// the mean, three passes). `None` when the point has no normal.
+    /// the mean, three passes). `None` when the point has no normal, or
+    /// when fewer than `min_plane_support` map points (itself included)
+    /// are in that window: a stray point, not a surface (see
+    /// [`AssociationOptions::min_plane_support`]).
     ///
     /// This averages the map's range noise without favouring either side:
     /// the neighbours are chosen by where they lie along the surface, not by
@@ -233,15 +239,19 @@ impl NearestNeighbourAssociator<'_> {
         let normal = self.normal_of(i)?;
         let point = self.cloud.point_in_map(i);
         let own = normal.dot(&point);
-        let cached = self.offsets[i].load(Ordering::Relaxed);
-        if cached != NOT_YET {
-            return Some(own + f64::from(f32::from_bits(cached)));
+        match self.offsets[i].load(Ordering::Relaxed) {
+            NOT_YET => {}
+            NO_PLANE => return None,
+            cached => return Some(own + f64::from(f32::from_bits(cached))),
         }
-        let offset = self.surface_offset(&point, &normal);
+        let Some(offset) = self.surface_offset(&point, &normal) else {
+            self.offsets[i].store(NO_PLANE, Ordering::Relaxed);
+            return None;
+        };
         // Stored relative to the point's own offset: centimetres, exact
         // enough in f32 at any map coordinates.
         let delta = (offset - own) as f32;
-        let bits = if delta.to_bits() == NOT_YET {
+        let bits = if matches!(delta.to_bits(), NOT_YET | NO_PLANE) {
             f32::NAN.to_bits()
         } else {
             delta.to_bits()
@@ -250,16 +260,52 @@ impl NearestNeighbourAssociator<'_> {
         Some(own + f64::from(delta))
     }
 
-    /// The cylinder mean of [`Self::plane_offset_at`] around `at` (a point
-    /// on or near the surface) for the plane normal `normal`; `n . at` when
-    /// no map point qualifies.
-    fn surface_offset(&self, at: &Vector3<f64>, normal: &Vector3<f64>) -> f64 {
+    /// The cylinder mean of [`Self::plane_offset_at`] around `at` (a map
+    /// point) for the plane normal `normal`; `None` when fewer than
+    /// `min_plane_support` map points are in the final window.
+    fn surface_offset(&self, at: &Vector3<f64>, normal: &Vector3<f64>) -> Option<f64> {
         let (r, g) = (self.options.plane_radius_m, self.options.plane_window_m);
+        let candidates = self.same_plane_offsets(at, normal, r);
+        let mut d = normal.dot(at);
+        let mut support = 0;
+        for _ in 0..3 {
+            let (sum, count) = candidates
+                .iter()
+                .filter(|&&o| (o - d).abs() <= g)
+                .fold((0.0, 0usize), |(s, c), o| (s + o, c + 1));
+            support = count;
+            if count == 0 {
+                break;
+            }
+            d = sum / count as f64;
+        }
+        let min = self.options.min_plane_support;
+        // Too few: a stray point, or a surface sparser here than the map's
+        // spacing, which twice the radius tells apart (the offset stays the
+        // mean over the radius).
+        let supported = support >= min
+            || self
+                .same_plane_offsets(at, normal, 2.0 * r)
+                .iter()
+                .filter(|&&o| (o - d).abs() <= g)
+                .count()
+                >= min;
+        supported.then_some(d)
+    }
+
+    /// `n . l` of the map points `l` whose normals are within
+    /// `same_plane_max_angle_deg` of `normal` and that lie within `radius`
+    /// of `at` across the normal and within `plane_window_m` along it.
+    fn same_plane_offsets(
+        &self,
+        at: &Vector3<f64>,
+        normal: &Vector3<f64>,
+        radius: f64,
+    ) -> Vec<f64> {
+        let g = self.options.plane_window_m;
         let cos_same = self.options.same_plane_max_angle_deg.to_radians().cos();
-        // Candidates: same normal, within the radius across the normal.
-        let candidates: Vec<f64> = self
-            .index
-            .within_radius(at, (r * r + g * g).sqrt())
+        self.index
+            .within_radius(at, (radius * radius + g * g).sqrt())
             .iter()
             .filter_map(|nb| {
                 let i = nb.point_idx as usize;
@@ -267,21 +313,9 @@ impl NearestNeighbourAssociator<'_> {
                 let l = self.cloud.point_in_map(i);
                 let v = l - at;
                 let along = normal.dot(&v);
-                ((v - normal * along).norm_squared() <= r * r).then(|| normal.dot(&l))
+                ((v - normal * along).norm_squared() <= radius * radius).then(|| normal.dot(&l))
             })
-            .collect();
-        let mut d = normal.dot(at);
-        for _ in 0..3 {
-            let (sum, count) = candidates
-                .iter()
-                .filter(|&&o| (o - d).abs() <= g)
-                .fold((0.0, 0usize), |(s, c), o| (s + o, c + 1));
-            if count == 0 {
-                break;
-            }
-            d = sum / count as f64;
-        }
-        d
+            .collect()
     }
 
     /// Whether map point `i` may give a plane: its planarity reaches
@@ -299,30 +333,28 @@ impl NearestNeighbourAssociator<'_> {
     }
 
     /// The map's plane near `x` (world frame): among the `num_neighbours`
-    /// nearest map points within `radius_m` ([`Self::is_planar`] ones), the one whose tangent plane
-    /// lies closest to `x` (at a corner the nearest point may belong to the
-    /// other surface) gives the plane: its normal and
-    /// [`Self::plane_offset_at`]. `None` without a neighbour with a normal.
+    /// nearest map points within `radius_m` ([`Self::is_planar`] ones that
+    /// give a plane), the one whose tangent plane lies closest to `x` (at a
+    /// corner the nearest point may belong to the other surface) gives the
+    /// plane: its normal and [`Self::plane_offset_at`]. `None` without such
+    /// a neighbour.
     pub fn plane_near(&self, x: &Vector3<f64>, radius_m: f64) -> Option<(Vector3<f64>, f64)> {
         let neighbours = self
             .index
             .k_nearest_within(x, self.options.num_neighbours, radius_m);
-        let mut best: Option<(f64, usize, Vector3<f64>)> = None;
-        for nb in &neighbours {
-            let i = nb.point_idx as usize;
-            let Some(n) = self.normal_of(i) else {
-                continue;
-            };
-            if !self.is_planar(i) {
-                continue;
-            }
-            let d = n.dot(&(x - self.cloud.point_in_map(i))).abs();
-            if best.as_ref().is_none_or(|(bd, _, _)| d < *bd) {
-                best = Some((d, i, n));
-            }
-        }
-        let (_, i, normal) = best?;
-        Some((normal, self.plane_offset_at(i)?))
+        let mut candidates: Vec<(f64, usize, Vector3<f64>)> = neighbours
+            .iter()
+            .filter_map(|nb| {
+                let i = nb.point_idx as usize;
+                let n = self.normal_of(i).filter(|_| self.is_planar(i))?;
+                Some((n.dot(&(x - self.cloud.point_in_map(i))).abs(), i, n))
+            })
+            .collect();
+        // Stable: ties keep the neighbours' (distance) order.
+        candidates.sort_by(|a, b| a.0.total_cmp(&b.0));
+        candidates
+            .into_iter()
+            .find_map(|(_, i, normal)| Some((normal, self.plane_offset_at(i)?)))
     }
 
     /// The nearest-neighbour planes of `queries` (needs no tracks or poses).
@@ -871,5 +903,69 @@ pub(crate) mod plane_offset_tests {
             (mean - 0.01).abs() < 0.001,
             "residual {mean} m of a point 10 mm off"
         );
+    }
+
+    /// Stray map points (LiDAR outliers) give no plane, and a 3D point next
+    /// to one takes the surface's plane below it instead.
+    #[test]
+    fn stray_map_points_give_no_plane() {
+        let (mut cloud, _) = noisy_floor();
+        let floor = cloud.len();
+        // Five strays 5-30 cm above the floor, each with a normal that puts
+        // its tangent plane through the query point next to it.
+        let strays = [
+            ([0.31f32, 0.42, 0.05], [1.0f32, 0.0, 0.0]),
+            ([-0.5, 0.2, 0.1], [0.0, 1.0, 0.0]),
+            ([0.7, -0.6, 0.2], [0.6, 0.0, 0.8]),
+            ([-0.2, -0.9, 0.3], [0.0, 0.0, 1.0]),
+            ([0.0, 0.0, 0.12], [0.0, 0.8, 0.6]),
+        ];
+        for (p, n) in strays {
+            cloud.points.push(p);
+            cloud.normals.as_mut().unwrap().push(n);
+        }
+        let index = MapIndex::build(&cloud).unwrap();
+        let with = |min_plane_support: usize| {
+            let options = AssociationOptions {
+                min_plane_support,
+                ..Default::default()
+            };
+            NearestNeighbourAssociator::new(&cloud, &index, options)
+        };
+        let gated = with(AssociationOptions::default().min_plane_support);
+        let open = with(0);
+        for (k, (_, n)) in strays.iter().enumerate() {
+            let i = floor + k;
+            assert_eq!(gated.plane_offset_at(i), None, "stray {k}");
+            assert_eq!(gated.plane_offset_at(i), None, "stray {k}, cached");
+            assert!(
+                open.plane_offset_at(i).is_some(),
+                "stray {k} without the gate"
+            );
+            // A 3D point 1 mm from the stray, on its tangent plane: without
+            // the gate the stray's plane wins (the closest tangent plane);
+            // with it, the floor's.
+            let along = Vector3::new(f64::from(n[1]), -f64::from(n[0]), 0.0);
+            let along = if along.norm() < 0.5 {
+                Vector3::x()
+            } else {
+                along.normalize()
+            };
+            let at = cloud.point_in_map(i) + along * 0.001;
+            let (normal, offset) = gated.plane_near(&at, 0.5).unwrap();
+            assert_eq!(normal, Vector3::z(), "stray {k}");
+            assert!(
+                (offset - 200.0).abs() < 0.008,
+                "stray {k}: floor offset {offset}"
+            );
+            let (normal, _) = open.plane_near(&at, 0.5).unwrap();
+            let n = Vector3::new(f64::from(n[0]), f64::from(n[1]), f64::from(n[2])).normalize();
+            assert_eq!(normal, n, "stray {k} without the gate");
+        }
+        // The floor's points keep their planes.
+        for i in (0..floor).step_by(997) {
+            let offset = gated.plane_offset_at(i).unwrap();
+            assert!((offset - 200.0).abs() < 0.008, "floor point {i}: {offset}");
+        }
     }
 }
