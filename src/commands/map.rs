@@ -10,7 +10,7 @@
 //! keys `database`, `lidar`, `output`, `image_path`, `init_image`, `init_pose`
 //! (each one value or a list), `init_search`,
 //! `pose_priors`, `input_model`, `fix_existing_images`, `output_type`,
-//! `no_lidar_constraints`, and a `[mapper]` table with the
+//! `no_lidar_constraints`, `input_units`, and a `[mapper]` table with the
 //! stage options of [`MapperOptions`] (`seed`, `[mapper.register]`, ...).
 //! Command-line values win over the file.
 use std::collections::{BTreeMap, BTreeSet};
@@ -24,7 +24,7 @@ use crate::io::database::{read_database, DatabaseSnapshot};
 use crate::io::images::{check_image_folder, colour_points, ExpectedImage};
 use crate::io::model::{read_model, write_model, ModelFormat};
 use crate::io::pose_ply::{format_model_pose_ply, read_pose_ply};
-use crate::map::io::{read_point_cloud, LoadReport};
+use crate::map::io::{read_point_cloud_with, InputUnits, LoadReport, ReadOptions};
 use crate::map::prepare::{estimate_normals, widen_normal_radius, NormalOptions};
 use crate::map::PointCloud;
 use crate::scene::{BodyPose, ImageId, Rigid3};
@@ -182,6 +182,16 @@ pub struct MapArgs {
     /// Ceres threads (default 1: byte-identical output).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// The map's length unit, as `prepare-map --input-units`: auto (default:
+    /// a LAS/LAZ file's coordinate reference system; metres otherwise), m,
+    /// ft or us-ft. The map is converted to metres; the model, --init-pose,
+    /// --pose-priors and the options are in metres.
+    #[arg(
+        long = "input-units",
+        visible_alias = "input_units",
+        value_name = "auto|m|ft|us-ft"
+    )]
+    pub input_units: Option<String>,
 }
 
 /// The options file.
@@ -200,6 +210,7 @@ struct OptionsFile {
     fix_existing_images: Option<bool>,
     output_type: Option<String>,
     no_lidar_constraints: Option<bool>,
+    input_units: Option<String>,
     mapper: MapperOptions,
 }
 
@@ -221,6 +232,8 @@ pub struct MapConfig {
     pub input_model: Option<PathBuf>,
     pub fix_existing_images: bool,
     pub format: ModelFormat,
+    /// The map's length unit (`--input-units`).
+    pub input_units: InputUnits,
     pub options: MapperOptions,
 }
 
@@ -276,6 +289,12 @@ impl MapArgs {
             Some("binary") | Some("BIN") | Some("bin") => ModelFormat::Binary,
             Some(other) => bail!("--output-type must be text or binary, got `{other}`"),
         };
+        let input_units = match self.input_units.clone().or(file.input_units) {
+            Some(text) => InputUnits::parse(&text)
+                .map_err(anyhow::Error::msg)
+                .context("--input-units")?,
+            None => InputUnits::Auto,
+        };
         let mut options = file.mapper;
         if let Some(seed) = self.seed {
             options.seed = seed;
@@ -316,6 +335,7 @@ impl MapArgs {
             input_model,
             fix_existing_images,
             format,
+            input_units,
             options,
         })
     }
@@ -461,12 +481,16 @@ pub(crate) fn check_output(dir: &Path) -> Result<()> {
 /// Reads the map; estimates normals where missing, over a radius that
 /// follows the map's spacing ([`widen_normal_radius`]).
 pub fn load_map(path: &Path) -> Result<PointCloud> {
-    Ok(load_map_reporting(path)?.0)
+    Ok(load_map_reporting(path, InputUnits::Auto)?.0)
 }
 
-/// [`load_map`], with what the reader saw.
-pub fn load_map_reporting(path: &Path) -> Result<(PointCloud, LoadReport)> {
-    let (mut cloud, load) = read_point_cloud(path)
+/// [`load_map`] with the map's length unit, and what the reader saw.
+pub fn load_map_reporting(path: &Path, units: InputUnits) -> Result<(PointCloud, LoadReport)> {
+    let read = ReadOptions {
+        units,
+        ..ReadOptions::default()
+    };
+    let (mut cloud, load) = read_point_cloud_with(path, &read)
         .with_context(|| format!("reading the LiDAR map {}", path.display()))?;
     if cloud.is_empty() {
         bail!("the LiDAR map {} holds no points", path.display());
@@ -530,7 +554,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
         }
         None => RunStart::InitialPoses(group_starts(&db, &config, &known_poses)?),
     };
-    let (cloud, load) = load_map_reporting(&config.lidar)?;
+    let (cloud, load) = load_map_reporting(&config.lidar, config.input_units)?;
     let total = db.images.len();
     let bar = std::io::stderr().is_terminal().then(|| {
         let bar = indicatif::ProgressBar::new(total as u64);

@@ -883,7 +883,16 @@ fn yard_with_colmap_database() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("unknown initial image"));
     assert!(!out.exists());
-    let o = run_bin(&["--init-image", "frame_0000.jpg"]);
+    let o = run_bin(&["--init-image", "frame_0000.jpg", "--input-units", "yd"]);
+    assert!(!o.status.success());
+    let msg = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        msg.contains("--input-units") && msg.contains("`yd`"),
+        "{msg}"
+    );
+    assert!(!out.exists());
+    // A map said to be in metres is read as it is: the same model.
+    let o = run_bin(&["--init-image", "frame_0000.jpg", "--input-units", "m"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     for f in ["cameras.txt", "images.txt", "points3D.txt"] {
         let x = std::fs::read(dir.path().join("a").join(f)).unwrap();

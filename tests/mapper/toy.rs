@@ -1013,7 +1013,7 @@ fn options_file_and_command_line_merge() {
         &file,
         "database = \"a.db\"\nlidar = \"m.ply\"\noutput = \"out\"\ninit_image = 3\n\
          init_pose = \"1,2,3,0,0,90\"\noutput_type = \"binary\"\nimage_path = \"photos\"\n\
-         [mapper]\nseed = 5\n[mapper.register]\nmax_error_px = 3.0\n",
+         input_units = \"us-ft\"\n[mapper]\nseed = 5\n[mapper.register]\nmax_error_px = 3.0\n",
     )
     .unwrap();
     let args = MapArgs {
@@ -1030,6 +1030,27 @@ fn options_file_and_command_line_merge() {
     assert_eq!(c.options.seed, 9);
     assert_eq!(c.options.register.max_error_px, 3.0);
     assert_eq!(c.format, colmap_lidar::io::model::ModelFormat::Binary);
+    assert_eq!(
+        c.input_units,
+        colmap_lidar::map::io::InputUnits::UsSurveyFoot
+    );
+    let feet = MapArgs {
+        input_units: Some("ft".into()),
+        ..args.clone()
+    };
+    assert_eq!(
+        feet.config().unwrap().input_units,
+        colmap_lidar::map::io::InputUnits::Foot
+    );
+    let bad = MapArgs {
+        input_units: Some("yards".into()),
+        ..args.clone()
+    };
+    let err = format!("{:#}", bad.config().unwrap_err());
+    assert!(
+        err.contains("--input-units") && err.contains("yards"),
+        "{err}"
+    );
     assert!((c.init_poses[0].to_degrees_array()[5] - 90.0).abs() < 1e-12);
     // One initial image per group: lists in the file, repeated flags on the
     // command line; as many poses as images, or none.
@@ -1041,6 +1062,7 @@ fn options_file_and_command_line_merge() {
     .unwrap();
     let c = args.config().unwrap();
     assert_eq!(c.init_images, vec!["a.png".to_string(), "7".to_string()]);
+    assert_eq!(c.input_units, colmap_lidar::map::io::InputUnits::Auto);
     assert_eq!(c.init_poses[1].to_degrees_array()[..3], [4.0, 5.0, 6.0]);
     let one_pose = MapArgs {
         init_image: vec!["a.png".into(), "b.png".into()],

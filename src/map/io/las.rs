@@ -47,7 +47,7 @@ pub fn read_las(
     let (horizontal, vertical, source) = match options.units.unit() {
         Some(unit) => (unit.clone(), unit, "as given".to_string()),
         None => match las_units(&header, path).map_err(|e| {
-            units_err(format!("{e}; give the unit with `prepare-map --input-units`"))
+            units_err(format!("{e}; give the unit with `--input-units` (map, prepare-map)"))
         })? {
             CrsUnits::Unstated => (LengthUnit::metre(), LengthUnit::metre(), String::new()),
             CrsUnits::Linear {
@@ -59,7 +59,7 @@ pub fn read_las(
                 return Err(units_err(format!(
                     "the coordinate reference system of {source} is geographic ({name}): longitude \
                      and latitude in degrees, not metres; reproject the cloud to a projected CRS in \
-                     metres (UTM, say) first, or give `prepare-map --input-units m` if the record is wrong"
+                     metres (UTM, say) first, or give `--input-units m` (map, prepare-map) if the record is wrong"
                 )))
             }
         },

@@ -7,7 +7,7 @@
 //! coordinates in feet are converted to metres as they are read
 //! ([`crate::map::io::read_point_cloud_with`] logs it), and longitude and
 //! latitude in degrees are refused: no scale turns them into metres.
-//! `prepare-map --input-units` overrides what the file says.
+//! `--input-units` (of `map` and `prepare-map`) overrides what the file says.
 use std::path::Path;
 
 /// Metres in a US survey foot (1200/3937 m, EPSG unit 9003).
