@@ -932,7 +932,7 @@ pub(crate) mod plane_offset_tests {
             };
             NearestNeighbourAssociator::new(&cloud, &index, options)
         };
-        let gated = with(AssociationOptions::default().min_plane_support);
+        let gated = with(5);
         let open = with(0);
         for (k, (_, n)) in strays.iter().enumerate() {
             let i = floor + k;

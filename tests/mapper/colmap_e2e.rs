@@ -297,7 +297,8 @@ fn yard_with_sequential_matches() {
 /// fit, or 375 mm off with a warning on another database). From the exact
 /// pose the mapper maps again with the initial image held there and meets
 /// the bar; from a pose 0.3 m and 3 deg off nothing can place the model
-/// along the free direction, and the run fails without writing anything.
+/// along the free direction, and the run fails without writing anything,
+/// or, on some databases, places it right.
 #[test]
 fn changed_yard_is_held_at_its_given_pose() {
     if !have_colmap() {
@@ -362,7 +363,28 @@ fn changed_yard_is_held_at_its_given_pose() {
 
     let (_, perturbed) = read_init_pose(&scene.join("init_pose.txt")).unwrap();
     let out = dir.path().join("perturbed");
-    let err = run_map(&scene_args(&scene, &out, &perturbed)).unwrap_err();
+    let err = match run_map(&scene_args(&scene, &out, &perturbed)) {
+        Err(err) => err,
+        Ok(()) => {
+            // Some databases place it (session 59, a CI database, 24/24):
+            // then it must be right, never a wrong model without an error.
+            let model = load_poses(&out).expect("model poses");
+            let gt = load_poses(&scene.join("gt")).expect("gt poses");
+            let none = evaluate(&model, &gt, Alignment::None).expect("evaluate");
+            let c = none.centre_error_m.as_ref().unwrap();
+            let rot = none.rotation_error_deg.as_ref().unwrap();
+            eprintln!(
+                "yard changed since the scan, perturbed initial pose: placed, {}/{}, centre error median {:.4} m, p90 {:.4} m, rotation median {:.3} deg",
+                none.num_registered, none.num_reference, c.median, c.p90, rot.median
+            );
+            assert!(none.registered_share >= 0.95);
+            assert!(
+                c.median < 0.01 && c.p90 < 0.02 && rot.median < 0.05,
+                "placed from the perturbed pose but wrong: {c:?} {rot:?}"
+            );
+            return;
+        }
+    };
     let message = format!("{err:#}");
     assert!(
         message.contains("does not fit the map") || message.contains("from its given pose"),
