@@ -20,6 +20,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use serde::Deserialize;
 
+use crate::commands::prepare_map::parse_input_units;
 use crate::io::database::{read_database, DatabaseSnapshot};
 use crate::io::images::{check_image_folder, colour_points, ExpectedImage};
 use crate::io::model::{read_model, write_model, ModelFormat};
@@ -290,9 +291,7 @@ impl MapArgs {
             Some(other) => bail!("--output-type must be text or binary, got `{other}`"),
         };
         let input_units = match self.input_units.clone().or(file.input_units) {
-            Some(text) => InputUnits::parse(&text)
-                .map_err(anyhow::Error::msg)
-                .context("--input-units")?,
+            Some(text) => parse_input_units(&text)?,
             None => InputUnits::Auto,
         };
         let mut options = file.mapper;

@@ -96,6 +96,13 @@ pub fn parse_classes(text: &str) -> anyhow::Result<Vec<u8>> {
         .collect()
 }
 
+/// The value of `--input-units` (`prepare-map`, `map`).
+pub(crate) fn parse_input_units(text: &str) -> anyhow::Result<InputUnits> {
+    InputUnits::parse(text)
+        .map_err(anyhow::Error::msg)
+        .context("--input-units")
+}
+
 impl PrepareMapArgs {
     /// What the readers leave out (validated).
     pub fn read_options(&self) -> anyhow::Result<ReadOptions> {
@@ -103,9 +110,7 @@ impl PrepareMapArgs {
         if let Some(classes) = &self.drop_classes {
             options.drop_las_classes = parse_classes(classes).context("--drop-classes")?;
         }
-        options.units = InputUnits::parse(&self.input_units)
-            .map_err(anyhow::Error::msg)
-            .context("--input-units")?;
+        options.units = parse_input_units(&self.input_units)?;
         Ok(options)
     }
 

@@ -94,7 +94,19 @@ pub fn map_groups(
         );
         let started = Instant::now();
         let mut group_progress = |registered: usize, _: usize| progress(done + registered, total);
-        let mut out = match run(group_inputs, start, &mut group_progress) {
+        let result = run(group_inputs, start, &mut group_progress);
+        let mut record = GroupRunRecord {
+            init_image_id: start.image.0,
+            init_image: name(start.image),
+            num_images: images.len(),
+            num_registered: 0,
+            num_points: 0,
+            cameras_held: held_here.iter().map(|c| c.0).collect(),
+            mapping_s: started.elapsed().as_secs_f64(),
+            error: None,
+            report: None,
+        };
+        let mut out = match result {
             Ok(out) => out,
             Err(e) => {
                 let error = MapperError::Group {
@@ -103,21 +115,7 @@ pub fn map_groups(
                     error: Box::new(e),
                 };
                 log::warn!("{error}: its images are left out of the model");
-                failed.push((
-                    GroupRunRecord {
-                        init_image_id: start.image.0,
-                        init_image: name(start.image),
-                        num_images: images.len(),
-                        num_registered: 0,
-                        num_points: 0,
-                        cameras_held: held_here.iter().map(|c| c.0).collect(),
-                        mapping_s: started.elapsed().as_secs_f64(),
-                        error: None,
-                        report: None,
-                    },
-                    images.clone(),
-                    error,
-                ));
+                failed.push((record, images.clone(), error));
                 continue;
             }
         };
@@ -129,17 +127,8 @@ pub fn map_groups(
         }
         done += out.report.num_registered;
         held.record(&out);
-        let record = GroupRunRecord {
-            init_image_id: start.image.0,
-            init_image: name(start.image),
-            num_images: images.len(),
-            num_registered: out.report.num_registered,
-            num_points: out.report.num_points,
-            cameras_held: held_here.iter().map(|c| c.0).collect(),
-            mapping_s: started.elapsed().as_secs_f64(),
-            error: None,
-            report: None,
-        };
+        record.num_registered = out.report.num_registered;
+        record.num_points = out.report.num_points;
         runs.push((record, out));
     }
     if runs.is_empty() {

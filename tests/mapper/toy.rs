@@ -1921,8 +1921,9 @@ fn toy_room_groups_mapped_in_one_run() {
     );
     assert_eq!(report.num_points, out.reconstruction.points3d.len());
     // Two initial images of one group; one without any verified pair.
+    let maps = |starts: &[GroupStart]| map_groups(inputs, starts, None, &options, &mut |_, _| {});
     let fails = |starts: &[GroupStart]| -> MapperError {
-        match map_groups(inputs, starts, None, &options, &mut |_, _| {}) {
+        match maps(starts) {
             Ok(_) => panic!("{starts:?} were mapped"),
             Err(e) => e,
         }
@@ -1948,14 +1949,7 @@ fn toy_room_groups_mapped_in_one_run() {
         image: ImageId(id),
         cam_from_world: away,
     };
-    let out = map_groups(
-        inputs,
-        &[start(1), lost(101)],
-        None,
-        &options,
-        &mut |_, _| {},
-    )
-    .unwrap();
+    let out = maps(&[start(1), lost(101)]).unwrap();
     assert_eq!((out.report.num_registered, out.report.num_images), (10, 24));
     assert_eq!(out.reconstruction.num_registered_images(), 10);
     assert!(out
@@ -2007,14 +2001,7 @@ fn toy_room_groups_mapped_in_one_run() {
     // The largest group runs first whatever the order given: it sets the
     // camera's intrinsics, which the small group's run holds; the first run
     // also gets the images of the group without an initial image.
-    let out = map_groups(
-        inputs,
-        &[start(201), start(1)],
-        None,
-        &options,
-        &mut |_, _| {},
-    )
-    .unwrap();
+    let out = maps(&[start(201), start(1)]).unwrap();
     assert_eq!(
         runs_of(&out.report),
         vec![(1, 21, 10, vec![], false), (201, 3, 3, vec![1], true)]
