@@ -201,6 +201,26 @@ pub enum MapperError {
         ratio: f64,
         weakest: Vec<f64>,
     },
+    /// A finished run whose planes leave the model nearly free in one
+    /// direction (similarity-constraint ratio below
+    /// [`MIN_SIMILARITY_CONSTRAINT`]) while its initial image moved beyond
+    /// its prior from the given pose: along that direction only the given
+    /// pose places the model, so when the run held at that pose fails too
+    /// ([`MapperError::RetryFailed`]), neither can be trusted. Measured: the
+    /// seed-0 yard changed since the scan, from 0.3 m / 3 deg off with
+    /// `min_plane_support = 5`, ended 0.44 m and 3.0 deg from the given
+    /// pose with a ratio of 2.0e-4 and 79 % fit, the model 0.45 m off.
+    #[error(
+        "the map's planes leave the model nearly free in one direction (similarity-constraint ratio {ratio:.1e}, below {MIN_SIMILARITY_CONSTRAINT:.0e}; weakest [rotation, translation, scale] {weakest:?}) and the initial image ended {moved_m:.2} m and {turned_deg:.1} deg from its given pose ({:.0} % of the points on the surfaces their images see): along that direction nothing but the given pose places the model, so where it ended cannot be trusted",
+        share * 100.0
+    )]
+    FreeAlongWeakDirection {
+        moved_m: f64,
+        turned_deg: f64,
+        share: f64,
+        ratio: f64,
+        weakest: Vec<f64>,
+    },
     /// The first run failed, and so did the run with the initial image held
     /// at its given pose (`bundle.retry_holding_initial`).
     #[error("{first}\nMapped again with the initial image held at its given pose; that run failed too: {held}")]
@@ -233,7 +253,8 @@ impl MapperError {
             Self::OffMap { .. }
             | Self::InitialPoseFarOff { .. }
             | Self::SlidAlongWeakDirection { .. }
-            | Self::SlidMidRun { .. } => true,
+            | Self::SlidMidRun { .. }
+            | Self::FreeAlongWeakDirection { .. } => true,
             Self::Init(e) => matches!(
                 e,
                 InitError::NoMapSupport { .. } | InitError::NoSecondImage { .. }

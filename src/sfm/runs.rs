@@ -15,7 +15,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
 
-use super::align::{MIN_SIMILARITY_CONSTRAINT, WEAK_SIMILARITY_CONSTRAINT};
+use super::align::{SimilarityConstraint, MIN_SIMILARITY_CONSTRAINT, WEAK_SIMILARITY_CONSTRAINT};
 use super::associate::NearestNeighbourAssociator;
 use super::localise::{
     search_placement, Search, SearchError, SearchOptions, SearchRegion, SAME_PLACE_M,
@@ -981,12 +981,17 @@ pub(super) fn loose_searched_model(out: &MapperOutput, init_image: ImageId) -> O
         centre: [centre.x + 0.0, centre.y + 0.0, centre.z + 0.0],
         share,
         ratio: c.ratio,
-        weakest: c
-            .weakest
-            .iter()
-            .map(|w| (w * 100.0).round() / 100.0 + 0.0)
-            .collect(),
+        weakest: rounded_weakest(c),
     })
+}
+
+/// The least fixed direction for a message, to two decimals (+ 0.0: no
+/// "-0.0").
+fn rounded_weakest(c: &SimilarityConstraint) -> Vec<f64> {
+    c.weakest
+        .iter()
+        .map(|w| (w * 100.0).round() / 100.0 + 0.0)
+        .collect()
 }
 
 /// Which run of the retry schedule ([`run_with_retries`]) is asked for.
@@ -1179,7 +1184,9 @@ fn judged_fit(out: &MapperOutput, by_covered: bool) -> Option<f64> {
 /// fail; the 400-image corridor, which slid 1.18 m in its first run, is
 /// right held: 1.1 mm), and the first failed or fits the map less (a
 /// smaller `fit_share`, or `covered_fit_share` when either is partly mapped);
-/// the first otherwise (both errors when both failed).
+/// the first otherwise, except that a first the map leaves nearly free
+/// ([`free_along_weak_direction`]) is an error when the held run failed
+/// (both errors when both failed).
 fn pick_run(
     first: Result<MapperOutput, MapperError>,
     held: Result<MapperOutput, MapperError>,
@@ -1251,10 +1258,24 @@ fn pick_run(
             );
             (Ok(held), true, note)
         }
-        (Ok(first), Err(e)) => {
-            let note = format!("holding the initial image at its given pose did not help: {e}");
-            (Ok(first), false, note)
-        }
+        // The first was retried for a nearly free direction (see
+        // `retry_reason`): with the given pose failing too, nothing places it.
+        (Ok(first), Err(e)) => match free_along_weak_direction(&first) {
+            Some(loose) => {
+                let note = format!(
+                    "holding the initial image at its given pose did not help, and the first run is not held by the map: {e}"
+                );
+                let error = MapperError::RetryFailed {
+                    first: Box::new(loose),
+                    held: Box::new(e),
+                };
+                (Err(error), false, note)
+            }
+            None => {
+                let note = format!("holding the initial image at its given pose did not help: {e}");
+                (Ok(first), false, note)
+            }
+        },
         (Err(first), Err(held)) => {
             let note = "holding the initial image at its given pose did not help".to_owned();
             let error = MapperError::RetryFailed {
@@ -1264,6 +1285,22 @@ fn pick_run(
             (Err(error), false, note)
         }
     }
+}
+
+/// The error for a finished run whose planes leave a direction nearly free
+/// (similarity-constraint ratio below [`MIN_SIMILARITY_CONSTRAINT`]) and
+/// whose initial image moved from its given pose, the retry's reason (see
+/// [`retry_reason`]); `None` when the map holds it.
+fn free_along_weak_direction(out: &MapperOutput) -> Option<MapperError> {
+    let c = out.report.similarity_constraint.as_ref()?;
+    let change = out.report.initial_pose_change.as_ref()?;
+    (c.ratio < MIN_SIMILARITY_CONSTRAINT).then(|| MapperError::FreeAlongWeakDirection {
+        moved_m: change.moved_m,
+        turned_deg: change.turned_deg,
+        share: out.report.fit_share.unwrap_or(0.0),
+        ratio: c.ratio,
+        weakest: rounded_weakest(c),
+    })
 }
 
 /// Why a run's outcome calls for mapping again with the initial image held
@@ -1804,9 +1841,35 @@ mod tests {
         );
         let (_, held, _) = pick_run(run(0.80), run(0.80));
         assert!(held);
-        // The held run failed: the first as it was.
-        let (kept, held, _) = pick_run(run(0.77), off_map());
+        // The held run failed: the first as it was when the map holds it
+        // (ratio 2e-3)...
+        let held_by_map = Ok(finished_run(2e-3, 0.45, 0.1, 0.77));
+        let (kept, held, note) = pick_run(held_by_map, off_map());
         assert!(!held && fit_of(&kept) == Some(0.77));
+        assert!(
+            note.starts_with(
+                "holding the initial image at its given pose did not help: the model does not fit"
+            ),
+            "{note}"
+        );
+        // ...else neither can be trusted: a first 0.45 m along a nearly free
+        // direction (the changed yard, ratio 2e-4) is an error with both
+        // reasons, which may mean a pose off (the search follows).
+        let (kept, held, _) = pick_run(run(0.77), off_map());
+        assert!(!held);
+        let Err(error) = kept else {
+            panic!("a loose first run kept")
+        };
+        assert!(error.may_be_a_pose_off());
+        let message = error.to_string();
+        assert!(
+            message.starts_with("the map's planes leave the model nearly free in one direction (similarity-constraint ratio 1.0e-4, below 1e-3; weakest [rotation, translation, scale] [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]) and the initial image ended 0.45 m and 0.1 deg from its given pose (77 % of the points on the surfaces their images see)"),
+            "{message}"
+        );
+        assert!(
+            message.contains("cannot be trusted\nMapped again with the initial image held at its given pose; that run failed too: the model does not fit the map"),
+            "{message}"
+        );
         // The map fixes the held model in every direction: the given pose
         // disagrees with the map, the first outcome stands.
         let fixed = || Ok(finished_run(0.02, 0.0, 0.0, 0.95));
