@@ -32,7 +32,7 @@ use crate::scene::{BodyPose, ImageId, Rigid3};
 use crate::sfm::existing::{match_to_database, ExistingModel};
 use crate::sfm::localise::SearchRegion;
 use crate::sfm::options::{AssociationKind, IntrinsicsRefinement};
-use crate::sfm::report::StageRecord;
+use crate::sfm::report::{RunLog, StageRecord};
 use crate::sfm::{extend_model, map_groups, GroupStart, KnownPose, MapperInputs, MapperOptions};
 
 /// Known poses: the database's pose priors, overridden by the pose file.
@@ -570,11 +570,13 @@ pub fn run(args: &MapArgs) -> Result<()> {
             bar.set_position(done as u64);
         }
     };
+    let run_log = RunLog::default();
     let inputs = MapperInputs {
         db: &db,
         cloud: &cloud,
         known_poses: &known_poses,
         held_cameras: &BTreeSet::new(),
+        run_log: Some(&run_log),
     };
     let mapping = std::time::Instant::now();
     let out = match &start {
@@ -595,6 +597,17 @@ pub fn run(args: &MapArgs) -> Result<()> {
         )
     })?;
     out.report.mapping_s = Some(mapping.elapsed().as_secs_f64());
+    // Every run's record; the kept ones are the model's (one per group).
+    let kept: BTreeSet<usize> = std::iter::once(out.report.run_index)
+        .chain(
+            out.report
+                .groups
+                .iter()
+                .map(|g| g.report.as_ref().and_then(|r| r.run_index)),
+        )
+        .flatten()
+        .collect();
+    out.report.runs = run_log.records(&kept);
     out.report.map_file = Some(config.lidar.display().to_string());
     out.report.map_points = Some(cloud.len());
     out.report.map_units = load.units;

@@ -86,6 +86,7 @@ pub fn map_groups(
             cloud: inputs.cloud,
             known_poses: &known,
             held_cameras: &held_here,
+            run_log: inputs.run_log,
         };
         log::info!(
             "group of image {} ({} images): mapping it from its initial pose",

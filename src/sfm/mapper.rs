@@ -47,7 +47,7 @@ use super::register::{
 };
 use super::report::{
     AlignmentRecord, EarlyLookRecord, ImageRecord, InputModelRecord, IntrinsicsRecord, MapReport,
-    PoseChangeRecord, RoundRecord, StageRecord, UncertaintySummary,
+    PoseChangeRecord, RoundRecord, RunLog, RunStagesRecord, StageRecord, UncertaintySummary,
 };
 use super::state::MapState;
 use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulate_image};
@@ -632,13 +632,15 @@ pub struct KnownPose {
 /// What every run of the mapper reads and none changes: the database, the
 /// LiDAR map, the images' known poses (pose priors; empty for none) and the
 /// cameras whose intrinsics every solve holds at the database's values
-/// (those an earlier group's run refined; empty for none).
+/// (those an earlier group's run refined; empty for none); and where every
+/// run records how it ended and its stages (`None`: nowhere).
 #[derive(Clone, Copy)]
 pub struct MapperInputs<'a> {
     pub db: &'a DatabaseSnapshot,
     pub cloud: &'a PointCloud,
     pub known_poses: &'a BTreeMap<ImageId, KnownPose>,
     pub held_cameras: &'a BTreeSet<CameraId>,
+    pub run_log: Option<&'a RunLog>,
 }
 
 /// A run from the early look must leave the initial image within this of
@@ -1030,6 +1032,8 @@ pub(super) struct EndLook {
 /// (`bundle.max_initial_pose_change_m`, `_deg`). With `end_look` a run that
 /// did not stop there looks again at the end of registration, as
 /// [`EndLook`] says.
+/// The run is recorded in `inputs.run_log`, and a finished run's report
+/// says which record is its own.
 pub(super) fn map_until(
     inputs: MapperInputs<'_>,
     start: &Start<'_>,
@@ -1038,11 +1042,54 @@ pub(super) fn map_until(
     end_look: Option<EndLook>,
     progress: Progress<'_>,
 ) -> Result<RunEnd, MapperError> {
+    let started = Instant::now();
+    let mut stages = Stages {
+        start: started,
+        records: Vec::new(),
+    };
+    let mut result = map_staged(
+        inputs,
+        start,
+        options,
+        (look, end_look),
+        progress,
+        &mut stages,
+    );
+    if let Some(log) = inputs.run_log {
+        let outcome = match &result {
+            Ok(RunEnd::Finished(_)) => "finished".to_owned(),
+            Ok(RunEnd::Moved { .. }) => "stopped at its look".to_owned(),
+            Err(e) => format!("failed: {e}"),
+        };
+        let index = log.push(RunStagesRecord {
+            index: 0,
+            kept: false,
+            outcome,
+            time_s: started.elapsed().as_secs_f64(),
+            stages: stages.records,
+        });
+        if let Ok(RunEnd::Finished(out)) = &mut result {
+            out.report.run_index = Some(index);
+        }
+    }
+    result
+}
+
+/// [`map_until`]'s run, its stages recorded in `stages` as they end.
+fn map_staged(
+    inputs: MapperInputs<'_>,
+    start: &Start<'_>,
+    options: &MapperOptions,
+    (look, end_look): (Option<LookPlan>, Option<EndLook>),
+    progress: Progress<'_>,
+    stages: &mut Stages,
+) -> Result<RunEnd, MapperError> {
     let MapperInputs {
         db,
         cloud,
         known_poses,
         held_cameras,
+        run_log: _,
     } = inputs;
     options.validate()?;
     match start {
@@ -1069,10 +1116,8 @@ pub(super) fn map_until(
     if cloud.normals.is_none() {
         return Err(MapperError::NoNormals);
     }
-    let mut stages = Stages {
-        start: Instant::now(),
-        records: Vec::new(),
-    };
+    // The stages' clock starts here, after the inputs' checks.
+    stages.start = Instant::now();
     let mut rng = ChaCha8Rng::seed_from_u64(options.seed);
 
     // 1. Correspondence graph.
@@ -2002,7 +2047,7 @@ pub(super) fn map_until(
         );
         stages.done("pose uncertainty");
     }
-    report.stages = stages.records;
+    report.stages = stages.records.clone();
     log::info!(
         "registered {}/{} images, {} points, mean reprojection error {:.3} px",
         report.num_registered,

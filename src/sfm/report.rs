@@ -211,6 +211,52 @@ impl StageRecord {
     }
 }
 
+/// One run of the mapper within a `map` call (the first run, the runs from
+/// its looks and from where it ended, the retries, the search's): how it
+/// ended and where its time went ([`MapReport::runs`]).
+#[derive(Clone, Debug, Serialize)]
+pub struct RunStagesRecord {
+    /// Its place in the order the runs were made, from 0.
+    pub index: usize,
+    /// Whether the model written is this run's (one per group of photos).
+    pub kept: bool,
+    /// "finished", "stopped at its look" (to be mapped again from there) or
+    /// "failed: " and the error.
+    pub outcome: String,
+    /// Wall time from the run's start to its end, seconds.
+    pub time_s: f64,
+    /// The stages it went through, each with its time.
+    pub stages: Vec<StageRecord>,
+}
+
+/// The runs of one `map` call as they end ([`MapReport::runs`]); shared by
+/// every run through [`super::mapper::MapperInputs::run_log`].
+#[derive(Debug, Default)]
+pub struct RunLog(std::sync::Mutex<Vec<RunStagesRecord>>);
+
+impl RunLog {
+    /// Adds a run (its `index` set here, `kept` false); returns its index.
+    pub fn push(&self, mut record: RunStagesRecord) -> usize {
+        let mut runs = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        let index = runs.len();
+        record.index = index;
+        record.kept = false;
+        runs.push(record);
+        index
+    }
+
+    /// Every run so far, those whose index is in `kept` marked kept.
+    pub fn records(&self, kept: &BTreeSet<usize>) -> Vec<RunStagesRecord> {
+        let runs = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        runs.iter()
+            .map(|r| RunStagesRecord {
+                kept: kept.contains(&r.index),
+                ..r.clone()
+            })
+            .collect()
+    }
+}
+
 /// The process's peak resident memory so far, MB (`VmHWM` of
 /// `/proc/self/status`; `None` where there is none).
 pub fn peak_memory_mb() -> Option<f64> {
@@ -318,9 +364,16 @@ pub struct MapReport {
     /// found it off).
     pub final_rounds: Vec<RoundRecord>,
     /// The kept run's stages. After an early look, a restart, a retry or a
-    /// search the other runs' time is not in them; [`Self::mapping_s`] has
-    /// it all.
+    /// search the other runs' time is not in them: [`Self::runs`] has every
+    /// run's, [`Self::mapping_s`] the whole time.
     pub stages: Vec<StageRecord>,
+    /// Every run the `map` call made, in order, with its outcome and stages
+    /// (the kept one marked); set by `map` (empty when the mapper is called
+    /// as a library without a [`RunLog`]).
+    pub runs: Vec<RunStagesRecord>,
+    /// This run's index among [`Self::runs`] (not written).
+    #[serde(skip)]
+    pub run_index: Option<usize>,
     /// Wall time of the whole mapping, seconds: every run made (first run,
     /// the runs from its looks and its end, the retries, the search), from
     /// the database and map in memory to the final model; set by `map`
@@ -793,6 +846,36 @@ mod tests {
             sizes: [(id(1), 3), (id(4), 2), (id(6), 1)].into_iter().collect(),
             in_model: [id(1)].into_iter().collect(),
         }
+    }
+
+    #[test]
+    fn the_run_log_numbers_the_runs_and_marks_the_kept_ones() {
+        let log = RunLog::default();
+        let run = |outcome: &str| RunStagesRecord {
+            index: 7,
+            kept: true,
+            outcome: outcome.to_owned(),
+            time_s: 1.5,
+            stages: vec![StageRecord::new("map index", 0.5)],
+        };
+        assert_eq!(log.push(run("finished")), 0);
+        assert_eq!(log.push(run("failed: off the map")), 1);
+        assert_eq!(log.push(run("finished")), 2);
+        let records = log.records(&BTreeSet::from([2]));
+        let summary: Vec<(usize, bool, &str)> = records
+            .iter()
+            .map(|r| (r.index, r.kept, r.outcome.as_str()))
+            .collect();
+        assert_eq!(
+            summary,
+            [
+                (0, false, "finished"),
+                (1, false, "failed: off the map"),
+                (2, true, "finished")
+            ]
+        );
+        assert_eq!(records[1].stages[0].name, "map index");
+        assert!(log.records(&BTreeSet::new()).iter().all(|r| !r.kept));
     }
 
     #[test]
