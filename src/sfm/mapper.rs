@@ -211,7 +211,7 @@ pub enum MapperError {
     /// `min_plane_support = 5`, ended 0.44 m and 3.0 deg from the given
     /// pose with a ratio of 2.0e-4 and 79 % fit, the model 0.45 m off.
     #[error(
-        "the map's planes leave the model nearly free in one direction (similarity-constraint ratio {ratio:.1e}, below {MIN_SIMILARITY_CONSTRAINT:.0e}; weakest [rotation, translation, scale] {weakest:?}) and the initial image ended {moved_m:.2} m and {turned_deg:.1} deg from its given pose ({:.0} % of the points on the surfaces their images see): along that direction nothing but the given pose places the model, so where it ended cannot be trusted",
+        "the map's planes leave the model nearly free in one direction (similarity-constraint ratio {ratio:.1e}, below {MIN_SIMILARITY_CONSTRAINT:.0e}; weakest [rotation, translation, scale] {weakest:?}) and the initial image ended {moved_m:.2} m and {turned_deg:.1} deg from its given pose ({:.0} % of its points on the surfaces their images see): along that direction nothing but the given pose places the model, so where it ended cannot be trusted",
         share * 100.0
     )]
     FreeAlongWeakDirection {

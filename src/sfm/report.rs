@@ -220,8 +220,12 @@ pub struct RunStagesRecord {
     pub index: usize,
     /// Whether the model written is this run's (one per group of photos).
     pub kept: bool,
-    /// "finished", "stopped at its look" (to be mapped again from there) or
-    /// "failed: " and the error.
+    /// How the run itself ended: "finished", "stopped at its look" (to be
+    /// mapped again from there) or "failed: " and the error. A finished run
+    /// may still be set aside by what follows (a retry, a restart, the
+    /// search's choice, a check of its initial image's change): `kept` says
+    /// which model was written, the `retry`, `restart`, `early_restart` and
+    /// `init_search` records why.
     pub outcome: String,
     /// Wall time from the run's start to its end, seconds.
     pub time_s: f64,
@@ -369,7 +373,9 @@ pub struct MapReport {
     pub stages: Vec<StageRecord>,
     /// Every run the `map` call made, in order, with its outcome and stages
     /// (the kept one marked); set by `map` (empty when the mapper is called
-    /// as a library without a [`RunLog`]).
+    /// as a library without a [`RunLog`]; not written then, nor in a
+    /// group's own report).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
     pub runs: Vec<RunStagesRecord>,
     /// This run's index among [`Self::runs`] (not written).
     #[serde(skip)]

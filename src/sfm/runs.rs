@@ -1123,7 +1123,8 @@ fn run_with_retries(
     held.bundle.fix_initial_for = num_images;
     held.bundle.hold_initial_in_final_rounds = true;
     let (held_run, held_run_s) = run(RetryRun::Held, &held);
-    let (mut outcome, held_kept, note) = pick_run(first, held_run);
+    let (mut outcome, held_kept, note) =
+        pick_run(first, held_run, options.bundle.initial_prior_position_m);
     log::warn!("{note}");
     if let Ok(out) = &mut outcome {
         let note = match free_run_s {
@@ -1191,6 +1192,7 @@ fn judged_fit(out: &MapperOutput, by_covered: bool) -> Option<f64> {
 fn pick_run(
     first: Result<MapperOutput, MapperError>,
     held: Result<MapperOutput, MapperError>,
+    prior_m: f64,
 ) -> (Result<MapperOutput, MapperError>, bool, String) {
     let by_covered = [&first, &held]
         .iter()
@@ -1261,7 +1263,7 @@ fn pick_run(
         }
         // The first was retried for a nearly free direction (see
         // `retry_reason`): with the given pose failing too, nothing places it.
-        (Ok(first), Err(e)) => match free_along_weak_direction(&first) {
+        (Ok(first), Err(e)) => match free_along_weak_direction(&first, prior_m) {
             Some(loose) => {
                 let note = format!(
                     "holding the initial image at its given pose did not help, and the first run is not held by the map: {e}"
@@ -1290,12 +1292,17 @@ fn pick_run(
 
 /// The error for a finished run whose planes leave a direction nearly free
 /// (similarity-constraint ratio below [`MIN_SIMILARITY_CONSTRAINT`]) and
-/// whose initial image moved from its given pose, the retry's reason (see
-/// [`retry_reason`]); `None` when the map holds it.
-fn free_along_weak_direction(out: &MapperOutput) -> Option<MapperError> {
+/// whose initial image moved farther than `prior_m` (the prior's position
+/// sigma; 0: no prior, any move) from its given pose, the retry's reason
+/// (see [`retry_reason`]); `None` when the map holds it or the image only
+/// turned (the planes' normals fix a rotation even where they leave a slide
+/// free, so a turn back from a pose that was off is not along the free
+/// direction).
+fn free_along_weak_direction(out: &MapperOutput, prior_m: f64) -> Option<MapperError> {
     let c = out.report.similarity_constraint.as_ref()?;
     let change = out.report.initial_pose_change.as_ref()?;
-    (c.ratio < MIN_SIMILARITY_CONSTRAINT).then(|| MapperError::FreeAlongWeakDirection {
+    let loose = c.ratio < MIN_SIMILARITY_CONSTRAINT && change.moved_m > prior_m;
+    loose.then(|| MapperError::FreeAlongWeakDirection {
         moved_m: change.moved_m,
         turned_deg: change.turned_deg,
         share: out.report.fit_share.unwrap_or(0.0),
@@ -1807,12 +1814,18 @@ mod tests {
 
     #[test]
     fn the_held_run_is_kept_when_it_passes_and_fits_at_least_as_well() {
+        // The initial pose prior's position sigma (the default).
+        const PRIOR: f64 = 0.3;
+        assert_eq!(
+            MapperOptions::default().bundle.initial_prior_position_m,
+            PRIOR
+        );
         let run = |fit: f64| Ok(finished_run(1e-4, 0.45, 0.1, fit));
         let fit_of = |r: &Result<MapperOutput, MapperError>| r.as_ref().unwrap().report.fit_share;
         // The first failed: the held run when it passed, else the first's error.
-        let (kept, held, _) = pick_run(off_map(), run(0.80));
+        let (kept, held, _) = pick_run(off_map(), run(0.80), PRIOR);
         assert!(held && fit_of(&kept) == Some(0.80));
-        let (kept, held, _) = pick_run(off_map(), off_map());
+        let (kept, held, _) = pick_run(off_map(), off_map(), PRIOR);
         assert!(!held);
         let Err(MapperError::RetryFailed { first, held }) = kept else {
             panic!("not both failures: {:?}", kept.err())
@@ -1832,31 +1845,36 @@ mod tests {
             "{both}"
         );
         // Both passed: the better fit, the held run on a tie.
-        let (kept, held, _) = pick_run(run(0.77), run(0.80));
+        let (kept, held, _) = pick_run(run(0.77), run(0.80), PRIOR);
         assert!(held && fit_of(&kept) == Some(0.80));
-        let (kept, held, note) = pick_run(run(0.90), run(0.62));
+        let (kept, held, note) = pick_run(run(0.90), run(0.62), PRIOR);
         assert!(!held && fit_of(&kept) == Some(0.90));
         assert!(
             note.contains("(62.0 % against 90.0 % of its points)"),
             "{note}"
         );
-        let (_, held, _) = pick_run(run(0.80), run(0.80));
+        let (_, held, _) = pick_run(run(0.80), run(0.80), PRIOR);
         assert!(held);
-        // The held run failed: the first as it was when the map holds it
-        // (ratio 2e-3)...
-        let held_by_map = Ok(finished_run(2e-3, 0.45, 0.1, 0.77));
-        let (kept, held, note) = pick_run(held_by_map, off_map());
-        assert!(!held && fit_of(&kept) == Some(0.77));
-        assert!(
-            note.starts_with(
-                "holding the initial image at its given pose did not help: the model does not fit"
-            ),
-            "{note}"
-        );
+        // The held run failed: the first as it was when it only turned back
+        // (3.5 deg, 0.1 m: the planes fix a rotation) or the map holds it
+        // (ratio 2e-3; not retried for a weak direction then)...
+        for first in [
+            finished_run(1e-4, 0.1, 3.5, 0.77),
+            finished_run(2e-3, 0.45, 0.1, 0.77),
+        ] {
+            let (kept, held, note) = pick_run(Ok(first), off_map(), PRIOR);
+            assert!(!held && fit_of(&kept) == Some(0.77));
+            assert!(
+                note.starts_with(
+                    "holding the initial image at its given pose did not help: the model does not fit"
+                ),
+                "{note}"
+            );
+        }
         // ...else neither can be trusted: a first 0.45 m along a nearly free
         // direction (the changed yard, ratio 2e-4) is an error with both
         // reasons, which may mean a pose off (the search follows).
-        let (kept, held, _) = pick_run(run(0.77), off_map());
+        let (kept, held, _) = pick_run(run(0.77), off_map(), PRIOR);
         assert!(!held);
         let Err(error) = kept else {
             panic!("a loose first run kept")
@@ -1864,7 +1882,7 @@ mod tests {
         assert!(error.may_be_a_pose_off());
         let message = error.to_string();
         assert!(
-            message.starts_with("the map's planes leave the model nearly free in one direction (similarity-constraint ratio 1.0e-4, below 1e-3; weakest [rotation, translation, scale] [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]) and the initial image ended 0.45 m and 0.1 deg from its given pose (77 % of the points on the surfaces their images see)"),
+            message.starts_with("the map's planes leave the model nearly free in one direction (similarity-constraint ratio 1.0e-4, below 1e-3; weakest [rotation, translation, scale] [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]) and the initial image ended 0.45 m and 0.1 deg from its given pose (77 % of its points on the surfaces their images see)"),
             "{message}"
         );
         assert!(
@@ -1874,10 +1892,10 @@ mod tests {
         // The map fixes the held model in every direction: the given pose
         // disagrees with the map, the first outcome stands.
         let fixed = || Ok(finished_run(0.02, 0.0, 0.0, 0.95));
-        let (kept, held, note) = pick_run(off_map(), fixed());
+        let (kept, held, note) = pick_run(off_map(), fixed(), PRIOR);
         assert!(!held && kept.is_err());
         assert!(note.contains("constraint ratio 2.0e-2"), "{note}");
-        let (kept, held, _) = pick_run(run(0.77), fixed());
+        let (kept, held, _) = pick_run(run(0.77), fixed(), PRIOR);
         assert!(!held && fit_of(&kept) == Some(0.77));
         // Unless its alignment to the map found nothing to move: the map and
         // the given pose agree (the 400-image corridor held: 0.8 mm,
@@ -1892,11 +1910,11 @@ mod tests {
             });
             Ok(out)
         };
-        let (kept, held, note) = pick_run(off_map(), aligned(0.0008, 0.0008, 0.99993));
+        let (kept, held, note) = pick_run(off_map(), aligned(0.0008, 0.0008, 0.99993), PRIOR);
         assert!(held && fit_of(&kept) == Some(0.94), "{note}");
         assert!(note.contains("the map and the given pose agree"), "{note}");
         // Still the better fit of two that passed.
-        let (kept, held, _) = pick_run(run(0.96), aligned(0.0008, 0.0008, 0.99993));
+        let (kept, held, _) = pick_run(run(0.96), aligned(0.0008, 0.0008, 0.99993), PRIOR);
         assert!(!held && fit_of(&kept) == Some(0.96));
         // A trial that moves nothing but a fit below 90 %: the room 0 table
         // run held at a pose 0.3 m off (0.28 m wrong, trial 1 mm, fit 65 %).
@@ -1904,12 +1922,12 @@ mod tests {
         if let Ok(out) = &mut loose {
             out.report.fit_share = Some(0.65);
         }
-        let (kept, held, note) = pick_run(off_map(), loose);
+        let (kept, held, note) = pick_run(off_map(), loose, PRIOR);
         assert!(!held && kept.is_err(), "{note}");
         assert!(note.contains("65.0 % of its points fit"), "{note}");
         // A trial that would move it in any of the three: the first stands.
         for (t, r, sc) in [(0.05, 0.0, 1.0), (0.0, 0.5, 1.0), (0.0, 0.0, 0.99)] {
-            let (kept, held, note) = pick_run(off_map(), aligned(t, r, sc));
+            let (kept, held, note) = pick_run(off_map(), aligned(t, r, sc), PRIOR);
             assert!(!held && kept.is_err(), "{note}");
             assert!(note.contains("its alignment trial moved it"), "{note}");
         }
@@ -1924,13 +1942,13 @@ mod tests {
             }
             out
         };
-        let (kept, held, note) = pick_run(off_map(), partial(0.93));
+        let (kept, held, note) = pick_run(off_map(), partial(0.93), PRIOR);
         assert!(held && fit_of(&kept) == Some(0.34), "{note}");
         assert!(
             note.contains("93.0 % of the points the map covers"),
             "{note}"
         );
-        let (kept, held, note) = pick_run(off_map(), partial(0.85));
+        let (kept, held, note) = pick_run(off_map(), partial(0.85), PRIOR);
         assert!(!held && kept.is_err(), "{note}");
         assert!(
             note.contains("85.0 % of the points the map covers fit"),
@@ -1940,7 +1958,7 @@ mod tests {
         let mut first = finished_run(3.4e-3, 0.004, 0.03, 0.36);
         first.report.covered_fit_share = Some(0.91);
         first.report.partial_map = true;
-        let (kept, held, note) = pick_run(Ok(first), partial(0.93));
+        let (kept, held, note) = pick_run(Ok(first), partial(0.93), PRIOR);
         assert!(held && kept.is_ok(), "{note}");
     }
 

@@ -358,36 +358,52 @@ fn changed_yard_is_held_at_its_given_pose() {
         "mapping {mapping_s} s\n{retry}"
     );
     // Every run's record: the first (failed, or finished and retried), the
-    // free one (failed), the held one (kept, its stages the report's).
+    // free one (failed; either may have stopped at a look first), the held
+    // one last, the only one kept, its stages the report's.
     let runs = exact.report["runs"].as_array().unwrap();
-    assert_eq!(runs.len(), 3, "{runs:?}");
-    let kept: Vec<bool> = runs.iter().map(|r| r["kept"].as_bool().unwrap()).collect();
-    assert_eq!(kept, [false, false, true]);
+    assert!(runs.len() >= 3, "{runs:?}");
+    let kept: Vec<usize> = (0..runs.len())
+        .filter(|&k| runs[k]["kept"].as_bool().unwrap())
+        .collect();
+    assert_eq!(kept, [runs.len() - 1], "{runs:?}");
     let outcome = |k: usize| runs[k]["outcome"].as_str().unwrap();
     assert!(
-        outcome(0) == "finished" || outcome(0).starts_with("failed: "),
+        outcome(0) == "finished"
+            || outcome(0).starts_with("failed: ")
+            || outcome(0) == "stopped at its look",
         "{}",
         outcome(0)
     );
-    assert!(outcome(1).starts_with("failed: "), "{}", outcome(1));
+    assert!(
+        (1..runs.len() - 1).any(|k| outcome(k).starts_with("failed: ")),
+        "{runs:?}"
+    );
+    let held_run = &runs[runs.len() - 1];
+    assert_eq!(held_run["outcome"], "finished");
     // (`map` adds a "point colours" stage to the report's when asked.)
-    let kept_stages = runs[2]["stages"].as_array().unwrap();
+    let kept_stages = held_run["stages"].as_array().unwrap();
     assert!(!kept_stages.is_empty());
     assert_eq!(
         kept_stages[..],
         exact.report["stages"].as_array().unwrap()[..kept_stages.len()]
     );
-    for (run, s) in runs.iter().zip([first_s, free_s, held_s]) {
-        let run_s = run["time_s"].as_f64().unwrap();
+    let time = |run: &serde_json::Value| run["time_s"].as_f64().unwrap();
+    for run in runs {
         let stages: f64 = run["stages"]
             .as_array()
             .unwrap()
             .iter()
             .map(|s| s["time_s"].as_f64().unwrap())
             .sum();
-        // The retry's clock also holds the run's set-up.
-        assert!(stages <= run_s && run_s <= s, "{run}\n{retry}");
+        assert!(stages <= time(run), "{run}");
     }
+    // The retry's clock also holds the run's set-up.
+    assert!(time(held_run) <= held_s, "{retry}");
+    let runs_s: f64 = runs.iter().map(time).sum();
+    assert!(
+        runs_s <= mapping_s,
+        "{runs_s} s of runs, mapping {mapping_s} s"
+    );
     let moved = exact.report["initial_pose_change"]["moved_m"].as_f64();
     assert!(moved.is_some_and(|m| m < 1e-6), "{moved:?}");
     assert!(exact.report["fit_share"].as_f64().unwrap() > 0.6);
