@@ -1293,7 +1293,7 @@ fn pick_run(
 /// The error for a finished run whose planes leave a direction nearly free
 /// (similarity-constraint ratio below [`MIN_SIMILARITY_CONSTRAINT`]) and
 /// whose initial image moved farther than `prior_m` (the prior's position
-/// sigma; 0: no prior, any move) from its given pose, the retry's reason
+/// sigma; 0, no position prior: never) from its given pose, the retry's reason
 /// (see [`retry_reason`]); `None` when the map holds it or the image only
 /// turned (the planes' normals fix a rotation even where they leave a slide
 /// free, so a turn back from a pose that was off is not along the free
@@ -1301,7 +1301,7 @@ fn pick_run(
 fn free_along_weak_direction(out: &MapperOutput, prior_m: f64) -> Option<MapperError> {
     let c = out.report.similarity_constraint.as_ref()?;
     let change = out.report.initial_pose_change.as_ref()?;
-    let loose = c.ratio < MIN_SIMILARITY_CONSTRAINT && change.moved_m > prior_m;
+    let loose = c.ratio < MIN_SIMILARITY_CONSTRAINT && prior_m > 0.0 && change.moved_m > prior_m;
     loose.then(|| MapperError::FreeAlongWeakDirection {
         moved_m: change.moved_m,
         turned_deg: change.turned_deg,
@@ -1871,6 +1871,9 @@ mod tests {
                 "{note}"
             );
         }
+        // (Without a position prior the retry never asks for a move.)
+        let (kept, held, _) = pick_run(run(0.77), off_map(), 0.0);
+        assert!(!held && fit_of(&kept) == Some(0.77));
         // ...else neither can be trusted: a first 0.45 m along a nearly free
         // direction (the changed yard, ratio 2e-4) is an error with both
         // reasons, which may mean a pose off (the search follows).
