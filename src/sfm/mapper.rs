@@ -47,7 +47,7 @@ use super::register::{
 };
 use super::report::{
     AlignmentRecord, EarlyLookRecord, ImageRecord, InputModelRecord, IntrinsicsRecord, MapReport,
-    PoseChangeRecord, RoundRecord, RunLog, RunStagesRecord, StageRecord, UncertaintySummary,
+    PoseChangeRecord, RoundRecord, RunLog, StageRecord, UncertaintySummary,
 };
 use super::state::MapState;
 use super::triangulate::{complete_and_merge_point, retriangulate_all, triangulate_image};
@@ -1061,13 +1061,7 @@ pub(super) fn map_until(
             Ok(RunEnd::Moved { .. }) => "stopped at its look".to_owned(),
             Err(e) => format!("failed: {e}"),
         };
-        let index = log.push(RunStagesRecord {
-            index: 0,
-            kept: false,
-            outcome,
-            time_s: started.elapsed().as_secs_f64(),
-            stages: stages.records,
-        });
+        let index = log.push(outcome, started.elapsed().as_secs_f64(), stages.records);
         if let Ok(RunEnd::Finished(out)) = &mut result {
             out.report.run_index = Some(index);
         }

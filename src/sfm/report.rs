@@ -239,13 +239,19 @@ pub struct RunStagesRecord {
 pub struct RunLog(std::sync::Mutex<Vec<RunStagesRecord>>);
 
 impl RunLog {
-    /// Adds a run (its `index` set here, `kept` false); returns its index.
-    pub fn push(&self, mut record: RunStagesRecord) -> usize {
+    /// Adds a run that ended with `outcome` after `time_s` seconds and went
+    /// through `stages` (not kept until [`Self::records`] says so); returns
+    /// its index.
+    pub fn push(&self, outcome: String, time_s: f64, stages: Vec<StageRecord>) -> usize {
         let mut runs = self.0.lock().unwrap_or_else(|e| e.into_inner());
         let index = runs.len();
-        record.index = index;
-        record.kept = false;
-        runs.push(record);
+        runs.push(RunStagesRecord {
+            index,
+            kept: false,
+            outcome,
+            time_s,
+            stages,
+        });
         index
     }
 
@@ -857,16 +863,13 @@ mod tests {
     #[test]
     fn the_run_log_numbers_the_runs_and_marks_the_kept_ones() {
         let log = RunLog::default();
-        let run = |outcome: &str| RunStagesRecord {
-            index: 7,
-            kept: true,
-            outcome: outcome.to_owned(),
-            time_s: 1.5,
-            stages: vec![StageRecord::new("map index", 0.5)],
+        let push = |outcome: &str| {
+            let stages = vec![StageRecord::new("map index", 0.5)];
+            log.push(outcome.to_owned(), 1.5, stages)
         };
-        assert_eq!(log.push(run("finished")), 0);
-        assert_eq!(log.push(run("failed: off the map")), 1);
-        assert_eq!(log.push(run("finished")), 2);
+        assert_eq!(push("finished"), 0);
+        assert_eq!(push("failed: off the map"), 1);
+        assert_eq!(push("finished"), 2);
         let records = log.records(&BTreeSet::from([2]));
         let summary: Vec<(usize, bool, &str)> = records
             .iter()
