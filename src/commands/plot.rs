@@ -181,7 +181,9 @@ impl PlotData {
                 SolveKind::Local => data.local.push(s),
                 SolveKind::LocalRefine => {}
                 SolveKind::Global => data.global.push(s),
-                SolveKind::FinalFirst | SolveKind::Final => data.final_rounds.push(s),
+                SolveKind::FinalFirst | SolveKind::FinalMoving | SolveKind::Final => {
+                    data.final_rounds.push(s)
+                }
             }
         }
         if data.local.planes.is_empty()

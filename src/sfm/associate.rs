@@ -36,13 +36,17 @@ pub enum SolveKind {
     /// The first round of the final bundle adjustment: the final weights
     /// with a Huber loss (`final_first_round_huber_m`).
     FinalFirst,
+    /// A later round of the final bundle adjustment while the model still
+    /// moves by centimetres (`bundle.final_huber_above_move_m`): the final
+    /// weights and radius with a Huber loss at `final_loss_scale_m`.
+    FinalMoving,
     Final,
 }
 
 impl SolveKind {
     /// A round of the final bundle adjustment (the first or a later one).
     pub fn is_final(self) -> bool {
-        matches!(self, Self::FinalFirst | Self::Final)
+        matches!(self, Self::FinalFirst | Self::FinalMoving | Self::Final)
     }
 }
 
@@ -134,7 +138,8 @@ impl NearestNeighbourAssociator<'_> {
 
     /// The search radius of a point in a solve of `kind`: shrinking with the
     /// global BAs the point took part in ([`Self::radius_m`]), except in the
-    /// final rounds after the first ([`SolveKind::Final`]), where every point
+    /// final rounds after the first ([`SolveKind::Final`],
+    /// [`SolveKind::FinalMoving`]), where every point
     /// gets the smallest radius. The first final round still pulls in the
     /// younger points (those of the last images, of the re-triangulation,
     /// placed at a known pose) from afar, e.g. when the whole-model alignment
@@ -146,7 +151,7 @@ impl NearestNeighbourAssociator<'_> {
     /// unshifted map after 6 rounds; now 2.9 / 3.0 mm (shifted / offset)
     /// and 2.8 mm unshifted, after 3-4 rounds.
     pub fn radius_for(&self, kind: SolveKind, num_global_ba: u32) -> f64 {
-        if kind == SolveKind::Final {
+        if matches!(kind, SolveKind::Final | SolveKind::FinalMoving) {
             self.options.min_radius_m
         } else {
             self.radius_m(num_global_ba)
@@ -788,8 +793,10 @@ pub(crate) mod tests {
             assert_eq!(assoc.radius_for(kind, 0), 1.5);
             assert_eq!(assoc.associate_points(kind, &young).len(), 1);
         }
-        assert_eq!(assoc.radius_for(SolveKind::Final, 0), 0.1);
-        assert!(assoc.associate_points(SolveKind::Final, &young).is_empty());
+        for kind in [SolveKind::FinalMoving, SolveKind::Final] {
+            assert_eq!(assoc.radius_for(kind, 0), 0.1);
+            assert!(assoc.associate_points(kind, &young).is_empty());
+        }
 
         // A map with a planarity per point: the points below
         // `min_planarity` (0.7) give no plane, here all but one column.

@@ -39,7 +39,7 @@ use super::initialize::{
 };
 use super::localise::{SearchError, SearchRegion};
 use super::options::{
-    AssociationKind, BundleOptions, IntrinsicsRefinement, MapperOptions, OptionsError,
+    AssociationKind, BundleOptions, IntrinsicsRefinement, MapperOptions, OptionsError, PlaneLoss,
 };
 use super::register::{
     focal_from_points, next_best_images, register_at_known_pose, register_image, PoseOutcome,
@@ -1822,14 +1822,24 @@ fn map_staged(
             log::info!("no new image: the held input model is kept as it came");
             return Ok(());
         }
+        // The median camera move of the round before.
+        let mut last_move_m = None;
         for round in 0..options.bundle.final_rounds {
             let before = camera_centres(state, &moving);
             let fixed = fixed_final(state);
             // The model arrives from registration (or, in the second pass,
             // from the intrinsics probe, already near the final optimum). A
-            // Huber first round is always followed by a `final_loss` one.
-            let kind = if pass == 1 && round == 0 && options.bundle.final_rounds >= 2 {
+            // Huber first round, and Huber rounds while the model still
+            // moves by centimetres (`final_huber_above_move_m`), are always
+            // followed by a `final_loss` one: the last round left is one.
+            let still_moving = last_move_m
+                .is_some_and(|m: f64| m > options.bundle.final_huber_above_move_m)
+                && options.bundle.final_huber_above_move_m > 0.0;
+            let last = round + 1 == options.bundle.final_rounds;
+            let kind = if pass == 1 && round == 0 && !last {
                 SolveKind::FinalFirst
+            } else if still_moving && !last {
+                SolveKind::FinalMoving
             } else {
                 SolveKind::Final
             };
@@ -1856,12 +1866,18 @@ fn map_staged(
                 max_move_m: moves.last().copied().unwrap_or(0.0),
             };
             log::info!(
-                "final round {}: cameras moved {:.2e} m (median), up to {:.2e} m",
+                "final round {}{}: cameras moved {:.2e} m (median), up to {:.2e} m",
                 round + 1,
+                if options.association.weights(kind).loss == PlaneLoss::Huber {
+                    " (Huber)"
+                } else {
+                    ""
+                },
                 record.median_move_m,
                 record.max_move_m
             );
             report.final_rounds.push(record);
+            last_move_m = Some(record.median_move_m);
             if kind == SolveKind::Final && record.median_move_m < options.bundle.final_stop_change_m
             {
                 break;

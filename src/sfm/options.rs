@@ -462,6 +462,17 @@ pub struct BundleOptions {
     /// which never settles (median move 0.2-0.8 mm a round), stopped at a
     /// dip after 3 rounds at 1.5 mm, where 12 rounds had ended at 1.0 mm.)
     pub final_stop_change_m: f64,
+    /// A final round after one that moved half the camera centres more than
+    /// this, metres, takes a Huber loss (at `association.final_loss_scale_m`,
+    /// the smallest radius as in every round after the first) instead of
+    /// `association.final_loss`; 0: never. A model that arrives from
+    /// registration decimetres off (a run from a pose that was off) is far
+    /// beyond the Cauchy loss's centimetre scale, where each point's pull
+    /// fades: the seed-3 room from the perturbed pose crawled 1-6 cm a round
+    /// for ten rounds (33 s of a 70 s mapping). Default 0.01 (runs from
+    /// exact poses move their cameras a few millimetres in the first round:
+    /// their rounds are as before).
+    pub final_huber_above_move_m: f64,
     /// Weight of a known image position (pose file, database), pixel
     /// equivalents per metre: 100 makes 1 cm count like 1 px. 0 disables.
     /// Default 100.
@@ -515,6 +526,7 @@ impl Default for BundleOptions {
             prior_position_weight: 100.0,
             prior_rotation_weight: 10.0,
             final_stop_change_m: 0.0002,
+            final_huber_above_move_m: 0.01,
             local_max_iterations: 30,
             global_max_iterations: 50,
             global_every_images: 20,
@@ -619,7 +631,11 @@ impl BundleOptions {
         )?;
         positive("bundle.global_radius_m", self.global_radius_m)?;
         non_negative("bundle.prior_rotation_weight", self.prior_rotation_weight)?;
-        non_negative("bundle.final_stop_change_m", self.final_stop_change_m)
+        non_negative("bundle.final_stop_change_m", self.final_stop_change_m)?;
+        non_negative(
+            "bundle.final_huber_above_move_m",
+            self.final_huber_above_move_m,
+        )
     }
 }
 
@@ -941,6 +957,10 @@ impl AssociationOptions {
                 ..self.weights(SolveKind::Final)
             },
             SolveKind::FinalFirst => self.weights(SolveKind::Final),
+            SolveKind::FinalMoving => PlaneWeights {
+                loss: PlaneLoss::Huber,
+                ..self.weights(SolveKind::Final)
+            },
             SolveKind::Local | SolveKind::LocalRefine | SolveKind::Global => PlaneWeights {
                 projection_weight: self.projection_weight,
                 weight: self.weight,
@@ -1192,6 +1212,23 @@ mod tests {
             first.loss(first.weight),
             LossFunction::Huber { scale: 0.15 }
         );
+        // A round while the model still moves: the final weights, Huber at
+        // the final scale (30 times 10 mm).
+        let moving = o.weights(SolveKind::FinalMoving);
+        assert_eq!(moving.weight, 30.0);
+        assert_eq!(moving.ground_weight, 30.0);
+        assert_eq!(
+            moving.loss(moving.weight),
+            LossFunction::Huber { scale: 0.3 }
+        );
+        assert_eq!(
+            MapperOptions::default().bundle.final_huber_above_move_m,
+            0.01
+        );
+        let mut bad = MapperOptions::default();
+        bad.bundle.final_huber_above_move_m = -1.0;
+        let err = bad.validate().unwrap_err().to_string();
+        assert!(err.contains("final_huber_above_move_m"), "{err}");
         let off: MapperOptions =
             toml::from_str("[association]\nfinal_first_round_huber_m = 0.0\n").unwrap();
         assert_eq!(
