@@ -932,15 +932,16 @@ pub(crate) mod plane_offset_tests {
             cloud.normals.as_mut().unwrap().push(n);
         }
         let index = MapIndex::build(&cloud).unwrap();
-        let with = |min_plane_support: usize| {
-            let options = AssociationOptions {
-                min_plane_support,
+        // The default gate (5), and none.
+        let gated = NearestNeighbourAssociator::new(&cloud, &index, AssociationOptions::default());
+        let open = NearestNeighbourAssociator::new(
+            &cloud,
+            &index,
+            AssociationOptions {
+                min_plane_support: 0,
                 ..Default::default()
-            };
-            NearestNeighbourAssociator::new(&cloud, &index, options)
-        };
-        let gated = with(5);
-        let open = with(0);
+            },
+        );
         for (k, (_, n)) in strays.iter().enumerate() {
             let i = floor + k;
             assert_eq!(gated.plane_offset_at(i), None, "stray {k}");
