@@ -1047,6 +1047,9 @@ pub(super) fn map_until(
         start: started,
         records: Vec::new(),
     };
+    // The run's report as far as it got: a run that stops at its look or
+    // fails leaves its solves in the log.
+    let mut report = MapReport::default();
     let mut result = map_staged(
         inputs,
         start,
@@ -1054,14 +1057,20 @@ pub(super) fn map_until(
         (look, end_look),
         progress,
         &mut stages,
+        &mut report,
     );
     if let Some(log) = inputs.run_log {
-        let outcome = match &result {
-            Ok(RunEnd::Finished(_)) => "finished".to_owned(),
-            Ok(RunEnd::Moved { .. }) => "stopped at its look".to_owned(),
-            Err(e) => format!("failed: {e}"),
+        let (outcome, solves) = match &result {
+            Ok(RunEnd::Finished(out)) => ("finished".to_owned(), out.report.solves.clone()),
+            Ok(RunEnd::Moved { .. }) => ("stopped at its look".to_owned(), report.solves),
+            Err(e) => (format!("failed: {e}"), report.solves),
         };
-        let index = log.push(outcome, started.elapsed().as_secs_f64(), stages.records);
+        let index = log.push(
+            outcome,
+            started.elapsed().as_secs_f64(),
+            stages.records,
+            solves,
+        );
         if let Ok(RunEnd::Finished(out)) = &mut result {
             out.report.run_index = Some(index);
         }
@@ -1069,7 +1078,8 @@ pub(super) fn map_until(
     result
 }
 
-/// [`map_until`]'s run, its stages recorded in `stages` as they end.
+/// [`map_until`]'s run, its stages recorded in `stages` as they end and its
+/// report built in `report` (moved into the output when the run finishes).
 fn map_staged(
     inputs: MapperInputs<'_>,
     start: &Start<'_>,
@@ -1077,6 +1087,7 @@ fn map_staged(
     (look, end_look): (Option<LookPlan>, Option<EndLook>),
     progress: Progress<'_>,
     stages: &mut Stages,
+    report: &mut MapReport,
 ) -> Result<RunEnd, MapperError> {
     let MapperInputs {
         db,
@@ -1223,7 +1234,7 @@ fn map_staged(
         Start::Model(_) => BTreeMap::new(),
     };
 
-    let mut report = MapReport {
+    *report = MapReport {
         seed: options.seed,
         map_spacing_m,
         association: associator.name().to_owned(),
@@ -1434,7 +1445,7 @@ fn map_staged(
             refine_cameras: refine.every.clone(),
             pose_priors: pose_priors.clone(),
         };
-        local_ba(&mut state, &config, associator, options, &mut report)?;
+        local_ba(&mut state, &config, associator, options, report)?;
         filter_observations(&mut state, None, options.filter.max_reprojection_error_px);
         // The initial points are the map seen from the given pose: when that
         // pose is off, they are a moved copy of the map, and moving them back
@@ -1490,7 +1501,7 @@ fn map_staged(
                 .map(|k| &k.cam_from_world);
             let owner = state.intrinsics_of(state.images[&image].camera_id);
             if uncalibrated.contains(&owner) {
-                start_focal_from_points(&mut state, &mut report, image, owner, options);
+                start_focal_from_points(&mut state, report, image, owner, options);
             }
             let outcome = register_image(&mut state, image, known, &options.register, &mut rng);
             if matches!(outcome, RegistrationOutcome::Registered { .. }) {
@@ -1567,7 +1578,7 @@ fn map_staged(
             refine_cameras: refine.every.clone(),
             pose_priors: pose_priors.clone(),
         };
-        local_ba(&mut state, &config, associator, options, &mut report)?;
+        local_ba(&mut state, &config, associator, options, report)?;
         filter_observations(
             &mut state,
             Some(&variable),
@@ -1602,7 +1613,7 @@ fn map_staged(
                 &pose_priors,
                 associator,
                 options,
-                &mut report,
+                report,
             )?;
             since_global = 0;
             last_global_size = state.num_registered();
@@ -1885,7 +1896,7 @@ fn map_staged(
         }
         Ok(())
     };
-    final_rounds(&mut state, &mut report, &refine.last, 1)?;
+    final_rounds(&mut state, report, &refine.last, 1)?;
     // Cameras with a given focal length (`auto`): one more solve with their
     // intrinsics free tells whether the data disagree with them. A focal
     // length that moves more than `refine_intrinsics_min_change` was not
@@ -1917,7 +1928,7 @@ fn map_staged(
             &pose_priors,
             associator,
             &probe_options,
-            &mut report,
+            report,
         )?;
         let mut adopted = BTreeSet::new();
         for id in &refine.probe {
@@ -1954,7 +1965,7 @@ fn map_staged(
                 }
             }
             refine.last.extend(adopted);
-            final_rounds(&mut state, &mut report, &refine.last, 2)?;
+            final_rounds(&mut state, report, &refine.last, 2)?;
         }
     }
     stages.done("final bundle adjustment");
@@ -2053,7 +2064,7 @@ fn map_staged(
             &pose_priors,
             associator,
             options,
-            &mut report,
+            report,
         );
         stages.done("pose uncertainty");
     }
@@ -2067,7 +2078,7 @@ fn map_staged(
     );
     Ok(RunEnd::Finished(Box::new(MapperOutput {
         reconstruction: state.to_reconstruction(),
-        report,
+        report: std::mem::take(report),
     })))
 }
 

@@ -231,6 +231,12 @@ pub struct RunStagesRecord {
     pub time_s: f64,
     /// The stages it went through, each with its time.
     pub stages: Vec<StageRecord>,
+    /// Its solves as far as it got, for a run whose model was not kept (the
+    /// kept run's are [`MapReport::solves`]): why a run stopped or was set
+    /// aside can be read from them (for example the initial image's change
+    /// at each solve).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub solves: Vec<SolveRecord>,
 }
 
 /// The runs of one `map` call as they end ([`MapReport::runs`]); shared by
@@ -240,9 +246,15 @@ pub struct RunLog(std::sync::Mutex<Vec<RunStagesRecord>>);
 
 impl RunLog {
     /// Adds a run that ended with `outcome` after `time_s` seconds and went
-    /// through `stages` (not kept until [`Self::records`] says so); returns
-    /// its index.
-    pub fn push(&self, outcome: String, time_s: f64, stages: Vec<StageRecord>) -> usize {
+    /// through `stages` and `solves` (not kept until [`Self::records`] says
+    /// so); returns its index.
+    pub fn push(
+        &self,
+        outcome: String,
+        time_s: f64,
+        stages: Vec<StageRecord>,
+        solves: Vec<SolveRecord>,
+    ) -> usize {
         let mut runs = self.0.lock().unwrap_or_else(|e| e.into_inner());
         let index = runs.len();
         runs.push(RunStagesRecord {
@@ -251,17 +263,25 @@ impl RunLog {
             outcome,
             time_s,
             stages,
+            solves,
         });
         index
     }
 
-    /// Every run so far, those whose index is in `kept` marked kept.
+    /// Every run so far, those whose index is in `kept` marked kept and
+    /// without their solves (the report's own).
     pub fn records(&self, kept: &BTreeSet<usize>) -> Vec<RunStagesRecord> {
         let runs = self.0.lock().unwrap_or_else(|e| e.into_inner());
         runs.iter()
-            .map(|r| RunStagesRecord {
-                kept: kept.contains(&r.index),
-                ..r.clone()
+            .map(|r| {
+                let kept = kept.contains(&r.index);
+                RunStagesRecord {
+                    kept,
+                    outcome: r.outcome.clone(),
+                    stages: r.stages.clone(),
+                    solves: if kept { Vec::new() } else { r.solves.clone() },
+                    ..*r
+                }
             })
             .collect()
     }
@@ -845,6 +865,39 @@ impl ImageGroups {
 mod tests {
     use super::*;
 
+    /// A solve record at `num_registered` images (the rest empty).
+    fn solve(num_registered: usize) -> SolveRecord {
+        SolveRecord {
+            kind: crate::sfm::associate::SolveKind::Local,
+            num_registered,
+            num_variable_poses: 0,
+            num_constant_poses: 0,
+            num_points: 0,
+            num_observations: 0,
+            num_planes: 0,
+            num_projection_planes: 0,
+            num_nearest_planes: 0,
+            num_ground_planes: 0,
+            plane_distance_before_m: Default::default(),
+            plane_distance_after_m: Default::default(),
+            reprojection_before_px: Default::default(),
+            reprojection_after_px: Default::default(),
+            initial_cost: 0.0,
+            final_cost: 0.0,
+            iterations: 0,
+            usable: true,
+            discarded: false,
+            intrinsics_held: Vec::new(),
+            time_s: 0.0,
+            association_time_s: 0.0,
+            solver_times: Default::default(),
+            schur_structure: String::new(),
+            wall_s: 0.0,
+            initial_image_change: None,
+            similarity_constraint_ratio: None,
+        }
+    }
+
     /// Images 1-2 (in the model), 3 linked to them, 4-5 a group of their
     /// own, 6 alone.
     fn groups() -> ImageGroups {
@@ -865,7 +918,7 @@ mod tests {
         let log = RunLog::default();
         let push = |outcome: &str| {
             let stages = vec![StageRecord::new("map index", 0.5)];
-            log.push(outcome.to_owned(), 1.5, stages)
+            log.push(outcome.to_owned(), 1.5, stages, vec![solve(outcome.len())])
         };
         assert_eq!(push("finished"), 0);
         assert_eq!(push("failed: off the map"), 1);
@@ -884,7 +937,18 @@ mod tests {
             ]
         );
         assert_eq!(records[1].stages[0].name, "map index");
-        assert!(log.records(&BTreeSet::new()).iter().all(|r| !r.kept));
+        // The runs set aside keep their solves; the kept one's are the
+        // report's own.
+        let solved: Vec<Vec<usize>> = records
+            .iter()
+            .map(|r| r.solves.iter().map(|s| s.num_registered).collect())
+            .collect();
+        assert_eq!(solved, [vec![8], vec![19], vec![]]);
+        let json = serde_json::to_value(&records).unwrap();
+        assert_eq!(json[1]["solves"][0]["num_registered"], 19);
+        assert!(json[2].get("solves").is_none(), "{}", json[2]);
+        let none = log.records(&BTreeSet::new());
+        assert!(none.iter().all(|r| !r.kept && r.solves.len() == 1));
     }
 
     #[test]

@@ -380,6 +380,24 @@ fn changed_yard_is_held_at_its_given_pose() {
     );
     let held_run = &runs[runs.len() - 1];
     assert_eq!(held_run["outcome"], "finished");
+    // The runs set aside keep the solves they made (at least one got as far
+    // as a solve), each at no more images than the database holds; the kept
+    // run's are the report's own.
+    assert!(held_run.get("solves").is_none(), "{held_run}");
+    let set_aside: Vec<&serde_json::Value> = runs[..runs.len() - 1]
+        .iter()
+        .filter_map(|r| r.get("solves"))
+        .flat_map(|s| s.as_array().unwrap())
+        .collect();
+    assert!(!set_aside.is_empty(), "{runs:?}");
+    let num_images = exact.report["num_images"].as_u64().unwrap();
+    assert!(
+        set_aside.iter().all(|s| s["kind"].is_string()
+            && s["num_registered"]
+                .as_u64()
+                .is_some_and(|n| n >= 2 && n <= num_images)),
+        "{set_aside:?}"
+    );
     // (`map` adds a "point colours" stage to the report's when asked.)
     let kept_stages = held_run["stages"].as_array().unwrap();
     assert!(!kept_stages.is_empty());
