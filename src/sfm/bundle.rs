@@ -144,6 +144,42 @@ pub struct SolveRecord {
     pub similarity_constraint_ratio: Option<f64>,
 }
 
+impl SolveRecord {
+    /// A solve of `kind` at `num_registered` images that had nothing to
+    /// solve: no poses, points, planes or time.
+    pub fn empty(kind: SolveKind, num_registered: usize) -> Self {
+        Self {
+            kind,
+            num_registered,
+            num_variable_poses: 0,
+            num_constant_poses: 0,
+            num_points: 0,
+            num_observations: 0,
+            num_planes: 0,
+            num_projection_planes: 0,
+            num_nearest_planes: 0,
+            num_ground_planes: 0,
+            plane_distance_before_m: DistanceStats::default(),
+            plane_distance_after_m: DistanceStats::default(),
+            reprojection_before_px: ErrorStats::default(),
+            reprojection_after_px: ErrorStats::default(),
+            initial_cost: 0.0,
+            final_cost: 0.0,
+            iterations: 0,
+            usable: true,
+            discarded: false,
+            intrinsics_held: Vec::new(),
+            time_s: 0.0,
+            association_time_s: 0.0,
+            solver_times: SolveTimes::default(),
+            schur_structure: String::new(),
+            wall_s: 0.0,
+            initial_image_change: None,
+            similarity_constraint_ratio: None,
+        }
+    }
+}
+
 /// Mean and median of unsigned distances.
 #[derive(Clone, Copy, Debug, Default, Serialize)]
 pub struct DistanceStats {
@@ -413,33 +449,10 @@ pub fn bundle_adjust(
         || num_variable_poses == 0 && built.point_list.is_empty()
     {
         return Ok(SolveRecord {
-            kind,
-            num_registered: state.num_registered(),
             num_variable_poses,
             num_constant_poses: built.problem.poses.len() - num_variable_poses,
-            num_points: 0,
-            num_observations: 0,
-            num_planes: 0,
-            num_projection_planes: 0,
-            num_nearest_planes: 0,
-            num_ground_planes: 0,
-            plane_distance_before_m: DistanceStats::default(),
-            plane_distance_after_m: DistanceStats::default(),
-            reprojection_before_px: ErrorStats::default(),
-            reprojection_after_px: ErrorStats::default(),
-            initial_cost: 0.0,
-            final_cost: 0.0,
-            iterations: 0,
-            usable: true,
-            discarded: false,
-            intrinsics_held: Vec::new(),
-            time_s: 0.0,
-            association_time_s: 0.0,
-            solver_times: SolveTimes::default(),
-            schur_structure: String::new(),
             wall_s: started.elapsed().as_secs_f64(),
-            initial_image_change: None,
-            similarity_constraint_ratio: None,
+            ..SolveRecord::empty(kind, state.num_registered())
         });
     }
     let association_start = std::time::Instant::now();

@@ -864,39 +864,7 @@ impl ImageGroups {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A solve record at `num_registered` images (the rest empty).
-    fn solve(num_registered: usize) -> SolveRecord {
-        SolveRecord {
-            kind: crate::sfm::associate::SolveKind::Local,
-            num_registered,
-            num_variable_poses: 0,
-            num_constant_poses: 0,
-            num_points: 0,
-            num_observations: 0,
-            num_planes: 0,
-            num_projection_planes: 0,
-            num_nearest_planes: 0,
-            num_ground_planes: 0,
-            plane_distance_before_m: Default::default(),
-            plane_distance_after_m: Default::default(),
-            reprojection_before_px: Default::default(),
-            reprojection_after_px: Default::default(),
-            initial_cost: 0.0,
-            final_cost: 0.0,
-            iterations: 0,
-            usable: true,
-            discarded: false,
-            intrinsics_held: Vec::new(),
-            time_s: 0.0,
-            association_time_s: 0.0,
-            solver_times: Default::default(),
-            schur_structure: String::new(),
-            wall_s: 0.0,
-            initial_image_change: None,
-            similarity_constraint_ratio: None,
-        }
-    }
+    use crate::sfm::associate::SolveKind;
 
     /// Images 1-2 (in the model), 3 linked to them, 4-5 a group of their
     /// own, 6 alone.
@@ -918,7 +886,12 @@ mod tests {
         let log = RunLog::default();
         let push = |outcome: &str| {
             let stages = vec![StageRecord::new("map index", 0.5)];
-            log.push(outcome.to_owned(), 1.5, stages, vec![solve(outcome.len())])
+            log.push(
+                outcome.to_owned(),
+                1.5,
+                stages,
+                vec![SolveRecord::empty(SolveKind::Local, outcome.len())],
+            )
         };
         assert_eq!(push("finished"), 0);
         assert_eq!(push("failed: off the map"), 1);
