@@ -15,7 +15,7 @@ after each iteration.
 
 Needs numpy, scipy and pillow. A scene folder from `scripts/bench_scenes.sh`:
   photometric_similarity.py SCENE_DIR MODEL_DIR HALF MAX_PATCHES ITERATIONS MAP_PLY EDGE_M MIN_ZNCC
-e.g. corridor-0 corridor-0/run-exact/model 4 3000 4 corridor-0/lidar.ply 0.06 0.8
+e.g. corridor-0 corridor-0/default-exact/model 4 3000 4 corridor-0/lidar.ply 0.06 0.8
 """
 import sys, numpy as np
 from PIL import Image
@@ -182,7 +182,6 @@ def residuals(x):
             r[rows[good]] = b[good] / sd[good, None] - REFV[P[s2][good]]
     return r.ravel()
 
-W = np.ones(len(pair_p))
 def wres(x):
     return (residuals(x).reshape(len(pair_p), NS) * np.sqrt(W)[:, None]).ravel()
 def cost(x):
