@@ -372,7 +372,26 @@ pub struct BundleOptions {
     /// mapped again from where its initial image ended, 0.9 mm (scale
     /// 0.999995), as from the exact pose. Costs a second run when the pose
     /// was off. Not after a retry (`retry_holding_initial`). Default true.
+    /// Since session 63 only the run the retry freed from the start is
+    /// mapped again by default; the first run, which held the image, is
+    /// only with `restart_first_run`.
     pub restart_from_refined_pose: bool,
+    /// With `restart_from_refined_pose`, the first run (the initial image
+    /// held at its given pose for its first `fix_initial_for` registrations)
+    /// is mapped again from where its initial image ended too, and the early
+    /// look and the look at the end of registration
+    /// (`restart_early_at_images`) come with it. Default false: the second
+    /// run made the result the exact pose's (to 0.14 mm) but no more
+    /// accurate. Session 63, the fifteen 24-image scenes from 0.3 m / 3
+    /// deg off: sum of medians 22.6 mm in one run against 22.4 mm mapped
+    /// again (each within 0.4 mm either way); from 0.7 m / 7 deg off (14
+    /// mapped) 22.06 mm against 22.11 mm; the 100-image corridor 1.1 mm
+    /// either way; 12-41 % less time (the seed-4 corridor 21.2 s against
+    /// 36.0 s). The run the retry freed from the start held no image and
+    /// is mapped again whatever this says (`restart_from_refined_pose`):
+    /// the seed-0 corridor changed since the scan, 3.0 mm as it ended, 1.4
+    /// mm mapped again.
+    pub restart_first_run: bool,
     /// With `restart_from_refined_pose`, the run looks at its initial image
     /// once, at the first sphere solve with at least this many images
     /// registered and the image released (`fix_initial_for`): when it has
@@ -547,6 +566,7 @@ impl Default for BundleOptions {
             max_initial_pose_change_deg: 10.0,
             retry_holding_initial: true,
             restart_from_refined_pose: true,
+            restart_first_run: false,
             restart_early_at_images: 16,
             fallback_search_m: 2.0,
             fallback_search_deg: 30.0,

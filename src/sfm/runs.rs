@@ -2,11 +2,13 @@
 //! so that a user's rough or wrong initial pose still ends in the right model
 //! or a clear error.
 //!
-//! * [`run_mapper_with_priors`]: the run from the given pose; an early look
-//!   that maps again from where the initial image is once the model holds it
-//!   (`bundle.restart_early_at_images`); the retries when the map did not
-//!   hold the model (`bundle.retry_holding_initial`); a second run from where
-//!   the initial image ended (`bundle.restart_from_refined_pose`).
+//! * [`run_mapper_with_priors`]: the run from the given pose; the retries
+//!   when the map did not hold the model (`bundle.retry_holding_initial`); a
+//!   second run from where the initial image ended
+//!   (`bundle.restart_from_refined_pose`) after the retry's run free from the
+//!   start, and after the first run only with `bundle.restart_first_run`,
+//!   with an early look that maps again from where the initial image is once
+//!   the model holds it (`bundle.restart_early_at_images`).
 //! * [`run_mapper_from_pose`]: that, followed by a search of the map around
 //!   the pose when the run fails as if the pose were off.
 //! * [`run_mapper_searching`]: the model mapped without the map's planes,
@@ -78,9 +80,11 @@ pub fn run_mapper_with_priors(
     let start = runs.start();
 
     // The first run, which may stop early to map again from where the
-    // initial image is (`bundle.restart_early_at_images`).
-    let look_at = early_look_at(num_images, options);
-    let end_look = first_run_end_look(options);
+    // initial image is (`bundle.restart_early_at_images`), when it is to
+    // be mapped again at all (`bundle.restart_first_run`).
+    let restart_first = options.bundle.restart_first_run;
+    let look_at = early_look_at(num_images, options).filter(|_| restart_first);
+    let end_look = first_run_end_look(options).filter(|_| restart_first);
     let started = Instant::now();
     let early = map_until(inputs, &start, options, look_at, end_look, &mut *progress);
     let early_s = started.elapsed().as_secs_f64();
@@ -653,9 +657,13 @@ pub(super) const RESTART_MIN_CHANGE: (f64, f64) = (0.02, 0.2);
 /// a run that was already mapped again from where an earlier one put the
 /// image (`restart` set: [`kept_run_from_free_look`]). The run the
 /// retry freed from the start is (the seed-0 corridor from 0.9 m / 8 deg
-/// off: 3.4 mm, its initial image 0.90 m from the given pose).
+/// off: 3.4 mm, its initial image 0.90 m from the given pose); a run that
+/// held the image for its first registrations only with
+/// `bundle.restart_first_run`.
 fn restart_reason(out: &MapperOutput, options: &MapperOptions) -> Option<PoseChangeRecord> {
+    let freed = out.report.retry.as_ref().is_some_and(|r| r.free_kept);
     if !options.bundle.restart_from_refined_pose
+        || !(freed || options.bundle.restart_first_run)
         || options.association.kind == AssociationKind::None
         || out.report.retry.as_ref().is_some_and(|r| r.held_kept)
         || out.report.restart.is_some()
@@ -1647,7 +1655,9 @@ mod tests {
         assert_eq!(record.second_fit_share, Some(0.94));
         // A run from an earlier run's end is not mapped once more.
         assert!(restart_reason(&out, &options).is_none());
-        assert!(restart_reason(&finished_run(1.8e-2, 0.3, 3.0, 0.94), &options).is_some());
+        let mut first_too = options.clone();
+        first_too.bundle.restart_first_run = true;
+        assert!(restart_reason(&finished_run(1.8e-2, 0.3, 3.0, 0.94), &first_too).is_some());
         // 0.2 m from the look: mapped again from where it ended.
         let (out, restarted) = judged(0.2);
         let (c, s) = restarted.expect("mapped again");
@@ -1732,7 +1742,12 @@ mod tests {
 
     #[test]
     fn a_run_whose_initial_image_moved_is_mapped_again_from_where_it_ended() {
-        let options = MapperOptions::default();
+        // By default the first run (its image held at first) is kept as it
+        // ended; the run the retry freed from the start is mapped again.
+        let defaults = MapperOptions::default();
+        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), &defaults).is_none());
+        let mut options = defaults.clone();
+        options.bundle.restart_first_run = true;
         let moved = |m, deg| restart_reason(&finished_run(0.03, m, deg, 0.9), &options);
         // From the exact pose (the seed-0 scenes: 0.9-2.0 mm, 0.009-0.016
         // deg) or a search's placement (3.5-7.6 mm, 0.02-0.07 deg): no.
@@ -1752,6 +1767,7 @@ mod tests {
             ..Default::default()
         });
         assert!(restart_reason(&freed, &options).is_some());
+        assert!(restart_reason(&freed, &defaults).is_some());
         // Not when turned off, without the map's planes, or held.
         let mut off = options.clone();
         off.bundle.restart_from_refined_pose = false;

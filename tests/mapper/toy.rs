@@ -305,9 +305,10 @@ fn initial_pose_off(scene: &Toy, by: Vector3<f64>, turn_deg: f64) -> Rigid3 {
 }
 
 /// The toy mapped from `given` without the alignment to the map (so the
-/// initial image is held there for its first 8 registrations), looking at
-/// it early at `look_at` images (`bundle.restart_early_at_images`; 0 only
-/// at the end).
+/// initial image is held there for its first 8 registrations), the first
+/// run mapped again from where its initial image ended
+/// (`bundle.restart_first_run`), looking at it early at `look_at` images
+/// (`bundle.restart_early_at_images`; 0 only at the end).
 fn map_toy_looking_at(
     scene: &Toy,
     given: &Rigid3,
@@ -315,6 +316,7 @@ fn map_toy_looking_at(
 ) -> (colmap_lidar::sfm::MapperOutput, f64) {
     let mut options = MapperOptions::default();
     options.bundle.align_to_map = false;
+    options.bundle.restart_first_run = true;
     options.bundle.restart_early_at_images = look_at;
     map_toy_from(scene, given, &options)
 }
@@ -394,6 +396,32 @@ fn a_run_whose_initial_image_turned_early_is_mapped_again_from_there() {
     assert!(steady_err < 0.02, "{steady_err}");
 }
 
+/// By default (`bundle.restart_first_run` off) the first run from a pose 15
+/// cm and 2 deg off is kept as it ended: one run, with no look and no
+/// second run, its initial image where the map put it (15 cm and 2 deg from
+/// the given pose), and as right as the run mapped again from its end.
+#[test]
+fn a_first_run_from_a_pose_off_is_kept_as_it_ended_by_default() {
+    let scene = toy(30, 0.3, 0.03, 1);
+    let given = initial_pose_off(&scene, Vector3::new(0.15, 0.0, 0.0), 2.0);
+    let mut options = MapperOptions::default();
+    options.bundle.align_to_map = false;
+    let (out, err) = map_toy_from(&scene, &given, &options);
+    let (again, again_err) = map_toy_looking_at(&scene, &given, 0);
+    eprintln!("one run: max error {err:.4} m; mapped again: {again_err:.4} m");
+    assert!(out.report.restart.is_none(), "{:?}", out.report.restart);
+    assert!(out.report.early_look.is_none() && out.report.early_restart.is_none());
+    assert!(again.report.restart.as_ref().is_some_and(|r| r.second_kept));
+    let change = out.report.initial_pose_change.expect("measured");
+    assert!((change.moved_m - 0.15).abs() < 0.02, "{change:?}");
+    assert!((change.turned_deg - 2.0).abs() < 0.2, "{change:?}");
+    assert_eq!(out.report.num_registered, 30);
+    assert!(
+        err < 0.02 && err < again_err + 0.005,
+        "{err} vs {again_err}"
+    );
+}
+
 /// The initial image given 15 cm and 2 deg off and held for its first 20
 /// registrations (no alignment to the map), so that 30 images leave no
 /// room for the early look: the first run looks at the end of its
@@ -408,6 +436,7 @@ fn a_run_whose_initial_image_turned_stops_at_the_end_of_registration() {
         let mut options = MapperOptions::default();
         options.bundle.align_to_map = false;
         options.bundle.fix_initial_for = 20;
+        options.bundle.restart_first_run = true;
         options.bundle.restart_early_at_images = look_at;
         map_toy_from(&scene, &given, &options)
     };
