@@ -329,7 +329,9 @@ pub struct MapReport {
     /// model is. The stages and solves are those of the kept run.
     pub retry: Option<RetryRecord>,
     /// When the run was mapped again from where its initial image ended
-    /// (`bundle.restart_from_refined_pose`): how far the first run moved it,
+    /// (`bundle.restart_from_refined_pose`: after the retry's run free from
+    /// the start, and after the first run with `bundle.restart_first_run`):
+    /// how far the run before moved it,
     /// and whether this model is the second run's. The stages and solves
     /// are those of the kept run; the second run's solves record the
     /// initial image's change from where the first run ended, while
