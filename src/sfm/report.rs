@@ -331,8 +331,8 @@ pub struct MapReport {
     /// When the run was mapped again from where its initial image ended
     /// (`bundle.restart_from_refined_pose`: after the retry's run free from
     /// the start, and after the first run with `bundle.restart_first_run`):
-    /// how far the run before moved it,
-    /// and whether this model is the second run's. The stages and solves
+    /// how far the run before moved it, and whether this model is the
+    /// second run's. The stages and solves
     /// are those of the kept run; the second run's solves record the
     /// initial image's change from where the first run ended, while
     /// `initial_pose_change` is from the given pose. Also when the retry's
