@@ -35,6 +35,12 @@ pub struct PlotArgs {
     /// figures' files in it are replaced, each atomically).
     #[arg(long)]
     pub output: PathBuf,
+    /// Draw the run at this index of report.json's `runs` (0: the first run
+    /// made) instead of the kept one: a run set aside (stopped at its look,
+    /// failed, or mapped again from where it ended) kept only its solves, so
+    /// its per-image figure is empty.
+    #[arg(long, value_name = "INDEX")]
+    pub run: Option<usize>,
 }
 
 /// The parts of `report.json` the figures use. Every field is optional (older
@@ -45,6 +51,60 @@ pub struct PlotArgs {
 pub struct ReportForPlots {
     pub solves: Vec<SolveForPlots>,
     pub images: Vec<ImageForPlots>,
+    pub runs: Vec<RunForPlots>,
+}
+
+/// One run of `report.json` -> `runs`: the kept run's solves are the
+/// report's own, a run set aside has its own.
+#[derive(Debug, Default, Deserialize)]
+#[serde(default)]
+pub struct RunForPlots {
+    pub index: usize,
+    pub kept: bool,
+    pub outcome: String,
+    pub solves: Vec<SolveForPlots>,
+}
+
+impl ReportForPlots {
+    /// What there is to draw of run `index` (`report.json` -> `runs`): the
+    /// report itself for the kept run, the solves alone for a run set aside;
+    /// an error naming the runs there are when there is no such run.
+    pub fn of_run(self, index: usize) -> anyhow::Result<ReportForPlots> {
+        let Some(pos) = self.runs.iter().position(|r| r.index == index) else {
+            let runs: Vec<String> = self
+                .runs
+                .iter()
+                .map(|r| {
+                    // The outcome's first words: "failed: why..." -> "failed".
+                    let outcome = r.outcome.split(':').next().unwrap_or_default();
+                    let kept = if r.kept { ", kept" } else { "" };
+                    format!("{} ({outcome}{kept})", r.index)
+                })
+                .collect();
+            bail!(
+                "the report has no run {index}; its runs: {}",
+                if runs.is_empty() {
+                    "none recorded (a report written before session 60)".to_string()
+                } else {
+                    runs.join("; ")
+                }
+            );
+        };
+        let mut runs = self.runs;
+        let run = runs.swap_remove(pos);
+        Ok(if run.kept {
+            ReportForPlots {
+                runs: Vec::new(),
+                ..self
+            }
+        } else {
+            ReportForPlots {
+                solves: run.solves,
+                images: Vec::new(),
+                runs: Vec::new(),
+            }
+        })
+    }
 }
 
 /// One solve of `report.json` -> `solves`.
@@ -229,6 +289,12 @@ pub fn read_report(path: &Path) -> anyhow::Result<(PathBuf, ReportForPlots)> {
 
 pub fn run(args: &PlotArgs) -> anyhow::Result<()> {
     let (file, report) = read_report(&args.report)?;
+    let report = match args.run {
+        Some(index) => report
+            .of_run(index)
+            .with_context(|| format!("{}", file.display()))?,
+        None => report,
+    };
     let data = PlotData::from_report(&report).with_context(|| format!("{}", file.display()))?;
     // Everything is drawn before anything is written.
     let figures = render(&data)?;
@@ -616,7 +682,11 @@ fn images_figure(data: &PlotData) -> anyhow::Result<String> {
         {
             let mut c = chart(
                 &top,
-                "Per image (registration order): plane terms of its points",
+                if total.is_empty() {
+                    "Per image: none recorded (a run set aside keeps only its solves)"
+                } else {
+                    "Per image (registration order): plane terms of its points"
+                },
                 x_range([&total, &im.distance_mm]),
                 y_range_from_zero(counts),
                 "",
@@ -875,6 +945,60 @@ mod tests {
         assert!(figures[1].1.trim_end().ends_with("</svg>"));
     }
 
+    /// `--run`: the kept run is the report's own solves and images; a run set
+    /// aside has its own solves and no images, and is drawn with an empty
+    /// per-image figure; an index not there names the runs there are.
+    #[test]
+    fn a_run_set_aside_is_drawn_from_its_own_solves() {
+        let mut json = sample_json();
+        json["runs"] = serde_json::json!([
+            {"index": 0, "kept": false, "outcome": "stopped at its look", "time_s": 3.0,
+             "solves": [solve("local", 2, [0, 40, 10], 9.0, 0.5),
+                        solve("global", 3, [0, 70, 20], 5.0, 0.4)]},
+            {"index": 1, "kept": true, "outcome": "finished", "time_s": 9.0},
+            {"index": 2, "kept": false, "outcome": "failed: the model does not fit the map",
+             "time_s": 1.0, "solves": []},
+        ]);
+        let report = || serde_json::from_value::<ReportForPlots>(json.clone()).unwrap();
+        let kept = report().of_run(1).unwrap();
+        assert_eq!((kept.solves.len(), kept.images.len()), (9, 4));
+        let aside = report().of_run(0).unwrap();
+        assert_eq!((aside.solves.len(), aside.images.len()), (2, 0));
+        let data = PlotData::from_report(&aside).unwrap();
+        assert_eq!(data.local.nearest, vec![(2.0, 40.0)]);
+        assert_eq!(data.global.ground, vec![(3.0, 20.0)]);
+        assert!(data.images.projection.is_empty());
+        let figures = render(&data).unwrap();
+        let (name, images) = &figures[3];
+        assert_eq!(*name, "images.svg");
+        assert!(images.contains("none recorded"), "{images}");
+        let err = report().of_run(5).unwrap_err().to_string();
+        assert!(
+            err.contains("no run 5") && err.contains("0 (stopped at its look)"),
+            "{err}"
+        );
+        assert!(err.contains("1 (finished, kept); 2 (failed)"), "{err}");
+        // A run that failed before its first solve has nothing to draw.
+        let failed = report().of_run(2).unwrap();
+        assert!(PlotData::from_report(&failed).is_err());
+        let old = serde_json::from_value::<ReportForPlots>(sample_json()).unwrap();
+        let err = old.of_run(0).unwrap_err().to_string();
+        assert!(err.contains("none recorded"), "{err}");
+        // Through the command: the run set aside's figures, written.
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("report.json");
+        fs::write(&file, json.to_string()).unwrap();
+        let out = dir.path().join("plots");
+        run(&PlotArgs {
+            report: dir.path().to_path_buf(),
+            output: out.clone(),
+            run: Some(0),
+        })
+        .unwrap();
+        let written = fs::read_to_string(out.join("images.svg")).unwrap();
+        assert!(written.contains("none recorded"));
+    }
+
     #[test]
     fn reports_without_solves_and_bad_files_are_errors() {
         let empty: ReportForPlots =
@@ -897,6 +1021,7 @@ mod tests {
         let args = PlotArgs {
             report: bad.clone(),
             output: out.clone(),
+            run: None,
         };
         let err = format!("{:#}", run(&args).unwrap_err());
         assert!(
@@ -911,6 +1036,7 @@ mod tests {
         run(&PlotArgs {
             report: dir.path().to_path_buf(),
             output: dir.path().to_path_buf(),
+            run: None,
         })
         .unwrap();
         assert!(model_file.exists() && dir.path().join("planes.svg").exists());

@@ -684,6 +684,7 @@ fn yard_with_colmap_database() {
     colmap_lidar::commands::plot::run(&PlotArgs {
         report: dir.path().join("a"),
         output: figures.clone(),
+        run: None,
     })
     .unwrap();
     for name in [
