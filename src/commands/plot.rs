@@ -84,7 +84,7 @@ impl ReportForPlots {
             bail!(
                 "the report has no run {index}; its runs: {}",
                 if runs.is_empty() {
-                    "none recorded (a report written before session 60)".to_string()
+                    "none recorded (a report from an older colmap-lidar)".to_string()
                 } else {
                     runs.join("; ")
                 }
