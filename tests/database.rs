@@ -382,6 +382,71 @@ fn bad_databases_give_clear_errors() {
         e.to_string().contains("beyond the images'")
     });
 
+    // Counts whose byte size overflows 64 bits (2^61 x 2 x 4, 2^61 x 8)
+    // against an empty blob: an error, not an allocation.
+    let p = variant(
+        "huge_kp.db",
+        "UPDATE keypoints SET rows = 2305843009213693952, cols = 2, data = NULL WHERE image_id = 2;",
+    );
+    assert_error(&p, "keypoint rows overflow", |e| {
+        e.to_string().contains("need more than 2^64")
+    });
+    let p = variant(
+        "huge_tvg.db",
+        "UPDATE two_view_geometries SET rows = 2305843009213693952, data = NULL WHERE config = 2;",
+    );
+    assert_error(&p, "match rows overflow", |e| {
+        e.to_string().contains("need more than 2^64")
+    });
+
+    // A prior quaternion too large to square is scaled, not turned into a
+    // zero rotation: 1e200 * (cos 15 deg, 0, 0, sin 15 deg) is 30 deg about z.
+    let (c, z) = (15f64.to_radians().cos(), 15f64.to_radians().sin());
+    let p = variant(
+        "huge_prior.db",
+        &format!(
+            "UPDATE images SET prior_qw = {:e}, prior_qz = {:e} WHERE image_id = 2;",
+            1e200 * c,
+            1e200 * z
+        ),
+    );
+    let prior = read_database(&p).unwrap().pose_priors[&ImageId(2)]
+        .cam_from_world
+        .expect("prior of image 2");
+    assert!(
+        (prior.rotation.angle().to_degrees() - 30.0).abs() < 1e-9,
+        "{prior:?}"
+    );
+
+    // An image size no camera has.
+    for (name, size, says) in [
+        (
+            "huge_camera.db",
+            "width = 4294967295, height = 4294967295",
+            "over 100000",
+        ),
+        (
+            "big_camera.db",
+            "width = 90000, height = 90000",
+            "over 1073741824 pixels",
+        ),
+        ("empty_camera.db", "width = 0", "is empty"),
+    ] {
+        let p = variant(
+            name,
+            &format!("UPDATE cameras SET {size} WHERE camera_id = 1;"),
+        );
+        assert_error(&p, name, |e| {
+            matches!(
+                e,
+                DatabaseError::BadRow {
+                    table: "cameras",
+                    ..
+                }
+            ) && e.to_string().contains(says)
+        });
+    }
+
     let p = variant(
         "bad_tvg_blob.db",
         "UPDATE two_view_geometries SET rows = 9 WHERE config = 3;",

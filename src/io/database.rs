@@ -19,6 +19,7 @@ use nalgebra::Vector2;
 use rusqlite::types::ValueRef;
 use rusqlite::{Connection, OpenFlags};
 
+use crate::scene::camera::bad_image_size;
 use crate::scene::correspondence_graph::CorrespondenceGraph;
 use crate::scene::{Camera, CameraId, CameraModel, ImageId, Rigid3};
 
@@ -407,7 +408,10 @@ impl Reader<'_> {
                 return Err(self.bad_row(T, at(), "non-finite camera parameter"));
             }
             let (width, height) = match (u32::try_from(width), u32::try_from(height)) {
-                (Ok(w), Ok(h)) if w > 0 && h > 0 => (w, h),
+                (Ok(w), Ok(h)) => match bad_image_size(u64::from(w), u64::from(h)) {
+                    None => (w, h),
+                    Some(why) => return Err(self.bad_row(T, at(), why)),
+                },
                 _ => return Err(self.bad_row(T, at(), format!("bad image size {width}x{height}"))),
             };
             cameras.insert(
@@ -475,8 +479,9 @@ impl Reader<'_> {
                     let x: Option<f64> = row.get(3 + k).map_err(self.sql(T))?;
                     *slot = x.unwrap_or(f64::NAN);
                 }
-                let q_ok = v[..4].iter().all(|x| x.is_finite())
-                    && v[..4].iter().map(|x| x * x).sum::<f64>() > 1e-12;
+                // The norm, not its square: 1e200 squared is infinite.
+                let q_norm = v[..4].iter().fold(0.0f64, |n, x| n.hypot(*x));
+                let q_ok = q_norm.is_finite() && q_norm > 1e-6;
                 let t_ok = v[4..].iter().all(|x| x.is_finite());
                 if q_ok || t_ok {
                     // COLMAP 3.8 writes a zero rotation and zero translation as
@@ -485,7 +490,9 @@ impl Reader<'_> {
                     let prior = DbPosePrior {
                         position: None,
                         cam_from_world: (q_ok && t_ok && !all_zero_t).then(|| {
-                            Rigid3::from_colmap([v[0], v[1], v[2], v[3]], [v[4], v[5], v[6]])
+                            // Scaled first: nalgebra's norm squares the parts.
+                            let q = [v[0], v[1], v[2], v[3]].map(|x| x / q_norm);
+                            Rigid3::from_colmap(q, [v[4], v[5], v[6]])
                         }),
                         coordinate_system: None,
                     };
@@ -538,8 +545,12 @@ impl Reader<'_> {
                     format!("unsupported keypoint layout rows={n_rows} cols={n_cols} (cols must be 2, 4 or 6)"),
                 ));
             }
-            let expected = (n_rows as u64) * (n_cols.max(0) as u64) * 4;
-            if blob.len() as u64 != expected {
+            // Checked: the row and column counts come from the file.
+            let expected = (n_rows as u64)
+                .checked_mul(n_cols.max(0) as u64)
+                .and_then(|n| n.checked_mul(4));
+            if expected != Some(blob.len() as u64) {
+                let expected = expected.map_or("more than 2^64".to_owned(), |n| n.to_string());
                 return Err(self.bad_row(
                     T,
                     at(),
@@ -635,8 +646,9 @@ impl Reader<'_> {
                     format!("unsupported match layout rows={n_rows} cols={n_cols}"),
                 ));
             }
-            let expected = n_rows as u64 * 8;
-            if blob.len() as u64 != expected {
+            let expected = (n_rows as u64).checked_mul(8);
+            if expected != Some(blob.len() as u64) {
+                let expected = expected.map_or("more than 2^64".to_owned(), |n| n.to_string());
                 return Err(self.bad_row(
                     T,
                     at(),

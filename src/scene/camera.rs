@@ -163,6 +163,31 @@ pub struct Camera {
     pub params: Vec<f64>,
 }
 
+/// Largest image side, pixels, a camera may have: beyond any real camera
+/// (a 150-megapixel back is 14204 px wide), so that a size read from a file
+/// cannot make a depth image or a mask too large to allocate.
+pub const MAX_IMAGE_SIDE: u32 = 100_000;
+/// Largest image, pixels (a gigapixel).
+pub const MAX_IMAGE_PIXELS: u64 = 1 << 30;
+
+/// Why `width` x `height` is not an image size a camera can have: zero, a
+/// side over [`MAX_IMAGE_SIDE`] or over [`MAX_IMAGE_PIXELS`] in all.
+pub fn bad_image_size(width: u64, height: u64) -> Option<String> {
+    if width == 0 || height == 0 {
+        Some(format!("image size {width}x{height} is empty"))
+    } else if width > u64::from(MAX_IMAGE_SIDE) || height > u64::from(MAX_IMAGE_SIDE) {
+        Some(format!(
+            "image size {width}x{height} has a side over {MAX_IMAGE_SIDE} pixels"
+        ))
+    } else if width * height > MAX_IMAGE_PIXELS {
+        Some(format!(
+            "image size {width}x{height} is over {MAX_IMAGE_PIXELS} pixels"
+        ))
+    } else {
+        None
+    }
+}
+
 impl Camera {
     /// Mean focal length in pixels.
     pub fn mean_focal_length(&self) -> f64 {

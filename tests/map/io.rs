@@ -720,6 +720,65 @@ fn pcd_ascii_binary_and_compressed_read_back() {
         "bad_lzf.pcd",
         &pcd_bytes("binary_compressed", &xyz, 3, &bad),
     ));
+    // COUNTs whose record size is beyond any real layout or overflows:
+    // header errors, not an allocation, a division by zero or a slice
+    // out of range.
+    let huge = |size, count| {
+        [
+            ("x", "F", 4, 1),
+            ("y", "F", 4, 1),
+            ("z", "F", 4, 1),
+            ("a", "U", size, count),
+        ]
+    };
+    for (name, data, fields, body) in [
+        (
+            "count_ascii.pcd",
+            "ascii",
+            huge(4, 1 << 60),
+            &b"1 2 3 4\n"[..],
+        ),
+        (
+            "count_wraps.pcd",
+            "binary",
+            huge(1, usize::MAX - 11),
+            &[0u8; 16][..],
+        ),
+        (
+            "count_first.pcd",
+            "binary",
+            {
+                let mut f = huge(1, 1);
+                f.rotate_right(1);
+                f[0].3 = usize::MAX - 7;
+                f
+            },
+            &[0u8; 16][..],
+        ),
+        (
+            "count_lzf.pcd",
+            "binary_compressed",
+            huge(1, usize::MAX - 11),
+            &[0u8; 8][..],
+        ),
+    ] {
+        let err = read_err(&write(dir.path(), name, &pcd_bytes(data, &fields, 1, body)));
+        assert!(
+            err.to_string()
+                .contains("point record of more than 1048576 bytes"),
+            "{name}: {err}"
+        );
+    }
+    // A compressed block that says it expands more than LZF can.
+    let mut sizes = 4u32.to_le_bytes().to_vec();
+    sizes.extend_from_slice(&12_000u32.to_le_bytes());
+    sizes.extend_from_slice(&[0, 9, 9, 9]);
+    let err = read_err(&write(
+        dir.path(),
+        "lzf_ratio.pcd",
+        &pcd_bytes("binary_compressed", &xyz, 1000, &sizes),
+    ));
+    assert!(err.to_string().contains("more than LZF can"), "{err}");
     // Every truncation of the binary file fails cleanly.
     let full = pcd_bytes("binary", &fields, 3, &records);
     let path = dir.path().join("cuts.pcd");

@@ -11,7 +11,10 @@ use crate::scene::{
 };
 
 use super::text::write_file;
-use super::{pose_from_file, Loc, ModelError, ModelFormat, ParsedImage, ParsedModel};
+use super::{
+    bad_camera, bad_coordinates, pose_from_file, Loc, ModelError, ModelFormat, ParsedImage,
+    ParsedModel,
+};
 
 /// Smallest possible encoded sizes, for the count checks.
 const MIN_CAMERA_BYTES: u64 = 4 + 4 + 8 + 8 + 3 * 8;
@@ -216,16 +219,17 @@ fn read_cameras(mut r: BinReader) -> Result<Vec<(Camera, Loc)>, ModelError> {
         for name in model.param_names() {
             params.push(r.f64(&format!("parameter {name}"))?);
         }
-        cameras.push((
-            Camera {
-                id,
-                model,
-                width: size[0],
-                height: size[1],
-                params,
-            },
-            loc,
-        ));
+        let camera = Camera {
+            id,
+            model,
+            width: size[0],
+            height: size[1],
+            params,
+        };
+        if let Some(why) = bad_camera(&camera) {
+            return Err(r.error_at(model_offset, why));
+        }
+        cameras.push((camera, loc));
     }
     r.finish()?;
     Ok(cameras)
@@ -241,12 +245,7 @@ fn read_images(mut r: BinReader) -> Result<Vec<ParsedImage>, ModelError> {
         let q_offset = r.offset;
         let q = [r.f64("QW")?, r.f64("QX")?, r.f64("QY")?, r.f64("QZ")?];
         let t = [r.f64("TX")?, r.f64("TY")?, r.f64("TZ")?];
-        let pose = pose_from_file(q, t).ok_or_else(|| {
-            r.error_at(
-                q_offset,
-                format!("QW QX QY QZ = {q:?} is not a valid rotation"),
-            )
-        })?;
+        let pose = pose_from_file(q, t).map_err(|why| r.error_at(q_offset, why))?;
         let camera_id = CameraId(r.u32("CAMERA_ID")?);
         let name = r.name()?;
         let num_points = r.count("keypoints", KEYPOINT_BYTES)?;
@@ -255,8 +254,12 @@ fn read_images(mut r: BinReader) -> Result<Vec<ParsedImage>, ModelError> {
         }
         let mut points2d = Vec::with_capacity(num_points as usize);
         for _ in 0..num_points {
+            let xy_offset = r.offset;
             let x = r.f64("X")?;
             let y = r.f64("Y")?;
+            if let Some(why) = bad_coordinates(&format!("keypoint {}", points2d.len()), &[x, y]) {
+                return Err(r.error_at(xy_offset, why));
+            }
             let id = r.u64("POINT3D_ID")?;
             points2d.push(Point2D {
                 xy: [x, y].into(),
@@ -292,7 +295,11 @@ fn read_points(mut r: BinReader) -> Result<Vec<(Point3DId, Point3D, Loc)>, Model
                 "POINT3D_ID 2^64-1 is reserved for \"no point\"",
             ));
         }
+        let xyz_offset = r.offset;
         let xyz = [r.f64("X")?, r.f64("Y")?, r.f64("Z")?];
+        if let Some(why) = bad_coordinates("X Y Z", &xyz) {
+            return Err(r.error_at(xyz_offset, why));
+        }
         let color = [r.u8("R")?, r.u8("G")?, r.u8("B")?];
         let error = r.f64("ERROR")?;
         let len = r.count("track elements", TRACK_ELEMENT_BYTES)?;

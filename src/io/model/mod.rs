@@ -46,6 +46,7 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
+use crate::scene::camera::bad_image_size;
 use crate::scene::{Camera, Image, ImageId, Point3D, Point3DId, Reconstruction, Rigid3};
 
 /// The two on-disk encodings of a COLMAP model.
@@ -185,8 +186,38 @@ fn rotation_from_file(q_wxyz: [f64; 4]) -> Option<UnitQuaternion<f64>> {
     }
 }
 
-fn pose_from_file(q_wxyz: [f64; 4], t: [f64; 3]) -> Option<Rigid3> {
-    Some(Rigid3::new(rotation_from_file(q_wxyz)?, Vector3::from(t)))
+/// An image's pose as read from a file, or why it is not one.
+fn pose_from_file(q_wxyz: [f64; 4], t: [f64; 3]) -> Result<Rigid3, String> {
+    let rotation = rotation_from_file(q_wxyz)
+        .ok_or_else(|| format!("QW QX QY QZ = {q_wxyz:?} is not a valid rotation"))?;
+    if !t.iter().all(|v| v.is_finite()) {
+        return Err(format!("TX TY TZ = {t:?} is not finite"));
+    }
+    Ok(Rigid3::new(rotation, Vector3::from(t)))
+}
+
+/// Why a camera read from a file cannot be used: an image size no camera
+/// has ([`bad_image_size`]) or a parameter that is not finite.
+fn bad_camera(camera: &Camera) -> Option<String> {
+    if let Some(why) = bad_image_size(u64::from(camera.width), u64::from(camera.height)) {
+        return Some(why);
+    }
+    let names = camera.model.param_names();
+    let (i, p) = camera
+        .params
+        .iter()
+        .enumerate()
+        .find(|(_, p)| !p.is_finite())?;
+    let name = names
+        .get(i)
+        .map_or_else(|| format!("{}", i + 1), |n| n.to_string());
+    Some(format!("parameter {name} is {p}"))
+}
+
+/// Why a 3D point's or keypoint's coordinates read from a file cannot be
+/// used: one is not finite.
+fn bad_coordinates(what: &str, xyz: &[f64]) -> Option<String> {
+    (!xyz.iter().all(|v| v.is_finite())).then(|| format!("{what} {xyz:?} is not finite"))
 }
 
 /// Why an image name cannot be written, if it cannot.
@@ -599,6 +630,7 @@ fn mean_track_length(rec: &Reconstruction) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene::CameraId;
     use rand::{Rng, SeedableRng};
 
     const CAMERAS_TXT: &str =
@@ -696,6 +728,86 @@ mod tests {
                     let garbage: Vec<u8> = (0..rng.gen_range(0..300)).map(|_| rng.gen()).collect();
                     check(which, &garbage);
                 }
+            }
+        }
+    }
+
+    /// Values no model can hold, written by our own writers in both
+    /// formats: each read is an error naming the file and the value.
+    #[test]
+    fn sizes_and_values_no_model_holds_are_errors() {
+        let text_files = [CAMERAS_TXT, IMAGES_TXT, POINTS_TXT].map(str::as_bytes);
+        let good = decode(text_files, ModelFormat::Text).unwrap();
+        let (camera, image, point) = (CameraId(1), ImageId(3), Point3DId(7));
+        type Spoil = fn(&mut Reconstruction, CameraId, ImageId, Point3DId);
+        let cases: [(Spoil, usize, &str); 8] = [
+            (
+                |r, c, _, _| r.cameras.get_mut(&c).unwrap().width = u32::MAX,
+                0,
+                "side over 100000",
+            ),
+            (
+                |r, c, _, _| r.cameras.get_mut(&c).unwrap().height = 0,
+                0,
+                "is empty",
+            ),
+            (
+                |r, c, _, _| {
+                    let cam = r.cameras.get_mut(&c).unwrap();
+                    (cam.width, cam.height) = (40_000, 40_000);
+                },
+                0,
+                "over 1073741824 pixels",
+            ),
+            (
+                |r, c, _, _| r.cameras.get_mut(&c).unwrap().params[1] = f64::NAN,
+                0,
+                "parameter fy is NaN",
+            ),
+            (
+                |r, _, i, _| {
+                    let pose = r
+                        .images
+                        .get_mut(&i)
+                        .unwrap()
+                        .cam_from_world
+                        .as_mut()
+                        .unwrap();
+                    pose.translation.y = f64::INFINITY;
+                },
+                1,
+                "TX TY TZ = [",
+            ),
+            (
+                |r, _, i, _| r.images.get_mut(&i).unwrap().points2d[0].xy.x = f64::NAN,
+                1,
+                "keypoint 0 [NaN",
+            ),
+            (
+                |r, _, _, p| r.points3d.get_mut(&p).unwrap().xyz.z = f64::NAN,
+                2,
+                "X Y Z [1.0, 2.0, NaN]",
+            ),
+            (
+                |r, _, _, p| r.points3d.get_mut(&p).unwrap().xyz.x = -f64::INFINITY,
+                2,
+                "is not finite",
+            ),
+        ];
+        for format in [ModelFormat::Text, ModelFormat::Binary] {
+            let names = ModelFormat::paths(format, Path::new("model"))
+                .map(|p| p.file_name().unwrap().to_string_lossy().into_owned());
+            for (spoil, file, says) in cases {
+                let mut bad = good.clone();
+                spoil(&mut bad, camera, image, point);
+                let files = encode(&bad, format);
+                let err = decode([&files[0], &files[1], &files[2]], format)
+                    .expect_err(says)
+                    .to_string();
+                assert!(
+                    err.contains(says) && err.contains(&names[file]),
+                    "{format:?}: {err}"
+                );
             }
         }
     }

@@ -12,8 +12,8 @@ use crate::scene::{
 };
 
 use super::{
-    mean_observations_per_image, mean_track_length, pose_from_file, Loc, ModelError, ModelFormat,
-    ParsedImage, ParsedModel,
+    bad_camera, bad_coordinates, mean_observations_per_image, mean_track_length, pose_from_file,
+    Loc, ModelError, ModelFormat, ParsedImage, ParsedModel,
 };
 
 /// Shortest round-trip decimal form of an f64 (reads back bit-identical). Plain
@@ -212,13 +212,17 @@ fn read_cameras(mut lines: LineReader) -> Result<Vec<(Camera, Loc)>, ModelError>
             let width = f.u32("WIDTH")?;
             let height = f.u32("HEIGHT")?;
             let params = f.rest_f64("PARAMS")?;
-            Ok(Camera {
+            let camera = Camera {
                 id,
                 model,
                 width,
                 height,
                 params,
-            })
+            };
+            match bad_camera(&camera) {
+                Some(why) => Err(why),
+                None => Ok(camera),
+            }
         };
         let camera = parse(&lines.line).map_err(|msg| lines.error(msg))?;
         cameras.push((camera, Loc::Line(lines.line_no)));
@@ -240,8 +244,7 @@ fn read_images(mut lines: LineReader) -> Result<Vec<ParsedImage>, ModelError> {
             if name.is_empty() {
                 return Err("line ends before NAME".to_string());
             }
-            let pose = pose_from_file(q, t)
-                .ok_or_else(|| format!("QW QX QY QZ = {q:?} is not a valid rotation"))?;
+            let pose = pose_from_file(q, t)?;
             Ok(Image {
                 id,
                 name: name.to_string(),
@@ -265,6 +268,9 @@ fn read_images(mut lines: LineReader) -> Result<Vec<ParsedImage>, ModelError> {
                     format!("X of keypoint {}: {x:?} is not a number", points.len())
                 })?;
                 let y = f.f64(&format!("Y of keypoint {}", points.len()))?;
+                if let Some(why) = bad_coordinates(&format!("keypoint {}", points.len()), &[x, y]) {
+                    return Err(why);
+                }
                 let field = format!("POINT3D_ID of keypoint {}", points.len());
                 let id = f
                     .next_token()
@@ -301,6 +307,9 @@ fn read_points(mut lines: LineReader) -> Result<Vec<(Point3DId, Point3D, Loc)>, 
             let mut f = Fields::new(line);
             let id = f.point3d_id("POINT3D_ID")?;
             let xyz = [f.f64("X")?, f.f64("Y")?, f.f64("Z")?];
+            if let Some(why) = bad_coordinates("X Y Z", &xyz) {
+                return Err(why);
+            }
             let rgb_kind = "an integer in 0..=255";
             let color = [
                 f.parse("R", rgb_kind)?,

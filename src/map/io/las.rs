@@ -9,8 +9,10 @@ use super::units::{las_units, CrsUnits, LengthUnit};
 use super::{CloudFormat, CloudSink, LoadReport, MapIoError, ReadOptions};
 use crate::map::PointCloud;
 
-/// Points decoded per batch.
+/// Points decoded per batch ...
 const BATCH_POINTS: u64 = 1 << 16;
+/// ... and at most this many bytes of them.
+const BATCH_BYTES: u64 = 1 << 24;
 
 /// Reads a LAS or LAZ file, leaving out the points of the classes
 /// `options.drop_las_classes` and those flagged withheld (counted in the
@@ -113,9 +115,12 @@ pub fn read_las(
         0b1000_0000u8
     };
     let mut batch = ::las::PointDataBuilder::new().for_header(&header).build();
+    // At most BATCH_BYTES of records at a time: a header may declare long
+    // records (up to 64 KiB), and the batch is allocated before any is read.
+    let batch_points = BATCH_POINTS.min((BATCH_BYTES / batch.record_len().max(1) as u64).max(1));
     let mut done = 0u64;
     while done < declared {
-        let want = (declared - done).min(BATCH_POINTS);
+        let want = (declared - done).min(batch_points);
         let got = reader.fill_points(want, &mut batch).map_err(las_err)?;
         if got == 0 {
             break;

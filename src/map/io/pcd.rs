@@ -31,6 +31,15 @@ struct Header {
     data: DataKind,
 }
 
+/// Largest point record a PCD header may declare, bytes: far beyond the
+/// widest real layouts (a VFH descriptor is 308 floats), and small enough
+/// that no offset computed from it overflows.
+const MAX_RECORD_BYTES: usize = 1 << 20;
+
+/// Most bytes LZF can expand one compressed byte into: a back reference of
+/// at most 264 bytes takes 3 (rounded up).
+const LZF_MAX_EXPANSION: u64 = 100;
+
 fn pcd_type(kind: &str, size: usize) -> Option<ScalarType> {
     Some(match (kind, size) {
         ("I", 1) => ScalarType::I8,
@@ -150,6 +159,20 @@ fn read_header(read: &mut impl BufRead, path: &Path) -> Result<Header, MapIoErro
                         ty,
                         count: counts[i],
                     });
+                }
+                // Checked here, so that the readers' offsets cannot overflow.
+                let record = fields.iter().try_fold(0usize, |sum, f| {
+                    f.ty.size()
+                        .checked_mul(f.count)
+                        .and_then(|b| sum.checked_add(b))
+                });
+                if record.is_none_or(|r| r > MAX_RECORD_BYTES) {
+                    return Err(MapIoError::header(
+                        path,
+                        format!(
+                            "SIZE x COUNT make a point record of more than {MAX_RECORD_BYTES} bytes"
+                        ),
+                    ));
                 }
                 let wh = match (width, height) {
                     (Some(w), Some(h)) => Some(w.saturating_mul(h)),
@@ -375,6 +398,14 @@ pub fn read_pcd(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
                     format!(
                         "binary_compressed block holds {uncompressed} bytes but {} points of {record} bytes need {expected}",
                         header.points
+                    ),
+                ));
+            }
+            if uncompressed > (compressed as u64).saturating_mul(LZF_MAX_EXPANSION) {
+                return Err(MapIoError::header(
+                    path,
+                    format!(
+                        "binary_compressed block says {compressed} bytes expand to {uncompressed}, more than LZF can"
                     ),
                 ));
             }
