@@ -176,7 +176,23 @@ pub fn generate_building(count: usize, local: bool, noise_m: f64, seed: u64) -> 
     }
 }
 
+/// The generator's and the benchmark's own arguments: at least one point,
+/// a finite non-negative noise.
+fn check_cloud_args(points: usize, noise: f64) -> anyhow::Result<()> {
+    anyhow::ensure!(points >= 1, "--points must be at least 1");
+    anyhow::ensure!(
+        noise.is_finite() && noise >= 0.0,
+        "--noise must be finite and >= 0 metres, got {noise}"
+    );
+    Ok(())
+}
+
 pub fn run(args: &BenchMapArgs) -> anyhow::Result<()> {
+    match &args.action {
+        BenchMapAction::Generate { points, noise, .. }
+        | BenchMapAction::Nn { points, noise, .. } => check_cloud_args(*points, *noise)?,
+        BenchMapAction::Load { .. } => {}
+    }
     match &args.action {
         BenchMapAction::Generate {
             output,

@@ -149,5 +149,17 @@ mod tests {
         assert!(options(&["--lidar-noise=-0.01"]).is_err());
         assert!(options(&["--lidar-outliers", "0.7"]).is_err());
         assert!(options(&["--lidar-outliers", "NaN"]).is_err());
+        // Session 64's review: these panicked, aborted or wrote a NaN map.
+        for bad in [
+            &["--lidar-noise", "inf"][..],
+            &["--lidar-spacing", "0"],
+            &["--lidar-spacing", "-1"],
+            &["--lidar-spacing", "NaN"],
+            &["--lidar-spacing", "inf"],
+            &["--images", "1000000000000000000"],
+        ] {
+            assert!(options(bad).is_err(), "{bad:?}");
+        }
+        assert!(options(&["--lidar-spacing", "0.05", "--images", "400"]).is_ok());
     }
 }

@@ -282,6 +282,8 @@ pub struct FrustumGrid {
     origin: Vector3<f64>,
     /// Integer coordinates of the cell with packed coordinate 0 on each axis.
     min_cell: [i64; 3],
+    /// Largest packed coordinate of an occupied cell on each axis.
+    extent: [i64; 3],
     /// Packed coordinates of the occupied cells, sorted (x major, z minor).
     cell_keys: Vec<u64>,
     /// `cell_starts[c]..cell_starts[c + 1]` indexes `point_idxs` for cell `c`.
@@ -387,10 +389,16 @@ impl FrustumGrid {
         drop(pairs);
         cell_keys.shrink_to_fit();
         cell_starts.shrink_to_fit();
+        let extent = if n == 0 {
+            [0; 3]
+        } else {
+            [0, 1, 2].map(|a| max_cell[a] - min_cell[a])
+        };
         Ok(Self {
             cell_size_m: s,
             origin: cloud.origin,
             min_cell,
+            extent,
             cell_keys,
             cell_starts,
             point_idxs,
@@ -473,12 +481,16 @@ impl FrustumGrid {
         let centre_rel = frustum.cam_from_world.camera_center() - self.origin;
         let rotation = frustum.cam_from_world.rotation_matrix();
         let s = self.cell_size_m;
-        // Packed-coordinate range of the cells within far of the centre, per axis.
+        // Packed-coordinate range of the cells within far of the centre, per
+        // axis, clamped to the occupied cells before the cast (a far distance
+        // of kilometres would otherwise loop over empty columns, and one
+        // beyond i64 would saturate).
         let range = |a: usize| -> Option<(i64, i64)> {
-            let lo = ((centre_rel[a] - frustum.far_m) / s).floor() as i64 - self.min_cell[a] - 1;
-            let hi = ((centre_rel[a] + frustum.far_m) / s).floor() as i64 - self.min_cell[a] + 1;
-            let (lo, hi) = (lo.max(0), hi.min(AXIS_MAX));
-            (lo <= hi).then_some((lo, hi))
+            let min = self.min_cell[a] as f64;
+            let lo = ((centre_rel[a] - frustum.far_m) / s).floor() - min - 1.0;
+            let hi = ((centre_rel[a] + frustum.far_m) / s).floor() - min + 1.0;
+            let top = self.extent[a] as f64;
+            (lo <= top && hi >= 0.0).then(|| (lo.max(0.0) as i64, hi.min(top) as i64))
         };
         let (Some((x0, x1)), Some((y0, y1)), Some((z0, z1))) = (range(0), range(1), range(2))
         else {
@@ -566,5 +578,23 @@ mod tests {
         let cam_from_world = Rigid3::new(UnitQuaternion::identity(), -cloud.origin);
         let frustum = Frustum::from_camera(&camera, &cam_from_world, 0.5, 40.0, 0.0);
         assert_eq!(grid.points_in_frustum(&frustum), vec![0]);
+        // Far limits of kilometres up to beyond i64 cells visit only the
+        // occupied cells (they looped over 2^42 empty columns, or wrapped
+        // into an empty range): the same points as 200 m.
+        let within = |far_m| {
+            let f = Frustum::from_camera(&camera, &cam_from_world, 0.5, far_m, 0.0);
+            grid.points_in_frustum(&f)
+        };
+        assert_eq!(within(200.0), vec![0, 2]);
+        for far_m in [1e6, 1e20, 1e300, f64::INFINITY] {
+            assert_eq!(within(far_m), vec![0, 2], "{far_m}");
+        }
+        // A camera far outside the occupied cells sees none of them.
+        let away = Rigid3::new(
+            UnitQuaternion::identity(),
+            -cloud.origin - Vector3::new(0.0, 0.0, 1e4),
+        );
+        let f = Frustum::from_camera(&camera, &away, 0.5, 40.0, 0.0);
+        assert!(grid.points_in_frustum(&f).is_empty());
     }
 }

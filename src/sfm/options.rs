@@ -25,21 +25,48 @@ fn check(ok: bool, name: &str, message: impl Into<String>) -> Result<(), Options
     }
 }
 
+/// Magnitudes beyond which no option of the mapper means anything, and
+/// whose squares (loss scales, weights) would overflow or underflow inside
+/// the solver: a Cauchy scale of 1e200 px made every cost NaN.
+const OPTION_MAGNITUDE: (f64, f64) = (1e-100, 1e100);
+
+/// `v` as an error message shows it: plain, or in scientific notation when
+/// very small or large (not 300 digits).
+fn show(v: f64) -> String {
+    if v != 0.0 && v.is_finite() && !(1e-4..1e6).contains(&v.abs()) {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
+    }
+}
+
 fn positive(name: &str, v: f64) -> Result<(), OptionsError> {
+    let (lo, hi) = OPTION_MAGNITUDE;
     check(
-        v.is_finite() && v > 0.0,
+        v.is_finite() && (lo..=hi).contains(&v),
         name,
-        format!("must be finite and > 0, got {v}"),
+        format!("must be > 0, in [{lo:e}, {hi:e}], got {}", show(v)),
     )
 }
 
 fn non_negative(name: &str, v: f64) -> Result<(), OptionsError> {
+    let (lo, hi) = OPTION_MAGNITUDE;
     check(
-        v.is_finite() && v >= 0.0,
+        v == 0.0 || (v.is_finite() && (lo..=hi).contains(&v)),
         name,
-        format!("must be finite and >= 0, got {v}"),
+        format!("must be 0 or in [{lo:e}, {hi:e}], got {}", show(v)),
     )
 }
+
+/// Most RANSAC iterations of a registration (`register.max_iterations`).
+const MAX_RANSAC_ITERATIONS: usize = 1_000_000;
+
+/// Largest plane neighbourhood (`association.plane_radius_m`,
+/// `plane_window_m`), metres: each plane's offset averages the map within
+/// it, so 100 m averaged the whole map for every plane. (The radius grows
+/// with a sparse map's spacing, 2.5 times it: a 4 m map is the sparsest
+/// that passes, far sparser than any the tool can use.)
+const MAX_PLANE_RADIUS_M: f64 = 10.0;
 
 /// Initialisation from the map (method.md 4.4).
 #[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
@@ -196,9 +223,11 @@ impl RegisterOptions {
             "must be in (0, 1)",
         )?;
         check(
-            self.min_iterations >= 1 && self.max_iterations >= self.min_iterations,
+            self.min_iterations >= 1
+                && self.max_iterations >= self.min_iterations
+                && self.max_iterations <= MAX_RANSAC_ITERATIONS,
             "register.max_iterations",
-            "need 1 <= min_iterations <= max_iterations",
+            format!("need 1 <= min_iterations <= max_iterations <= {MAX_RANSAC_ITERATIONS}"),
         )?;
         positive("register.refine_huber_px", self.refine_huber_px)?;
         check(
@@ -606,7 +635,14 @@ impl BundleOptions {
             self.refine_intrinsics_min_change,
         )?;
         positive("bundle.reprojection_loss_px", self.reprojection_loss_px)?;
-        non_negative("bundle.uncertainty_cluster_m", self.uncertainty_cluster_m)?;
+        check(
+            self.uncertainty_cluster_m == 0.0 || (1e-3..=1e6).contains(&self.uncertainty_cluster_m),
+            "bundle.uncertainty_cluster_m",
+            format!(
+                "must be 0 (off) or in [0.001, 1e6] metres, got {}",
+                show(self.uncertainty_cluster_m)
+            ),
+        )?;
         positive("bundle.function_tolerance", self.function_tolerance)?;
         non_negative(
             "bundle.initial_prior_position_m",
@@ -1042,8 +1078,16 @@ impl AssociationOptions {
             "association.same_plane_max_angle_deg",
             "must be in [0, 90]",
         )?;
-        positive("association.plane_radius_m", self.plane_radius_m)?;
-        positive("association.plane_window_m", self.plane_window_m)?;
+        for (name, v) in [
+            ("association.plane_radius_m", self.plane_radius_m),
+            ("association.plane_window_m", self.plane_window_m),
+        ] {
+            check(
+                v > 0.0 && v <= MAX_PLANE_RADIUS_M,
+                name,
+                format!("must be in (0, {MAX_PLANE_RADIUS_M}] metres (a plane's neighbourhood), got {v}"),
+            )?;
+        }
         check(
             (0.0..=1.0).contains(&self.min_points_on_map_share),
             "association.min_points_on_map_share",
@@ -1189,6 +1233,43 @@ mod tests {
         bad.association.min_planarity = 1.5;
         let err = bad.validate().unwrap_err().to_string();
         assert!(err.contains("association.min_planarity"), "{err}");
+        // Values that passed before and then hung a run, made every cost
+        // NaN or made a sigma meaningless (session 64's review).
+        type Spoil = fn(&mut MapperOptions);
+        let spoilt: [(Spoil, &str); 6] = [
+            (
+                |o| o.register.max_iterations = 1_000_000_000_000_000,
+                "register.max_iterations",
+            ),
+            (
+                |o| o.association.plane_radius_m = 100.0,
+                "association.plane_radius_m",
+            ),
+            (|o| o.bundle.reprojection_loss_px = 1e200, "got 1e200"),
+            (|o| o.bundle.uncertainty_cluster_m = 1e-300, "got 1e-300"),
+            (
+                |o| o.bundle.initial_prior_position_m = 1e-320,
+                "bundle.initial_prior_position_m",
+            ),
+            (
+                |o| o.filter.max_reprojection_error_px = f64::INFINITY,
+                "got inf",
+            ),
+        ];
+        for (spoil, says) in spoilt {
+            let mut bad = MapperOptions::default();
+            spoil(&mut bad);
+            let err = bad.validate().unwrap_err().to_string();
+            assert!(err.contains(says), "{says}: {err}");
+        }
+        // 0 still turns these off; ordinary values still pass.
+        let mut off = MapperOptions::default();
+        off.bundle.uncertainty_cluster_m = 0.0;
+        off.bundle.initial_prior_position_m = 0.0;
+        off.association.plane_radius_m = 0.3;
+        off.validate().unwrap();
+        assert_eq!(show(0.3), "0.3");
+        assert_eq!(show(1e-300), "1e-300");
     }
 
     #[test]

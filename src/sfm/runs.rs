@@ -586,7 +586,7 @@ pub(super) fn early_look_at(num_images: usize, options: &MapperOptions) -> Optio
     {
         return None;
     }
-    if num_images >= 3 * b.restart_early_at_images {
+    if num_images >= b.restart_early_at_images.saturating_mul(3) {
         return Some(LookPlan {
             from: b.restart_early_at_images,
             steady_until: None,

@@ -92,6 +92,10 @@ impl Default for SynthOptions {
     }
 }
 
+/// Most images `synth` renders (a 400-image corridor is the largest scene
+/// the benchmarks use).
+pub const MAX_IMAGES: usize = 10_000;
+
 impl SynthOptions {
     pub fn validate(&self) -> Result<(), SynthError> {
         let bad = |m: String| Err(SynthError::InvalidOption(m));
@@ -108,9 +112,9 @@ impl SynthOptions {
                 self.changes
             ));
         }
-        if self.num_images < 2 {
+        if !(2..=MAX_IMAGES).contains(&self.num_images) {
             return bad(format!(
-                "--images must be at least 2, got {}",
+                "--images must be 2..={MAX_IMAGES}, got {}",
                 self.num_images
             ));
         }
@@ -138,8 +142,20 @@ impl SynthOptions {
         if !self.offset_m.iter().all(|c| c.is_finite()) {
             return bad("--offset must be finite".into());
         }
-        if !(self.noise_sigma_u8 >= 0.0 && self.lidar.noise_sigma_m >= 0.0) {
-            return bad("noise levels must be >= 0".into());
+        if !((0.0..=255.0).contains(&self.noise_sigma_u8)
+            && (0.0..=1.0).contains(&self.lidar.noise_sigma_m))
+        {
+            return bad(format!(
+                "noise levels must be in 0..=255 (images) and 0..=1 m (LiDAR), got {} and {}",
+                self.noise_sigma_u8, self.lidar.noise_sigma_m
+            ));
+        }
+        if let Some(spacing) = self.lidar.spacing_m {
+            if !(0.001..=10.0).contains(&spacing) {
+                return bad(format!(
+                    "--lidar-spacing must be in 0.001..=10 m, got {spacing}"
+                ));
+            }
         }
         if !(0.0..=0.5).contains(&self.lidar.outlier_fraction) {
             return bad(format!(
