@@ -8,6 +8,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context};
 
+use crate::io::atomic::output_replaces_input;
 use crate::io::images::{check_image_folder, read_rgb, ExpectedImage};
 use crate::io::model::read_model;
 use crate::map::colour::{seen_points, MapColourOptions, MapColours};
@@ -85,6 +86,14 @@ const UNSEEN_GREY: [u8; 3] = [128, 128, 128];
 
 pub fn run(args: &ColourMapArgs) -> anyhow::Result<()> {
     let mut options = args.options()?;
+    if let Some(why) = output_replaces_input(
+        &args.output,
+        false,
+        &[&args.lidar],
+        &[&args.model, &args.image_path],
+    ) {
+        bail!(why);
+    }
     let start = Instant::now();
     let model = read_model(&args.model)
         .with_context(|| format!("reading the COLMAP model {}", args.model.display()))?;

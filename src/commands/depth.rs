@@ -8,6 +8,7 @@ use std::time::Instant;
 use anyhow::Context;
 use nalgebra::Vector2;
 
+use crate::io::atomic::output_replaces_input;
 use crate::io::model::read_model;
 use crate::map::depth_image::{colourise, render_depth_image, write_png};
 use crate::map::grid::{FrustumGrid, GridOptions};
@@ -64,6 +65,9 @@ pub fn widen_splats_for_map(options: &mut ProjectionOptions, cloud: &PointCloud)
 
 pub fn run(args: &DepthArgs) -> anyhow::Result<()> {
     let options = args.options()?;
+    if let Some(why) = output_replaces_input(&args.output, false, &[&args.lidar], &[&args.model]) {
+        anyhow::bail!(why);
+    }
     let start = Instant::now();
     let model = read_model(&args.model)
         .with_context(|| format!("reading the COLMAP model {}", args.model.display()))?;

@@ -21,6 +21,7 @@ use anyhow::{bail, Context, Result};
 use serde::Deserialize;
 
 use crate::commands::prepare_map::parse_input_units;
+use crate::io::atomic::output_replaces_input;
 use crate::io::database::{read_database, DatabaseSnapshot};
 use crate::io::images::{check_image_folder, colour_points, ExpectedImage};
 use crate::io::model::{read_model, write_model, ModelFormat};
@@ -513,6 +514,15 @@ pub fn load_map_reporting(path: &Path, units: InputUnits) -> Result<(PointCloud,
 pub fn run(args: &MapArgs) -> Result<()> {
     let config = args.config()?;
     check_output(&config.output)?;
+    let mut files = vec![config.database.as_path(), config.lidar.as_path()];
+    files.extend(config.pose_priors.as_deref());
+    files.extend(args.options.as_deref());
+    let mut folders = Vec::new();
+    folders.extend(config.input_model.as_deref());
+    folders.extend(config.image_path.as_deref());
+    if let Some(why) = output_replaces_input(&config.output, true, &files, &folders) {
+        bail!(why);
+    }
     let db = read_database(&config.database)
         .with_context(|| format!("reading the database {}", config.database.display()))?;
     if let Some(dir) = &config.image_path {

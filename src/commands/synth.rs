@@ -13,7 +13,8 @@ pub struct SynthArgs {
     /// Which scene to build.
     #[arg(long, value_enum)]
     pub scene: SceneKind,
-    /// Output folder (replaced atomically).
+    /// Output folder: replaced atomically as a whole, so an existing one must
+    /// hold only a scene (what `synth` and `scripts/make_database.sh` write).
     #[arg(long, short = 'o', alias = "output_path")]
     pub output: PathBuf,
     /// Number of images along the trajectory.
@@ -97,8 +98,47 @@ impl SynthArgs {
     }
 }
 
+/// What `synth` writes into its output folder, and the database
+/// `scripts/make_database.sh` adds there: a folder holding anything else is
+/// not a scene and is not replaced.
+const SCENE_ENTRIES: [&str; 9] = [
+    "scene.json",
+    "images",
+    "gt",
+    "lidar.ply",
+    "lidar_raw.ply",
+    "init_pose.txt",
+    "database.db",
+    "database.db-shm",
+    "database.db-wal",
+];
+
+/// Refuses an output that exists and is not a folder holding only a scene
+/// ([`SCENE_ENTRIES`]): the output is replaced as a whole.
+fn check_scene_output(dir: &std::path::Path) -> anyhow::Result<()> {
+    if !dir.exists() {
+        return Ok(());
+    }
+    if !dir.is_dir() {
+        anyhow::bail!("the output {} exists and is not a folder", dir.display());
+    }
+    let listing = || format!("reading {}", dir.display());
+    for entry in std::fs::read_dir(dir).with_context(listing)? {
+        let name = entry.with_context(listing)?.file_name();
+        let name = name.to_string_lossy();
+        if !SCENE_ENTRIES.contains(&name.as_ref()) {
+            anyhow::bail!(
+                "the output folder {} holds `{name}`, which is not part of a synthetic scene: refusing to replace it",
+                dir.display()
+            );
+        }
+    }
+    Ok(())
+}
+
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     let opts = args.to_options()?;
+    check_scene_output(&args.output)?;
     let summary = generate_scene(&opts, &args.output)
         .with_context(|| format!("cannot write scene to {}", args.output.display()))?;
     println!(
@@ -161,5 +201,26 @@ mod tests {
             assert!(options(bad).is_err(), "{bad:?}");
         }
         assert!(options(&["--lidar-spacing", "0.05", "--images", "400"]).is_ok());
+    }
+
+    #[test]
+    fn only_a_scene_folder_is_replaced() {
+        let root = tempfile::tempdir().unwrap();
+        let scene = root.path().join("scene");
+        std::fs::create_dir_all(scene.join("images")).unwrap();
+        std::fs::write(scene.join("database.db"), "").unwrap();
+        std::fs::write(scene.join("scene.json"), "{}").unwrap();
+        check_scene_output(&scene).unwrap();
+        check_scene_output(&root.path().join("new")).unwrap();
+        std::fs::write(scene.join("notes.txt"), "mine").unwrap();
+        let err = check_scene_output(&scene).unwrap_err().to_string();
+        assert!(
+            err.contains("`notes.txt`") && err.contains("refusing"),
+            "{err}"
+        );
+        let err = check_scene_output(&scene.join("notes.txt"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("is not a folder"), "{err}");
     }
 }

@@ -12,6 +12,118 @@ fn parent_of(path: &Path) -> PathBuf {
     }
 }
 
+/// Whether `path`'s last component, as written, is `.` or `..` (or it is
+/// empty): `Path` would read `out/.` as `out`, whose parent is then the
+/// wrong folder.
+fn names_nothing(path: &Path) -> bool {
+    use std::os::unix::ffi::OsStrExt;
+    let bytes = path.as_os_str().as_bytes();
+    let trimmed = match bytes.iter().rposition(|&b| b != b'/') {
+        Some(end) => &bytes[..=end],
+        None => return true,
+    };
+    let last = trimmed.rsplit(|&b| b == b'/').next().unwrap_or(trimmed);
+    last == b"." || last == b".." || path.file_name().is_none()
+}
+
+/// The output's folder, created when missing; an output that names no file
+/// or folder (ending in `.` or `..`) or whose folder cannot be made (a file
+/// in its way) is an error that says so.
+fn prepare_parent(path: &Path) -> io::Result<PathBuf> {
+    if names_nothing(path) {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidInput,
+            format!(
+                "the output `{}` names no file or folder (it ends in `.` or `..`): give its name",
+                path.display()
+            ),
+        ));
+    }
+    let parent = parent_of(path);
+    if let Err(e) = fs::create_dir_all(&parent) {
+        // A file where a folder should be: name it.
+        let in_the_way = parent.ancestors().find(|a| a.exists() && !a.is_dir());
+        return Err(match in_the_way {
+            Some(file) => io::Error::new(
+                io::ErrorKind::NotADirectory,
+                format!(
+                    "cannot make the folder {} for the output: {} is a file, not a folder",
+                    parent.display(),
+                    file.display()
+                ),
+            ),
+            None => io::Error::new(
+                e.kind(),
+                format!("cannot make the folder {}: {e}", parent.display()),
+            ),
+        });
+    }
+    Ok(parent)
+}
+
+/// `path` as a write to it would find it: resolved through symbolic links,
+/// `.` and `..` (its folder only, when it does not exist yet). `None` when
+/// neither it nor its folder exists.
+fn resolved(path: &Path) -> Option<PathBuf> {
+    if let Ok(p) = path.canonicalize() {
+        return Some(p);
+    }
+    let name = path.file_name()?;
+    Some(parent_of(path).canonicalize().ok()?.join(name))
+}
+
+/// Why writing `output` (a folder when `output_is_dir`, replaced as a whole,
+/// else a file) would destroy an input: it is one of the input `files`, is
+/// or lies inside one of the input `folders`, or (a folder) holds one of
+/// the inputs. `None` when it would not.
+pub fn output_replaces_input(
+    output: &Path,
+    output_is_dir: bool,
+    files: &[&Path],
+    folders: &[&Path],
+) -> Option<String> {
+    let out = resolved(output)?;
+    for file in files {
+        let Some(input) = resolved(file) else {
+            continue;
+        };
+        if input == out {
+            return Some(format!(
+                "the output {} is the input {}: write it elsewhere",
+                output.display(),
+                file.display()
+            ));
+        }
+        if output_is_dir && input.starts_with(&out) {
+            return Some(format!(
+                "the output folder {} holds the input {}, and is replaced as a whole: write it elsewhere",
+                output.display(),
+                file.display()
+            ));
+        }
+    }
+    for folder in folders {
+        let Some(input) = resolved(folder) else {
+            continue;
+        };
+        if out.starts_with(&input) || (output_is_dir && input.starts_with(&out)) {
+            return Some(format!(
+                "the output {} would replace {} the input folder {}: write it elsewhere",
+                output.display(),
+                if out == input {
+                    "(it is)"
+                } else if out.starts_with(&input) {
+                    "a part of"
+                } else {
+                    "(it holds)"
+                },
+                folder.display()
+            ));
+        }
+    }
+    None
+}
+
 /// Writes a folder atomically: `fill` populates a fresh temporary folder next
 /// to `dir`, which then replaces `dir` (an existing `dir` is removed only after
 /// `fill` succeeded).
@@ -22,22 +134,38 @@ pub fn write_dir_atomically<E>(
 where
     E: From<io::Error>,
 {
-    let parent = parent_of(dir);
-    fs::create_dir_all(&parent)?;
+    let parent = prepare_parent(dir)?;
     let tmp = tempfile::Builder::new()
         .prefix(".colmap-lidar-tmp-")
         .tempdir_in(&parent)?;
     fill(tmp.path())?;
     // Temporary folders are created 0700; outputs get the usual 0755.
     fs::set_permissions(tmp.path(), fs::Permissions::from_mode(0o755))?;
+    if dir.exists() && !dir.is_dir() {
+        return Err(io::Error::new(
+            io::ErrorKind::AlreadyExists,
+            format!(
+                "the output {} exists and is not a folder: refusing to replace it",
+                dir.display()
+            ),
+        )
+        .into());
+    }
     let staged = tmp.keep();
     if dir.exists() {
         let old = tempfile::Builder::new()
             .prefix(".colmap-lidar-old-")
-            .tempdir_in(&parent)?
-            .keep();
-        fs::remove_dir(&old)?;
-        fs::rename(dir, &old)?;
+            .tempdir_in(&parent)
+            .map(tempfile::TempDir::keep)
+            .and_then(|old| fs::remove_dir(&old).map(|()| old))
+            .and_then(|old| fs::rename(dir, &old).map(|()| old));
+        let old = match old {
+            Ok(old) => old,
+            Err(e) => {
+                let _ = fs::remove_dir_all(&staged);
+                return Err(e.into());
+            }
+        };
         if let Err(e) = fs::rename(&staged, dir) {
             // Put the previous output back before reporting.
             let _ = fs::rename(&old, dir);
@@ -61,8 +189,7 @@ pub fn write_file_atomically<E>(
 where
     E: From<io::Error>,
 {
-    let parent = parent_of(path);
-    fs::create_dir_all(&parent)?;
+    let parent = prepare_parent(path)?;
     let tmp = tempfile::Builder::new()
         .prefix(".colmap-lidar-tmp-")
         .tempfile_in(&parent)?;
@@ -81,6 +208,90 @@ where
 mod tests {
     use super::*;
     use std::io::Write;
+
+    #[test]
+    fn outputs_that_would_replace_an_input_are_named() {
+        let root = tempfile::tempdir().unwrap();
+        let r = root.path();
+        fs::create_dir_all(r.join("model")).unwrap();
+        fs::create_dir_all(r.join("images")).unwrap();
+        fs::write(r.join("lidar.ply"), "ply").unwrap();
+        fs::write(r.join("model/cameras.txt"), "#").unwrap();
+        std::os::unix::fs::symlink(r.join("lidar.ply"), r.join("link.ply")).unwrap();
+        let (lidar, model, images) = (r.join("lidar.ply"), r.join("model"), r.join("images"));
+        let files = [lidar.as_path()];
+        let folders = [model.as_path(), images.as_path()];
+        let says = |output: PathBuf, is_dir: bool| {
+            output_replaces_input(&output, is_dir, &files, &folders)
+        };
+        // A file output: the map itself, through `..` or a link; a model
+        // file; a file inside the image folder; one not there yet inside it.
+        for out in [
+            r.join("lidar.ply"),
+            r.join("images/../lidar.ply"),
+            r.join("link.ply"),
+            r.join("model/cameras.txt"),
+            r.join("model/new.png"),
+            r.join("images/a.jpg"),
+        ] {
+            assert!(says(out.clone(), false).is_some(), "{}", out.display());
+        }
+        let msg = says(r.join("link.ply"), false).unwrap();
+        assert!(
+            msg.contains("is the input") && msg.contains("lidar.ply"),
+            "{msg}"
+        );
+        // A folder output: an input folder, one holding the map, one
+        // holding an input folder.
+        assert!(says(r.join("model"), true).unwrap().contains("(it is)"));
+        assert!(says(r.to_path_buf(), true)
+            .unwrap()
+            .contains("holds the input"));
+        // Elsewhere, existing or not: fine.
+        assert_eq!(says(r.join("depth.png"), false), None);
+        assert_eq!(says(r.join("sparse/0"), true), None);
+        assert_eq!(says(r.join("nowhere/at/all.png"), false), None);
+    }
+
+    #[test]
+    fn outputs_that_name_nothing_or_sit_under_a_file_say_so() {
+        let root = tempfile::tempdir().unwrap();
+        let file = root.path().join("afile");
+        fs::write(&file, "x").unwrap();
+        let err = write_dir_atomically::<io::Error>(&file.join("out"), |_| Ok(())).unwrap_err();
+        assert!(
+            err.to_string().contains("afile is a file, not a folder"),
+            "{err}"
+        );
+        let err =
+            write_file_atomically::<io::Error>(&file.join("sub/out.png"), |_| Ok(())).unwrap_err();
+        assert!(
+            err.to_string().contains("afile is a file, not a folder"),
+            "{err}"
+        );
+        assert!(names_nothing(Path::new(".")) && names_nothing(Path::new("a/./")));
+        assert!(names_nothing(Path::new("/")) && names_nothing(Path::new("")));
+        assert!(!names_nothing(Path::new("./out")) && !names_nothing(Path::new("a/.b/")));
+        for name in [".", "deep/a/.."] {
+            let err =
+                write_dir_atomically::<io::Error>(&root.path().join(name), |_| Ok(())).unwrap_err();
+            assert!(
+                err.to_string().contains("names no file or folder"),
+                "{name}: {err}"
+            );
+        }
+        // A folder output where a file is: refused, the file kept, nothing
+        // left behind.
+        let err = write_dir_atomically::<io::Error>(&file, |tmp| fs::write(tmp.join("a"), "a"))
+            .unwrap_err();
+        assert!(err.to_string().contains("is not a folder"), "{err}");
+        assert_eq!(fs::read_to_string(&file).unwrap(), "x");
+        let left: Vec<_> = fs::read_dir(root.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(left, vec![std::ffi::OsString::from("afile")]);
+    }
 
     #[test]
     fn failed_fill_leaves_nothing() {

@@ -31,7 +31,9 @@ pub use scenes::SceneKind;
 pub enum SynthError {
     #[error("invalid option: {0}")]
     InvalidOption(String),
-    #[error("{path}: {source}")]
+    /// An I/O error; `path` empty when the error names its own (the
+    /// output folder's preparation and replacement).
+    #[error("{}{source}", if path.as_os_str().is_empty() { String::new() } else { format!("{}: ", path.display()) })]
     Io {
         path: PathBuf,
         #[source]
@@ -63,7 +65,7 @@ impl SynthError {
 impl From<std::io::Error> for SynthError {
     fn from(source: std::io::Error) -> Self {
         SynthError::Io {
-            path: PathBuf::from("<output folder>"),
+            path: PathBuf::new(),
             source,
         }
     }
