@@ -106,18 +106,20 @@ pub fn output_replaces_input(
         let Some(input) = resolved(folder) else {
             continue;
         };
-        if out.starts_with(&input) || (output_is_dir && input.starts_with(&out)) {
+        let (o, f) = (output.display(), folder.display());
+        if out == input {
             return Some(format!(
-                "the output {} would replace {} the input folder {}: write it elsewhere",
-                output.display(),
-                if out == input {
-                    "(it is)"
-                } else if out.starts_with(&input) {
-                    "a part of"
-                } else {
-                    "(it holds)"
-                },
-                folder.display()
+                "the output {o} is the input folder {f}: write it elsewhere"
+            ));
+        }
+        if out.starts_with(&input) {
+            return Some(format!(
+                "the output {o} is inside the input folder {f}: write it elsewhere"
+            ));
+        }
+        if output_is_dir && input.starts_with(&out) {
+            return Some(format!(
+                "the output folder {o} holds the input folder {f}, and is replaced as a whole: write it elsewhere"
             ));
         }
     }
@@ -243,7 +245,12 @@ mod tests {
         );
         // A folder output: an input folder, one holding the map, one
         // holding an input folder.
-        assert!(says(r.join("model"), true).unwrap().contains("(it is)"));
+        assert!(says(r.join("model"), true)
+            .unwrap()
+            .contains("is the input folder"));
+        assert!(says(r.join("model/sub"), true)
+            .unwrap()
+            .contains("is inside the input folder"));
         assert!(says(r.to_path_buf(), true)
             .unwrap()
             .contains("holds the input"));
