@@ -490,8 +490,14 @@ impl Reader<'_> {
                     let prior = DbPosePrior {
                         position: None,
                         cam_from_world: (q_ok && t_ok && !all_zero_t).then(|| {
-                            // Scaled first: nalgebra's norm squares the parts.
-                            let q = [v[0], v[1], v[2], v[3]].map(|x| x / q_norm);
+                            // Scaled first when huge: nalgebra's norm squares
+                            // the parts (ordinary ones are passed as they are).
+                            let q = [v[0], v[1], v[2], v[3]];
+                            let q = if q_norm > 1e100 {
+                                q.map(|x| x / q_norm)
+                            } else {
+                                q
+                            };
                             Rigid3::from_colmap(q, [v[4], v[5], v[6]])
                         }),
                         coordinate_system: None,
