@@ -384,20 +384,20 @@ fn bad_databases_give_clear_errors() {
 
     // Counts whose byte size overflows 64 bits (2^61 x 2 x 4, 2^61 x 8)
     // against an empty blob: an error, not an allocation.
-    let p = variant(
-        "huge_kp.db",
-        "UPDATE keypoints SET rows = 2305843009213693952, cols = 2, data = NULL WHERE image_id = 2;",
-    );
-    assert_error(&p, "keypoint rows overflow", |e| {
-        e.to_string().contains("need more than 2^64")
-    });
-    let p = variant(
-        "huge_tvg.db",
-        "UPDATE two_view_geometries SET rows = 2305843009213693952, data = NULL WHERE config = 2;",
-    );
-    assert_error(&p, "match rows overflow", |e| {
-        e.to_string().contains("need more than 2^64")
-    });
+    for (name, sql) in [
+        (
+            "huge_kp.db",
+            "UPDATE keypoints SET rows = 2305843009213693952, cols = 2, data = NULL WHERE image_id = 2;",
+        ),
+        (
+            "huge_tvg.db",
+            "UPDATE two_view_geometries SET rows = 2305843009213693952, data = NULL WHERE config = 2;",
+        ),
+    ] {
+        assert_error(&variant(name, sql), name, |e| {
+            e.to_string().contains("need more than 2^64")
+        });
+    }
 
     // A prior quaternion too large to square is scaled, not turned into a
     // zero rotation: 1e200 * (cos 15 deg, 0, 0, sin 15 deg) is 30 deg about z.

@@ -459,23 +459,7 @@ const REPLACEABLE: [&str; 8] = [
 /// Refuses an output folder that holds anything but the files `map` (or
 /// `merge`) writes: it is replaced as a whole.
 pub(crate) fn check_output(dir: &Path) -> Result<()> {
-    if !dir.exists() {
-        return Ok(());
-    }
-    if !dir.is_dir() {
-        bail!("the output {} exists and is not a folder", dir.display());
-    }
-    for entry in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
-        let name = entry?.file_name();
-        let name = name.to_string_lossy();
-        if !REPLACEABLE.contains(&name.as_ref()) {
-            bail!(
-                "the output folder {} holds `{name}`, which is not a model file: refusing to replace it",
-                dir.display()
-            );
-        }
-    }
-    Ok(())
+    super::check_replaceable_output(dir, &REPLACEABLE, "a model file")
 }
 
 /// Reads the map; estimates normals where missing, over a radius that

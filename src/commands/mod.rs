@@ -9,3 +9,35 @@ pub mod merge;
 pub mod plot;
 pub mod prepare_map;
 pub mod synth;
+
+use std::path::Path;
+
+/// Refuses an output folder that is replaced as a whole when it exists and
+/// is not a folder, or holds an entry not in `replaceable` (what the
+/// command itself writes there; `what` names it in the error, e.g. "a model
+/// file").
+pub(crate) fn check_replaceable_output(
+    dir: &Path,
+    replaceable: &[&str],
+    what: &str,
+) -> anyhow::Result<()> {
+    use anyhow::{bail, Context};
+    if !dir.exists() {
+        return Ok(());
+    }
+    if !dir.is_dir() {
+        bail!("the output {} exists and is not a folder", dir.display());
+    }
+    let listing = || format!("reading {}", dir.display());
+    for entry in std::fs::read_dir(dir).with_context(listing)? {
+        let name = entry.with_context(listing)?.file_name();
+        let name = name.to_string_lossy();
+        if !replaceable.contains(&name.as_ref()) {
+            bail!(
+                "the output folder {} holds `{name}`, which is not {what}: refusing to replace it",
+                dir.display()
+            );
+        }
+    }
+    Ok(())
+}

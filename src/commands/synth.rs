@@ -116,24 +116,7 @@ const SCENE_ENTRIES: [&str; 9] = [
 /// Refuses an output that exists and is not a folder holding only a scene
 /// ([`SCENE_ENTRIES`]): the output is replaced as a whole.
 fn check_scene_output(dir: &std::path::Path) -> anyhow::Result<()> {
-    if !dir.exists() {
-        return Ok(());
-    }
-    if !dir.is_dir() {
-        anyhow::bail!("the output {} exists and is not a folder", dir.display());
-    }
-    let listing = || format!("reading {}", dir.display());
-    for entry in std::fs::read_dir(dir).with_context(listing)? {
-        let name = entry.with_context(listing)?.file_name();
-        let name = name.to_string_lossy();
-        if !SCENE_ENTRIES.contains(&name.as_ref()) {
-            anyhow::bail!(
-                "the output folder {} holds `{name}`, which is not part of a synthetic scene: refusing to replace it",
-                dir.display()
-            );
-        }
-    }
-    Ok(())
+    super::check_replaceable_output(dir, &SCENE_ENTRIES, "part of a synthetic scene")
 }
 
 pub fn run(args: &SynthArgs) -> anyhow::Result<()> {

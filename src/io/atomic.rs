@@ -137,12 +137,7 @@ where
     E: From<io::Error>,
 {
     let parent = prepare_parent(dir)?;
-    let tmp = tempfile::Builder::new()
-        .prefix(".colmap-lidar-tmp-")
-        .tempdir_in(&parent)?;
-    fill(tmp.path())?;
-    // Temporary folders are created 0700; outputs get the usual 0755.
-    fs::set_permissions(tmp.path(), fs::Permissions::from_mode(0o755))?;
+    // Before the work of filling it.
     if dir.exists() && !dir.is_dir() {
         return Err(io::Error::new(
             io::ErrorKind::AlreadyExists,
@@ -153,6 +148,12 @@ where
         )
         .into());
     }
+    let tmp = tempfile::Builder::new()
+        .prefix(".colmap-lidar-tmp-")
+        .tempdir_in(&parent)?;
+    fill(tmp.path())?;
+    // Temporary folders are created 0700; outputs get the usual 0755.
+    fs::set_permissions(tmp.path(), fs::Permissions::from_mode(0o755))?;
     let staged = tmp.keep();
     if dir.exists() {
         let old = tempfile::Builder::new()

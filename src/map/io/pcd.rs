@@ -27,6 +27,8 @@ struct Field {
 #[derive(Debug)]
 struct Header {
     fields: Vec<Field>,
+    /// Bytes of one point's record (at most [`MAX_RECORD_BYTES`]).
+    record: usize,
     points: u64,
     data: DataKind,
 }
@@ -166,14 +168,14 @@ fn read_header(read: &mut impl BufRead, path: &Path) -> Result<Header, MapIoErro
                         .checked_mul(f.count)
                         .and_then(|b| sum.checked_add(b))
                 });
-                if record.is_none_or(|r| r > MAX_RECORD_BYTES) {
+                let Some(record) = record.filter(|&r| r <= MAX_RECORD_BYTES) else {
                     return Err(MapIoError::header(
                         path,
                         format!(
                             "SIZE x COUNT make a point record of more than {MAX_RECORD_BYTES} bytes"
                         ),
                     ));
-                }
+                };
                 let wh = match (width, height) {
                     (Some(w), Some(h)) => Some(w.saturating_mul(h)),
                     (Some(w), None) => Some(w),
@@ -194,6 +196,7 @@ fn read_header(read: &mut impl BufRead, path: &Path) -> Result<Header, MapIoErro
                 };
                 return Ok(Header {
                     fields,
+                    record,
                     points,
                     data,
                 });
@@ -252,7 +255,7 @@ pub fn read_pcd(path: &Path) -> Result<(PointCloud, LoadReport), MapIoError> {
         DataKind::Binary => CloudFormat::PcdBinary,
         DataKind::BinaryCompressed => CloudFormat::PcdBinaryCompressed,
     };
-    let record: usize = header.fields.iter().map(|f| f.ty.size() * f.count).sum();
+    let record = header.record;
     let hint = header.points.min(file_len / record.max(1) as u64 + 1) as usize;
     let mut sink = CloudSink::new(format, hint, with_normals, false);
     let nfields = if with_normals { 6 } else { 3 };
