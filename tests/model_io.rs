@@ -957,3 +957,60 @@ fn large_model_timing() {
         assert_eq!(back.points3d.len(), rec.points3d.len());
     }
 }
+
+/// Every command that writes checks where before reading its inputs: an
+/// output under a file, or in a folder that takes no new entries (`/proc`,
+/// even for root), is an error naming it, with a non-zero exit, although the
+/// inputs do not exist either (their errors would come first otherwise).
+#[test]
+fn every_command_refuses_an_unwritable_output_before_its_inputs() {
+    let root = tempfile::tempdir().unwrap();
+    let file = root.path().join("afile");
+    fs::write(&file, "x").unwrap();
+    let missing = root.path().join("missing");
+    let m = missing.to_str().unwrap();
+    for place in [file.clone(), PathBuf::from("/proc/colmap-lidar-test")] {
+        let dir = place.join("out");
+        let png = place.join("out.png");
+        let (d, p) = (dir.to_str().unwrap(), png.to_str().unwrap());
+        let runs: [Vec<&str>; 9] = [
+            vec!["map", "--database", m, "--lidar", m, "--output", d],
+            vec!["merge", "--input", m, "--input", m, "--output", d],
+            vec!["synth", "--scene", "room", "--output", d],
+            vec!["prepare-map", "--input", m, "--output", p],
+            vec![
+                "depth", "--lidar", m, "--model", m, "--image", "a", "--output", p,
+            ],
+            vec![
+                "colour-map",
+                "--lidar",
+                m,
+                "--model",
+                m,
+                "--image-path",
+                m,
+                "--output",
+                p,
+            ],
+            vec!["plot", m, "--output", d],
+            vec!["evaluate", "--model", m, "--reference", m, "--json", p],
+            vec!["bench-map", "generate", "--output", p],
+        ];
+        let expected = if place == file {
+            "afile is a file, not a folder"
+        } else {
+            "takes no new entries"
+        };
+        for args in runs {
+            let out = std::process::Command::new(common::bin())
+                .args(&args)
+                .output()
+                .unwrap();
+            let stderr = String::from_utf8_lossy(&out.stderr);
+            assert!(!out.status.success(), "{args:?}");
+            assert!(stderr.contains(expected), "{args:?}: {stderr}");
+        }
+    }
+    assert_eq!(fs::read_to_string(&file).unwrap(), "x");
+    assert_eq!(fs::read_dir(root.path()).unwrap().count(), 1);
+}

@@ -201,6 +201,7 @@ pub fn run(args: &BenchMapArgs) -> anyhow::Result<()> {
             noise,
             seed,
         } => {
+            crate::io::atomic::check_output_location(output, false)?;
             let start = Instant::now();
             let cloud = generate_building(*points, *local, *noise, *seed);
             let generated = start.elapsed().as_secs_f64();

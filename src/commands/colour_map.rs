@@ -86,6 +86,7 @@ const UNSEEN_GREY: [u8; 3] = [128, 128, 128];
 
 pub fn run(args: &ColourMapArgs) -> anyhow::Result<()> {
     let mut options = args.options()?;
+    crate::io::atomic::check_output_location(&args.output, false)?;
     if let Some(why) = output_replaces_input(
         &args.output,
         false,

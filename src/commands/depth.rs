@@ -65,6 +65,7 @@ pub fn widen_splats_for_map(options: &mut ProjectionOptions, cloud: &PointCloud)
 
 pub fn run(args: &DepthArgs) -> anyhow::Result<()> {
     let options = args.options()?;
+    crate::io::atomic::check_output_location(&args.output, false)?;
     if let Some(why) = output_replaces_input(&args.output, false, &[&args.lidar], &[&args.model]) {
         anyhow::bail!(why);
     }

@@ -41,6 +41,9 @@ pub struct EvaluateArgs {
 }
 
 pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
+    if let Some(path) = &args.json {
+        crate::io::atomic::check_output_location(path, false)?;
+    }
     let model = load_poses(&args.model).context("cannot read the model")?;
     let reference = load_poses(&args.reference).context("cannot read the reference")?;
     let mut report = evaluate(&model, &reference, args.align)?;

@@ -12,21 +12,19 @@ pub mod synth;
 
 use std::path::Path;
 
-/// Refuses an output folder that is replaced as a whole when it exists and
-/// is not a folder, or holds an entry not in `replaceable` (what the
-/// command itself writes there; `what` names it in the error, e.g. "a model
-/// file").
+/// Refuses an output folder, replaced as a whole, that cannot be written
+/// there ([`crate::io::atomic::check_output_location`]: also a file in its
+/// place) or that holds an entry not in `replaceable` (what the command
+/// itself writes there; `what` names it in the error, e.g. "a model file").
 pub(crate) fn check_replaceable_output(
     dir: &Path,
     replaceable: &[&str],
     what: &str,
 ) -> anyhow::Result<()> {
     use anyhow::{bail, Context};
+    crate::io::atomic::check_output_location(dir, true)?;
     if !dir.exists() {
         return Ok(());
-    }
-    if !dir.is_dir() {
-        bail!("the output {} exists and is not a folder", dir.display());
     }
     let listing = || format!("reading {}", dir.display());
     for entry in std::fs::read_dir(dir).with_context(listing)? {

@@ -26,32 +26,50 @@ fn names_nothing(path: &Path) -> bool {
     last == b"." || last == b".." || path.file_name().is_none()
 }
 
+fn names_nothing_error(path: &Path) -> io::Error {
+    io::Error::new(
+        io::ErrorKind::InvalidInput,
+        format!(
+            "the output `{}` names no file or folder (it ends in `.` or `..`): give its name",
+            path.display()
+        ),
+    )
+}
+
+fn file_in_the_way(folder: &Path, file: &Path) -> io::Error {
+    io::Error::new(
+        io::ErrorKind::NotADirectory,
+        format!(
+            "cannot make the folder {} for the output: {} is a file, not a folder",
+            folder.display(),
+            file.display()
+        ),
+    )
+}
+
+fn not_a_folder(path: &Path) -> io::Error {
+    io::Error::new(
+        io::ErrorKind::AlreadyExists,
+        format!(
+            "the output {} exists and is not a folder: refusing to replace it",
+            path.display()
+        ),
+    )
+}
+
 /// The output's folder, created when missing; an output that names no file
 /// or folder (ending in `.` or `..`) or whose folder cannot be made (a file
 /// in its way) is an error that says so.
 fn prepare_parent(path: &Path) -> io::Result<PathBuf> {
     if names_nothing(path) {
-        return Err(io::Error::new(
-            io::ErrorKind::InvalidInput,
-            format!(
-                "the output `{}` names no file or folder (it ends in `.` or `..`): give its name",
-                path.display()
-            ),
-        ));
+        return Err(names_nothing_error(path));
     }
     let parent = parent_of(path);
     if let Err(e) = fs::create_dir_all(&parent) {
         // A file where a folder should be: name it.
         let in_the_way = parent.ancestors().find(|a| a.exists() && !a.is_dir());
         return Err(match in_the_way {
-            Some(file) => io::Error::new(
-                io::ErrorKind::NotADirectory,
-                format!(
-                    "cannot make the folder {} for the output: {} is a file, not a folder",
-                    parent.display(),
-                    file.display()
-                ),
-            ),
+            Some(file) => file_in_the_way(&parent, file),
             None => io::Error::new(
                 e.kind(),
                 format!("cannot make the folder {}: {e}", parent.display()),
@@ -59,6 +77,67 @@ fn prepare_parent(path: &Path) -> io::Result<PathBuf> {
         });
     }
     Ok(parent)
+}
+
+/// Checks, before any work, that an output can be written where asked: it
+/// names a file or folder, what exists there is of the kind the command
+/// writes (a folder when `is_dir`, else a file), no file stands where a
+/// folder of its path should be, and the nearest existing folder on its path
+/// takes new entries (a read-only folder or file system is found now, not
+/// after a long run). The probe is a temporary folder, removed at once; the
+/// output's missing folders are not made.
+pub fn check_output_location(path: &Path, is_dir: bool) -> io::Result<()> {
+    if names_nothing(path) {
+        return Err(names_nothing_error(path));
+    }
+    if let Ok(meta) = fs::metadata(path) {
+        if is_dir && !meta.is_dir() {
+            return Err(not_a_folder(path));
+        }
+        if !is_dir && meta.is_dir() {
+            return Err(io::Error::new(
+                io::ErrorKind::AlreadyExists,
+                format!(
+                    "the output {} is a folder: give a file name",
+                    path.display()
+                ),
+            ));
+        }
+    }
+    let parent = parent_of(path);
+    let Some(existing) = parent
+        .ancestors()
+        .find(|a| a.as_os_str().is_empty() || a.exists())
+    else {
+        return Ok(());
+    };
+    let existing = if existing.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        existing
+    };
+    if !existing.is_dir() {
+        return Err(file_in_the_way(&parent, existing));
+    }
+    tempfile::Builder::new()
+        .prefix(".colmap-lidar-probe-")
+        .tempdir_in(existing)
+        .map(drop)
+        .map_err(|e| {
+            // The system's reason, without the probe's own name.
+            let why = e.raw_os_error().map_or_else(
+                || e.to_string(),
+                |code| io::Error::from_raw_os_error(code).to_string(),
+            );
+            io::Error::new(
+                e.kind(),
+                format!(
+                    "cannot write the output {}: the folder {} takes no new entries ({why})",
+                    path.display(),
+                    existing.display()
+                ),
+            )
+        })
 }
 
 /// `path` as a write to it would find it: resolved through symbolic links,
@@ -139,14 +218,7 @@ where
     let parent = prepare_parent(dir)?;
     // Before the work of filling it.
     if dir.exists() && !dir.is_dir() {
-        return Err(io::Error::new(
-            io::ErrorKind::AlreadyExists,
-            format!(
-                "the output {} exists and is not a folder: refusing to replace it",
-                dir.display()
-            ),
-        )
-        .into());
+        return Err(not_a_folder(dir).into());
     }
     let tmp = tempfile::Builder::new()
         .prefix(".colmap-lidar-tmp-")
@@ -299,6 +371,60 @@ mod tests {
             .map(|e| e.unwrap().file_name())
             .collect();
         assert_eq!(left, vec![std::ffi::OsString::from("afile")]);
+    }
+
+    #[test]
+    fn outputs_that_cannot_be_written_are_found_before_any_work() {
+        let root = tempfile::tempdir().unwrap();
+        let r = root.path();
+        let file = r.join("afile");
+        fs::write(&file, "x").unwrap();
+        fs::create_dir(r.join("adir")).unwrap();
+        let says = |path: PathBuf, is_dir: bool| {
+            check_output_location(&path, is_dir)
+                .map_err(|e| e.to_string())
+                .err()
+        };
+        // Writable places, existing or not, and their folders not made.
+        assert_eq!(says(r.join("out"), true), None);
+        assert_eq!(says(r.join("deep/er/out"), true), None);
+        assert_eq!(says(r.join("adir"), true), None);
+        assert_eq!(says(r.join("afile"), false), None);
+        assert_eq!(says(r.join("adir/x.png"), false), None);
+        assert!(!r.join("deep").exists());
+        // Each problem named.
+        let wrong = [
+            (file.join("out"), true, "afile is a file, not a folder"),
+            (file.join("a/b.png"), false, "afile is a file, not a folder"),
+            (file.clone(), true, "exists and is not a folder"),
+            (r.join("adir"), false, "is a folder: give a file name"),
+            (r.join("adir/.."), true, "names no file or folder"),
+            // No new entries in /proc, even for root.
+            (
+                PathBuf::from("/proc/colmap-lidar/out"),
+                true,
+                "takes no new entries",
+            ),
+        ];
+        for (path, is_dir, what) in wrong {
+            let msg = says(path.clone(), is_dir).unwrap_or_default();
+            assert!(msg.contains(what), "{}: {msg}", path.display());
+        }
+        // Nothing left behind by the probes.
+        let mut left: Vec<_> = fs::read_dir(r)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        left.sort();
+        assert_eq!(left, ["adir", "afile"]);
+        // A folder without write permission (only without root's override).
+        let locked = r.join("locked");
+        fs::create_dir(&locked).unwrap();
+        fs::set_permissions(&locked, fs::Permissions::from_mode(0o555)).unwrap();
+        let root_writes = tempfile::tempdir_in(&locked).is_ok();
+        let msg = says(locked.join("out"), true);
+        assert_eq!(msg.is_some(), !root_writes, "{msg:?}");
+        fs::set_permissions(&locked, fs::Permissions::from_mode(0o755)).unwrap();
     }
 
     #[test]
