@@ -15,7 +15,6 @@ use crate::map::colour::{seen_points, MapColourOptions, MapColours};
 use crate::map::grid::{FrustumGrid, GridOptions};
 use crate::map::index::MapIndex;
 use crate::map::io::ply::{write_ply_with_colours, PlyColours};
-use crate::map::io::read_point_cloud;
 use crate::map::projection::ProjectionOptions;
 use crate::map::PointCloud;
 
@@ -121,17 +120,9 @@ pub fn run(args: &ColourMapArgs) -> anyhow::Result<()> {
             .iter()
             .map(|(image, camera)| ExpectedImage::new(&image.name, camera)),
     )?;
-    let (cloud, _report) = read_point_cloud(&args.lidar)
-        .with_context(|| format!("reading the LiDAR map {}", args.lidar.display()))?;
-    if cloud.is_empty() {
-        bail!("the LiDAR map {} has no points", args.lidar.display());
-    }
-    if cloud.normals.is_none() {
-        log::info!(
-            "{} has no normals: views at every angle give colours",
-            args.lidar.display()
-        );
-    }
+    // Normals that are missing or invalid are estimated as `map` does: the
+    // view-angle limit needs them, and the coloured map carries them.
+    let cloud = super::map::load_map(&args.lidar)?;
     if let Some(spacing) = MapIndex::spacing_of(&cloud) {
         options.widen_splats_for_spacing(spacing);
         log::info!(

@@ -30,7 +30,7 @@ pub struct EvaluateArgs {
     /// Also write the full report (with per-image errors) as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
-    /// LiDAR map (PLY/LAS/XYZ): also measure how far the model's tracks,
+    /// LiDAR map (.ply, .pcd, .las, .laz or .e57): also measure how far the model's tracks,
     /// triangulated at the reference poses, and the model's own points lie
     /// from the map's surfaces, by the incidence at which they were seen
     /// (what the images themselves say about the map, apart from the solve;

@@ -444,7 +444,9 @@ fn group_starts(
     Ok(starts)
 }
 
-/// Files we may replace in an existing output folder.
+/// Files we may replace in an existing output folder (besides the figures
+/// `plot` draws from its report: the guide suggests the model's own folder
+/// for them, and they describe the report being replaced).
 const REPLACEABLE: [&str; 8] = [
     "pose.ply",
     "cameras.txt",
@@ -459,7 +461,12 @@ const REPLACEABLE: [&str; 8] = [
 /// Refuses an output folder that holds anything but the files `map` (or
 /// `merge`) writes: it is replaced as a whole.
 pub(crate) fn check_output(dir: &Path) -> Result<()> {
-    super::check_replaceable_output(dir, &REPLACEABLE, "a model file")
+    let replaceable: Vec<&str> = REPLACEABLE
+        .iter()
+        .chain(&super::plot::FIGURES)
+        .copied()
+        .collect();
+    super::check_replaceable_output(dir, &replaceable, "a model file or a figure of `plot`")
 }
 
 /// Reads the map; estimates normals where missing, over a radius that

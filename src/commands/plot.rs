@@ -323,14 +323,23 @@ const TOTAL: RGBColor = RGBColor(230, 159, 0);
 const BEFORE: RGBColor = RGBColor(213, 94, 0);
 const AFTER: RGBColor = RGBColor(0, 114, 178);
 
+/// The files `plot` writes, in the order of [`render`].
+pub const FIGURES: [&str; 4] = [
+    "planes.svg",
+    "plane_distance.svg",
+    "reprojection.svg",
+    "images.svg",
+];
+
 /// The figures as (file name, SVG text).
 pub fn render(data: &PlotData) -> anyhow::Result<Vec<(&'static str, String)>> {
-    Ok(vec![
-        ("planes.svg", planes_figure(data)?),
-        ("plane_distance.svg", distance_figure(data)?),
-        ("reprojection.svg", reprojection_figure(data)?),
-        ("images.svg", images_figure(data)?),
-    ])
+    let svgs = [
+        planes_figure(data)?,
+        distance_figure(data)?,
+        reprojection_figure(data)?,
+        images_figure(data)?,
+    ];
+    Ok(FIGURES.into_iter().zip(svgs).collect())
 }
 
 /// Span of the x values of `series`, padded so single points are visible.

@@ -1972,15 +1972,12 @@ fn map_staged(
         let probed: BTreeSet<CameraId> = refine.last.union(&refine.probe).copied().collect();
         let fixed = fixed_final(&state);
         // Capped: it only has to show whether the focal length moves (when
-        // it does, the rounds run again); without rounds to follow
-        // (`final_rounds = 0`) its result may be the output, uncapped.
+        // it does, the rounds run again).
         let mut probe_options = options.clone();
-        if options.bundle.final_rounds > 0 {
-            probe_options.bundle.global_max_iterations = options
-                .bundle
-                .probe_max_iterations
-                .min(options.bundle.global_max_iterations);
-        }
+        probe_options.bundle.global_max_iterations = options
+            .bundle
+            .probe_max_iterations
+            .min(options.bundle.global_max_iterations);
         global_ba(
             &mut state,
             SolveKind::Final,

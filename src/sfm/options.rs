@@ -317,7 +317,7 @@ pub struct BundleOptions {
     /// focal length is off by more.
     pub refine_intrinsics_min_change: f64,
     /// Levenberg-Marquardt iterations of that probing solve (at most
-    /// `global_max_iterations`; uncapped when `final_rounds = 0`). It only
+    /// `global_max_iterations`). It only
     /// has to show whether the focal length moves; when it does, the rounds
     /// run again with it free. Default 5: on the seed-0 corridor with the
     /// focal length given 1 % and 0.2 % too long, 5 iterations found 97 %
@@ -938,7 +938,7 @@ pub struct AssociationOptions {
     /// feature in one of their images: the model does not fit the map (an
     /// initial pose far off, a map of another place). 0 turns the check
     /// off. Default 0.6: right models of the synthetic scenes measured
-    /// 0.87-0.97; the seed-7 yard mapped from an initial pose 2.2 m and
+    /// 0.78-0.97; the seed-7 yard mapped from an initial pose 2.2 m and
     /// 12 deg off, a model 439 times too small, 0.32 (with 0.997 within
     /// 2 cm of the nearest surface, the test this replaced); from poses
     /// 1.1-1.7 m and 8 deg off 0.35-0.39. Real maps with more noise, or places

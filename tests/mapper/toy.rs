@@ -2235,6 +2235,19 @@ fn toy_room_groups_mapped_apart_merge_into_one_model() {
         std::fs::read_to_string(notes.join("todo.txt")).unwrap(),
         "keep me"
     );
+    // One holding an earlier model and the figures `plot` drew from it is
+    // replaced as a whole, figures too.
+    let figures = dir.path().join("figures");
+    std::fs::create_dir(&figures).unwrap();
+    std::fs::write(figures.join("report.json"), "{}").unwrap();
+    std::fs::write(figures.join("planes.svg"), "<svg/>").unwrap();
+    merge(&MergeArgs {
+        inputs: vec![dir_a.clone(), dir_b.clone()],
+        output: figures.clone(),
+        output_type: "text".into(),
+    })
+    .unwrap();
+    assert!(figures.join("images.txt").is_file() && !figures.join("planes.svg").exists());
     // One image in both: refused, naming it and both folders; nothing written.
     let refused = dir.path().join("refused");
     let e = merge(&MergeArgs {
