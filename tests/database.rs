@@ -289,9 +289,16 @@ fn bad_databases_give_clear_errors() {
     });
 
     let missing = dir.path().join("missing.db");
-    assert_error(&missing, "missing file", |e| {
-        matches!(e, DatabaseError::Open { .. })
-    });
+    assert_error(
+        &missing,
+        "missing file",
+        |e| matches!(e, DatabaseError::NotAFile { what, .. } if *what == "does not exist"),
+    );
+    assert_error(
+        dir.path(),
+        "a folder",
+        |e| matches!(e, DatabaseError::NotAFile { what, .. } if *what == "is a folder"),
+    );
 
     let other = dir.path().join("other.db");
     Connection::open(&other)

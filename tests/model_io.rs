@@ -969,48 +969,75 @@ fn every_command_refuses_an_unwritable_output_before_its_inputs() {
     fs::write(&file, "x").unwrap();
     let missing = root.path().join("missing");
     let m = missing.to_str().unwrap();
+    let refused = |args: &[&str], out: &Path, says: &str| {
+        let out = std::process::Command::new(common::bin())
+            .args(args)
+            .arg(out)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?}");
+        assert!(stderr.contains(says), "{args:?}: {stderr}");
+    };
+    // Each command's arguments but the output, which comes last.
+    let depth = [
+        "depth", "--lidar", m, "--model", m, "--image", "a", "--output",
+    ];
+    let colour = [
+        "colour-map",
+        "--lidar",
+        m,
+        "--model",
+        m,
+        "--image-path",
+        m,
+        "--output",
+    ];
+    let prepare = ["prepare-map", "--input", m, "--output"];
     for place in [file.clone(), PathBuf::from("/proc/colmap-lidar-test")] {
-        let dir = place.join("out");
-        let png = place.join("out.png");
-        let (d, p) = (dir.to_str().unwrap(), png.to_str().unwrap());
-        let runs: [Vec<&str>; 9] = [
-            vec!["map", "--database", m, "--lidar", m, "--output", d],
-            vec!["merge", "--input", m, "--input", m, "--output", d],
-            vec!["synth", "--scene", "room", "--output", d],
-            vec!["prepare-map", "--input", m, "--output", p],
-            vec![
-                "depth", "--lidar", m, "--model", m, "--image", "a", "--output", p,
-            ],
-            vec![
-                "colour-map",
-                "--lidar",
-                m,
-                "--model",
-                m,
-                "--image-path",
-                m,
-                "--output",
-                p,
-            ],
-            vec!["plot", m, "--output", d],
-            vec!["evaluate", "--model", m, "--reference", m, "--json", p],
-            vec!["bench-map", "generate", "--output", p],
-        ];
+        let (dir, png, ply) = (
+            place.join("out"),
+            place.join("out.png"),
+            place.join("out.ply"),
+        );
         let expected = if place == file {
             "afile is a file, not a folder"
         } else {
             "takes no new entries"
         };
-        for args in runs {
-            let out = std::process::Command::new(common::bin())
-                .args(&args)
-                .output()
-                .unwrap();
-            let stderr = String::from_utf8_lossy(&out.stderr);
-            assert!(!out.status.success(), "{args:?}");
-            assert!(stderr.contains(expected), "{args:?}: {stderr}");
+        for (args, out) in [
+            (
+                &["map", "--database", m, "--lidar", m, "--output"][..],
+                &dir,
+            ),
+            (&["merge", "--input", m, "--input", m, "--output"], &dir),
+            (&["synth", "--scene", "room", "--output"], &dir),
+            (&prepare, &ply),
+            (&depth, &png),
+            (&colour, &ply),
+            (&["plot", m, "--output"], &dir),
+            (
+                &["evaluate", "--model", m, "--reference", m, "--json"],
+                &png,
+            ),
+            (&["bench-map", "generate", "--output"], &ply),
+        ] {
+            refused(args, out, expected);
         }
     }
+    // A file named for another format than the one written: refused too.
+    let r = root.path();
+    refused(
+        &prepare,
+        &r.join("map.pcd"),
+        "give it a name ending in .ply",
+    );
+    refused(
+        &depth,
+        &r.join("depth.jpg"),
+        "give it a name ending in .png",
+    );
+    refused(&colour, &r.join("map.txt"), "give it a name ending in .ply");
     assert_eq!(fs::read_to_string(&file).unwrap(), "x");
     assert_eq!(fs::read_dir(root.path()).unwrap().count(), 1);
 }

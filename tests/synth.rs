@@ -342,6 +342,27 @@ fn synth_evaluate_command_on_ground_truth() {
     assert!((v["sim3_scale"].as_f64().unwrap() - 1.0).abs() < 1e-9);
     assert!(v["centre_error_m"]["max"].as_f64().unwrap() < 1e-6);
     assert_eq!(v["within"][0]["count"], 5);
+    // A reference of other images (by name): an error, not "0 registered",
+    // and no report written.
+    let renamed = dir.path().join("renamed");
+    std::fs::create_dir(&renamed).unwrap();
+    for file in ["cameras.txt", "images.txt", "points3D.txt"] {
+        let text = std::fs::read_to_string(out.join("gt").join(file)).unwrap();
+        std::fs::write(renamed.join(file), text.replace(".jpg", "_b.jpg")).unwrap();
+    }
+    let json_b = dir.path().join("eval_b.json");
+    let err =
+        colmap_lidar::commands::evaluate::run(&colmap_lidar::commands::evaluate::EvaluateArgs {
+            reference: renamed,
+            json: Some(json_b.clone()),
+            ..args
+        })
+        .unwrap_err();
+    assert!(
+        format!("{err:#}").contains("no image of the model"),
+        "{err:#}"
+    );
+    assert!(!json_b.exists());
     // Georeferenced ground truth against itself moved by 1 cm: every centre error is 1 cm.
     let gt = load_poses(&out.join("gt")).unwrap();
     let moved: BTreeMap<String, Rigid3> = gt

@@ -85,7 +85,7 @@ const UNSEEN_GREY: [u8; 3] = [128, 128, 128];
 
 pub fn run(args: &ColourMapArgs) -> anyhow::Result<()> {
     let mut options = args.options()?;
-    crate::io::atomic::check_output_location(&args.output, false)?;
+    super::check_output_file(&args.output, "ply", "a binary PLY point cloud")?;
     if let Some(why) = output_replaces_input(
         &args.output,
         false,

@@ -65,7 +65,7 @@ pub fn widen_splats_for_map(options: &mut ProjectionOptions, cloud: &PointCloud)
 
 pub fn run(args: &DepthArgs) -> anyhow::Result<()> {
     let options = args.options()?;
-    crate::io::atomic::check_output_location(&args.output, false)?;
+    super::check_output_file(&args.output, "png", "a PNG image")?;
     if let Some(why) = output_replaces_input(&args.output, false, &[&args.lidar], &[&args.model]) {
         anyhow::bail!(why);
     }

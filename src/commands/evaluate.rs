@@ -11,6 +11,7 @@ use crate::eval::{evaluate, load_poses, Alignment, ReportedSigma, Sim3};
 use crate::io::atomic::write_file_atomically;
 use crate::io::model::read_model;
 use crate::map::index::{MapIndex, SPACING_SAMPLES};
+use crate::map::PointCloud;
 use crate::scene::Rigid3;
 use crate::sfm::associate::NearestNeighbourAssociator;
 use crate::sfm::MapperOptions;
@@ -46,6 +47,21 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
     }
     let model = load_poses(&args.model).context("cannot read the model")?;
     let reference = load_poses(&args.reference).context("cannot read the reference")?;
+    if !model.keys().any(|name| reference.contains_key(name)) {
+        anyhow::bail!(
+            "no image of the model {} ({} images) is in the reference {} ({} images) by name: is it the reference of the same images?",
+            args.model.display(),
+            model.len(),
+            args.reference.display(),
+            reference.len()
+        );
+    }
+    // The map is read first, so that a bad one stops the command before
+    // anything is printed.
+    let cloud = match &args.lidar {
+        Some(path) => Some((load_map(path)?, path)),
+        None => None,
+    };
     let mut report = evaluate(&model, &reference, args.align)?;
     // A model written by `map` reports its own pose uncertainty: with no
     // alignment, say how the true errors compare with it (an optional extra:
@@ -64,11 +80,17 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
         }
     }
     print!("{}", report.table());
-    let agreement = match &args.lidar {
-        Some(path) => {
+    let agreement = match &cloud {
+        Some((cloud, path)) => {
             // `--align sim3` failed above without a similarity.
             let sim3 = report.sim3.filter(|_| args.align == Alignment::Sim3);
-            Some(agreement_with_map(&args.model, &reference, sim3, path)?)
+            Some(agreement_with_map(
+                &args.model,
+                &reference,
+                sim3,
+                cloud,
+                path,
+            )?)
         }
         None => None,
     };
@@ -89,7 +111,7 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// [`map_agreement`] of the model with the map at `path`, its planes found
+/// [`map_agreement`] of the model with the map `cloud` (read from `path`), its planes found
 /// as the mapper finds them with the options that made the model (its
 /// `report.json`; the defaults without one), adapted to the map's spacing. With `sim3` (the pose
 /// comparison's similarity) the model's own points are moved by it first.
@@ -97,6 +119,7 @@ fn agreement_with_map(
     model_dir: &Path,
     reference: &BTreeMap<String, Rigid3>,
     sim3: Option<Sim3>,
+    cloud: &PointCloud,
     path: &Path,
 ) -> anyhow::Result<MapAgreement> {
     let mut model = read_model(model_dir)
@@ -106,8 +129,7 @@ fn agreement_with_map(
             point.xyz = sim3.transform_point(&point.xyz);
         }
     }
-    let cloud = load_map(path)?;
-    let index = MapIndex::build(&cloud)
+    let index = MapIndex::build(cloud)
         .with_context(|| format!("indexing the LiDAR map {}", path.display()))?;
     let own = model_dir.join("report.json");
     let options = match options_of_run(&own) {
@@ -127,11 +149,11 @@ fn agreement_with_map(
             MapperOptions::default()
         }
     };
-    let options = match index.surface_spacing_m(&cloud, SPACING_SAMPLES) {
+    let options = match index.surface_spacing_m(cloud, SPACING_SAMPLES) {
         Some(spacing) => options.for_map_spacing(spacing),
         None => options,
     };
-    let planes = NearestNeighbourAssociator::new(&cloud, &index, options.association);
+    let planes = NearestNeighbourAssociator::new(cloud, &index, options.association);
     Ok(map_agreement(&model, reference, &planes))
 }
 

@@ -260,12 +260,12 @@ impl MapArgs {
         let lidar = need(&self.lidar, &file.lidar, "lidar")?;
         let output = need(&self.output, &file.output, "output")?;
         let init_images = if self.init_image.is_empty() {
-            file_list(file.init_image, "init_image", true)?
+            file_images(file.init_image)?
         } else {
             self.init_image.clone()
         };
         let init_pose_text = if self.init_pose.is_empty() {
-            file_list(file.init_pose, "init_pose", false)?
+            file_poses(file.init_pose)?
         } else {
             self.init_pose.clone()
         };
@@ -341,21 +341,54 @@ impl MapArgs {
     }
 }
 
-/// A list from the options file: one value or an array of them (names or
-/// ids when `ids`, else strings).
-fn file_list(value: Option<toml::Value>, key: &str, ids: bool) -> Result<Vec<String>> {
+/// `init_image` of the options file: a name or an id, or an array of them.
+fn file_images(value: Option<toml::Value>) -> Result<Vec<String>> {
     let one = |v: toml::Value| -> Result<String> {
         match v {
             toml::Value::String(s) => Ok(s),
-            toml::Value::Integer(i) if ids => Ok(i.to_string()),
-            other if ids => bail!("{key} in the options file must be a name or an id, got {other}"),
-            other => bail!("{key} in the options file must be a string, got {other}"),
+            toml::Value::Integer(i) => Ok(i.to_string()),
+            other => bail!("init_image in the options file must be a name or an id, got {other}"),
         }
     };
     match value {
         None => Ok(Vec::new()),
         Some(toml::Value::Array(items)) => items.into_iter().map(one).collect(),
         Some(v) => Ok(vec![one(v)?]),
+    }
+}
+
+/// `init_pose` of the options file as `--init-pose` texts: a string
+/// `"x,y,z,roll,pitch,yaw"` or an array of six numbers (one pose), or an
+/// array of either (one per initial image).
+fn file_poses(value: Option<toml::Value>) -> Result<Vec<String>> {
+    use toml::Value;
+    let number = |v: &Value| match v {
+        Value::Integer(i) => Some(i.to_string()),
+        Value::Float(f) => Some(f.to_string()),
+        _ => None,
+    };
+    let pose = |v: Value| -> Result<String> {
+        match v {
+            Value::String(s) => Ok(s),
+            Value::Array(items) => {
+                let numbers: Option<Vec<String>> = items.iter().map(number).collect();
+                numbers.map(|n| n.join(",")).with_context(|| {
+                    format!("init_pose in the options file: a pose's values must be numbers, got {}", Value::Array(items))
+                })
+            }
+            other => bail!(
+                "init_pose in the options file must be \"x,y,z,roll,pitch,yaw\" or [x, y, z, roll, pitch, yaw] (or a list of them), got {other}"
+            ),
+        }
+    };
+    match value {
+        None => Ok(Vec::new()),
+        // One pose as six numbers, or a list of poses.
+        Some(Value::Array(items)) if items.iter().all(|v| number(v).is_some()) => {
+            Ok(vec![pose(Value::Array(items))?])
+        }
+        Some(Value::Array(items)) => items.into_iter().map(pose).collect(),
+        Some(v) => Ok(vec![pose(v)?]),
     }
 }
 

@@ -12,6 +12,25 @@ pub mod synth;
 
 use std::path::Path;
 
+/// Refuses an output file whose name does not end in `.{extension}` (any
+/// case): the command writes `what` (e.g. "a binary PLY"), and a name that
+/// promises another format (`map.pcd`, `depth.jpg`) would mislead every
+/// reader of it. Also checks where it goes
+/// ([`crate::io::atomic::check_output_location`]).
+pub(crate) fn check_output_file(path: &Path, extension: &str, what: &str) -> anyhow::Result<()> {
+    crate::io::atomic::check_output_location(path, false)?;
+    let matches = path
+        .extension()
+        .is_some_and(|e| e.to_string_lossy().eq_ignore_ascii_case(extension));
+    if !matches {
+        anyhow::bail!(
+            "the output {} would hold {what}: give it a name ending in .{extension}",
+            path.display()
+        );
+    }
+    Ok(())
+}
+
 /// Refuses an output folder, replaced as a whole, that cannot be written
 /// there ([`crate::io::atomic::check_output_location`]: also a file in its
 /// place) or that holds an entry not in `replaceable` (what the command

@@ -280,8 +280,14 @@ pub fn read_report(path: &Path) -> anyhow::Result<(PathBuf, ReportForPlots)> {
     } else {
         path.to_path_buf()
     };
-    let text = fs::read_to_string(&file)
-        .with_context(|| format!("reading the report {}", file.display()))?;
+    let bytes =
+        fs::read(&file).with_context(|| format!("reading the report {}", file.display()))?;
+    let Ok(text) = String::from_utf8(bytes) else {
+        anyhow::bail!(
+            "{} is not a colmap-lidar map report.json (not text)",
+            file.display()
+        );
+    };
     let report: ReportForPlots = serde_json::from_str(&text)
         .with_context(|| format!("{} is not a colmap-lidar map report.json", file.display()))?;
     Ok((file, report))

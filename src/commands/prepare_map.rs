@@ -363,7 +363,7 @@ fn names(inputs: &[PathBuf]) -> String {
 pub fn run(args: &PrepareMapArgs) -> anyhow::Result<()> {
     let options = args.options()?;
     let read = args.read_options()?;
-    crate::io::atomic::check_output_location(&args.output, false)?;
+    super::check_output_file(&args.output, "ply", "a binary PLY point cloud")?;
     let inputs = input_files(&args.input, &args.output)?;
     let (loads, report) = prepare_map_files(&inputs, &args.output, &options, &read)?;
     let by_class: u64 = loads.iter().map(|l| l.dropped_by_class).sum();

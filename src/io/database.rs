@@ -49,6 +49,8 @@ pub enum DatabaseError {
     },
     #[error("{path}: not a SQLite database file")]
     NotSqlite { path: PathBuf },
+    #[error("{path}: {what} (a COLMAP database file is expected, e.g. database.db)")]
+    NotAFile { path: PathBuf, what: &'static str },
     #[error("{path}: the database is locked by another process (is COLMAP still writing it?)")]
     Locked { path: PathBuf },
     #[error("{path}: not a COLMAP database (missing tables: {missing})")]
@@ -215,9 +217,15 @@ const KNOWN_TABLES: &[&str] = &[
 /// sees the pending write-ahead log and reports locks.
 fn open_read_only(path: &Path) -> Result<Connection, DatabaseError> {
     if !path.is_file() {
-        return Err(DatabaseError::Open {
+        let what = match std::fs::metadata(path) {
+            Ok(meta) if meta.is_dir() => "is a folder",
+            Ok(_) => "is not a regular file",
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => "does not exist",
+            Err(_) => "cannot be read",
+        };
+        return Err(DatabaseError::NotAFile {
             path: path.to_owned(),
-            source: rusqlite::Error::InvalidPath(path.to_owned()),
+            what,
         });
     }
     let sibling = |suffix: &str| {

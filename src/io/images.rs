@@ -26,7 +26,7 @@ use crate::scene::{Camera, Point3DId, Reconstruction};
 pub enum ImageFolderError {
     #[error("the image folder {0} does not exist or is not a folder")]
     NoFolder(PathBuf),
-    #[error("{path}: image `{name}` of the database is not in the image folder")]
+    #[error("{path}: image `{name}` is not in the image folder")]
     Missing { path: PathBuf, name: String },
     #[error("image `{name}` has camera {camera_id}, which the model does not hold")]
     UnknownCamera { name: String, camera_id: u32 },

@@ -1093,6 +1093,38 @@ fn options_file_and_command_line_merge() {
     assert_eq!(c.init_images, vec!["a.png".to_string(), "7".to_string()]);
     assert_eq!(c.input_units, colmap_lidar::map::io::InputUnits::Auto);
     assert_eq!(c.init_poses[1].to_degrees_array()[..3], [4.0, 5.0, 6.0]);
+    // Poses as arrays of numbers, one or a list; other values say what is
+    // expected.
+    for (poses, images) in [
+        ("[1, 2.5, 3, 0, 0, 90]", "\"a.png\""),
+        (
+            "[[1, 2.5, 3, 0, 0, 90], \"4,5,6,0,0,-90\"]",
+            "[\"a.png\", 7]",
+        ),
+    ] {
+        std::fs::write(
+            &file,
+            format!("database = \"a.db\"\nlidar = \"m.ply\"\noutput = \"out\"\ninit_image = {images}\ninit_pose = {poses}\n"),
+        )
+        .unwrap();
+        let c = args.config().unwrap();
+        assert_eq!(c.init_poses[0].to_degrees_array()[..3], [1.0, 2.5, 3.0]);
+        assert!((c.init_poses[0].to_degrees_array()[5] - 90.0).abs() < 1e-12);
+    }
+    for (poses, says) in [
+        ("true", "[x, y, z, roll, pitch, yaw]"),
+        ("[[1, \"a\", 3, 0, 0, 90]]", "must be numbers"),
+    ] {
+        std::fs::write(
+            &file,
+            format!(
+                "database = \"a.db\"\nlidar = \"m.ply\"\noutput = \"out\"\ninit_pose = {poses}\n"
+            ),
+        )
+        .unwrap();
+        let err = format!("{:#}", args.config().unwrap_err());
+        assert!(err.contains(says), "{poses}: {err}");
+    }
     let one_pose = MapArgs {
         init_image: vec!["a.png".into(), "b.png".into()],
         init_pose: vec!["1,2,3,0,0,90".into()],
@@ -1124,10 +1156,7 @@ fn options_file_and_command_line_merge() {
         .config()
         .unwrap_err()
     );
-    assert!(
-        err.contains("init_pose in the options file must be a string"),
-        "{err}"
-    );
+    assert!(err.contains("expected six numbers"), "{err}");
     // Unknown keys and bad values are errors naming the problem.
     std::fs::write(&file, "[mapper.register]\nmax_eror_px = 3.0\n").unwrap();
     let err = format!("{:#}", args.config().unwrap_err());
