@@ -14,6 +14,7 @@
 //! stage options of [`MapperOptions`] (`seed`, `[mapper.register]`, ...).
 //! Command-line values win over the file.
 use std::collections::{BTreeMap, BTreeSet};
+use std::f64::consts::TAU;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 
@@ -40,6 +41,7 @@ use crate::sfm::{extend_model, map_groups, GroupStart, KnownPose, MapperInputs, 
 fn known_poses(
     db: &DatabaseSnapshot,
     pose_file: Option<&Path>,
+    hints: &mut Vec<String>,
 ) -> Result<BTreeMap<ImageId, KnownPose>> {
     let mut known = BTreeMap::new();
     for (&id, prior) in &db.pose_priors {
@@ -65,6 +67,11 @@ fn known_poses(
     }
     if let Some(path) = pose_file {
         let poses = read_pose_ply(path)?;
+        let largest = poses
+            .values()
+            .flat_map(|p| [p.roll_rad, p.pitch_rad, p.yaw_rad])
+            .fold(0.0f64, |m, a| m.max(a.abs()));
+        hints.extend(crate::io::pose_ply::degrees_suspected(path, largest));
         for (id, pose) in poses {
             if !db.images.contains_key(&id) {
                 bail!(
@@ -87,6 +94,79 @@ fn known_poses(
         log::info!("{} images with a known pose", known.len());
     }
     Ok(known)
+}
+
+/// Hints on the initial poses as given: roll, pitch and yaw all within
+/// ±2π (6.28) may be radians, where degrees are read (warned now, repeated
+/// if the run fails).
+fn init_pose_hints(poses: &[BodyPose]) -> Vec<String> {
+    let mut hints = Vec::new();
+    for pose in poses {
+        let d = pose.to_degrees_array();
+        let angles = &d[3..];
+        if angles.iter().any(|a| *a != 0.0) && angles.iter().all(|a| a.abs() <= TAU) {
+            let hint = format!(
+                "--init-pose {}: roll, pitch and yaw are read in degrees, and these are all within ±6.28 (2π); if they are radians, give {:.4},{:.4},{:.4}",
+                d.map(|v| v.to_string()).join(","),
+                angles[0].to_degrees(),
+                angles[1].to_degrees(),
+                angles[2].to_degrees()
+            );
+            log::warn!("{hint}");
+            hints.push(hint);
+        }
+    }
+    hints
+}
+
+/// Hints on initial poses whose camera centre lies outside the box of the
+/// map's points, by how much on each axis (a camera may be outside it, e.g.
+/// above a map of the ground; a centre below the map's lowest point, or a
+/// COLMAP `tvec` given as the centre, usually is not meant).
+fn outside_the_map(poses: &[BodyPose], cloud: &PointCloud) -> Vec<String> {
+    let Some((lo, hi)) = cloud.bounds() else {
+        return Vec::new();
+    };
+    let mut hints = Vec::new();
+    for pose in poses {
+        let c = pose.position_m;
+        let beyond: Vec<String> = (0..3)
+            .filter_map(|k| {
+                let axis = ["x", "y", "z"][k];
+                if c[k] < lo[k] {
+                    Some(format!(
+                        "{axis} {:.2} m below the map's least",
+                        lo[k] - c[k]
+                    ))
+                } else if c[k] > hi[k] {
+                    Some(format!(
+                        "{axis} {:.2} m beyond the map's greatest",
+                        c[k] - hi[k]
+                    ))
+                } else {
+                    None
+                }
+            })
+            .collect();
+        if !beyond.is_empty() {
+            hints.push(format!(
+                "--init-pose puts the camera at {:.3},{:.3},{:.3}, outside the box of the map's points ({}; the box {:.2},{:.2},{:.2} to {:.2},{:.2},{:.2}): the camera centre is expected (not COLMAP's tvec), in the map's frame",
+                c.x, c.y, c.z,
+                beyond.join(", "),
+                lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+            ));
+        }
+    }
+    hints
+}
+
+/// `error` followed by the `hints` that may explain it, one per line.
+fn with_hints(error: anyhow::Error, hints: &[String]) -> anyhow::Error {
+    if hints.is_empty() {
+        return error;
+    }
+    let list: Vec<String> = hints.iter().map(|h| format!("  - {h}")).collect();
+    anyhow::anyhow!("{error:#}\nwhat may explain it:\n{}", list.join("\n"))
 }
 
 #[derive(clap::Args, Debug, Clone, Default)]
@@ -562,7 +642,9 @@ pub fn run(args: &MapArgs) -> Result<()> {
         })?;
         log::info!("{n} images found in {}", dir.display());
     }
-    let known_poses = known_poses(&db, config.pose_priors.as_deref())?;
+    // What may explain a failed run, from the inputs: given with its error.
+    let mut hints = init_pose_hints(&config.init_poses);
+    let known_poses = known_poses(&db, config.pose_priors.as_deref(), &mut hints)?;
     // Where the run starts: the model to extend, or the initial image(s) at
     // their poses.
     let start = match &config.input_model {
@@ -588,6 +670,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
         None => RunStart::InitialPoses(group_starts(&db, &config, &known_poses)?),
     };
     let (cloud, load) = load_map_reporting(&config.lidar, config.input_units)?;
+    hints.extend(outside_the_map(&config.init_poses, &cloud));
     let total = db.images.len();
     let bar = std::io::stderr().is_terminal().then(|| {
         let bar = indicatif::ProgressBar::new(total as u64);
@@ -623,13 +706,15 @@ pub fn run(args: &MapArgs) -> Result<()> {
         ),
         RunStart::Model(existing) => extend_model(inputs, existing, &config.options, &mut progress),
     };
-    let mut out = out.with_context(|| {
-        format!(
-            "mapping {} into the LiDAR map {}",
-            config.database.display(),
-            config.lidar.display()
-        )
-    })?;
+    let mut out = out
+        .with_context(|| {
+            format!(
+                "mapping {} into the LiDAR map {}",
+                config.database.display(),
+                config.lidar.display()
+            )
+        })
+        .map_err(|e| with_hints(e, &hints))?;
     out.report.mapping_s = Some(mapping.elapsed().as_secs_f64());
     // Every run's record; the kept ones are the model's (one per group).
     let kept: BTreeSet<usize> = std::iter::once(out.report.run_index)
@@ -772,4 +857,58 @@ fn fmt_params(params: &[f64]) -> String {
         })
         .collect::<Vec<_>>()
         .join(",")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector3;
+
+    fn pose([x, y, z, roll, pitch, yaw]: [f64; 6]) -> BodyPose {
+        BodyPose::from_degrees(Vector3::new(x, y, z), roll, pitch, yaw)
+    }
+
+    #[test]
+    fn hints_name_radians_and_a_centre_outside_the_map() {
+        // Radians where degrees are read: a hint with the degrees; a pose in
+        // degrees, or a level one facing +x, none.
+        let hints = init_pose_hints(&[
+            pose([0.0, -1.6, 1.5, 0.0089, -0.0051, -1.3089]),
+            pose([0.0, -1.6, 1.5, 0.5, -0.3, -75.0]),
+            pose([0.0, -1.6, 1.5, 0.0, 0.0, 0.0]),
+        ]);
+        assert_eq!(hints.len(), 1, "{hints:?}");
+        assert!(
+            hints[0].contains("if they are radians, give 0.5099,-0.2922,-74.9944"),
+            "{}",
+            hints[0]
+        );
+        // A room from (0, 0, 0) to (4, 3, 2.5): a centre below the floor is
+        // named with how far, one inside is not.
+        let cloud = PointCloud {
+            origin: Vector3::zeros(),
+            points: vec![[0.0, 0.0, 0.0], [4.0, 3.0, 2.5]],
+            normals: None,
+            planarity: None,
+        };
+        let hints = outside_the_map(
+            &[
+                pose([2.0, 1.0, -1.5, 0.0, 0.0, 90.0]),
+                pose([2.0, 1.0, 1.5, 0.0, 0.0, 90.0]),
+            ],
+            &cloud,
+        );
+        assert_eq!(hints.len(), 1, "{hints:?}");
+        assert!(
+            hints[0].contains("z 1.50 m below the map's least"),
+            "{}",
+            hints[0]
+        );
+        // The hints follow the error, one per line; none: the error as it was.
+        let e = with_hints(anyhow::anyhow!("cause").context("mapping"), &hints);
+        assert!(format!("{e:#}")
+            .starts_with("mapping: cause\nwhat may explain it:\n  - --init-pose puts"));
+        let e = with_hints(anyhow::anyhow!("cause").context("mapping"), &[]);
+        assert_eq!(format!("{e:#}"), "mapping: cause");
+    }
 }

@@ -331,14 +331,23 @@ pub fn parse_pose_ply(
             },
         );
     }
-    if max_abs_angle_rad > 2.0 * std::f64::consts::PI {
-        log::warn!(
+    if let Some(why) = degrees_suspected(path, max_abs_angle_rad) {
+        log::warn!("{why}");
+    }
+    Ok(poses)
+}
+
+/// What to say of a pose file whose angles reach `max_abs_angle_rad`: beyond
+/// 2π they look like degrees, as the file should hold radians. Not an error:
+/// an unwrapped yaw (odometry after a few turns) is radians beyond 2π.
+pub fn degrees_suspected(path: &Path, max_abs_angle_rad: f64) -> Option<String> {
+    (max_abs_angle_rad > std::f64::consts::TAU).then(|| {
+        format!(
             "{}: angles up to {max_abs_angle_rad} in absolute value; pose files store radians \
              (were degrees written?)",
             path.display()
-        );
-    }
-    Ok(poses)
+        )
+    })
 }
 
 /// [`format_pose_ply`] of a model's registered images.
@@ -506,6 +515,19 @@ mod tests {
             assert_eq!(bits(&read[id]), bits(pose), "image id {id}");
         }
         assert_eq!(std::fs::read_to_string(&file).unwrap(), text);
+    }
+
+    #[test]
+    fn angles_beyond_two_pi_are_suspected_degrees() {
+        let path = Path::new("poses.ply");
+        let says = degrees_suspected(path, 106.0).unwrap();
+        assert!(
+            says.starts_with("poses.ply: angles up to 106")
+                && says.contains("were degrees written?"),
+            "{says}"
+        );
+        assert!(degrees_suspected(path, 6.3).is_some());
+        assert!(degrees_suspected(path, 6.28).is_none());
     }
 
     #[test]
