@@ -527,7 +527,7 @@ mod tests {
             "{says}"
         );
         assert!(degrees_suspected(path, 6.3).is_some());
-        assert!(degrees_suspected(path, 6.28).is_none());
+        assert!(degrees_suspected(path, 6.2).is_none());
     }
 
     #[test]
