@@ -618,6 +618,7 @@ pub fn load_map_reporting(path: &Path, units: InputUnits) -> Result<(PointCloud,
 pub fn run(args: &MapArgs) -> Result<()> {
     let config = args.config()?;
     check_output(&config.output)?;
+    let output_before = crate::io::atomic::OutputSnapshot::take(&config.output);
     let mut files = vec![config.database.as_path(), config.lidar.as_path()];
     files.extend(config.pose_priors.as_deref());
     files.extend(args.options.as_deref());
@@ -758,6 +759,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
     }
     let report_json =
         serde_json::to_string_pretty(&out.report).context("serialising the report")?;
+    output_before.check_unchanged(&config.output)?;
     crate::io::atomic::write_dir_atomically(&config.output, |tmp| -> Result<()> {
         write_model(tmp, &out.reconstruction, config.format)?;
         std::fs::write(tmp.join("report.json"), format!("{report_json}\n"))?;

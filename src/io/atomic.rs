@@ -140,6 +140,38 @@ pub fn check_output_location(path: &Path, is_dir: bool) -> io::Result<()> {
         })
 }
 
+/// What stood at an output's path when a command started (device, inode,
+/// modification time; nothing), so that before replacing it the command can
+/// tell whether another process wrote there meanwhile: two runs into one
+/// output folder would otherwise each replace it, and the first result be
+/// lost without a word.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OutputSnapshot(Option<(u64, u64, i64, i64)>);
+
+impl OutputSnapshot {
+    pub fn take(path: &Path) -> Self {
+        use std::os::unix::fs::MetadataExt;
+        Self(
+            fs::symlink_metadata(path)
+                .ok()
+                .map(|m| (m.dev(), m.ino(), m.mtime(), m.mtime_nsec())),
+        )
+    }
+
+    /// An error when `path` no longer is what it was at [`Self::take`].
+    pub fn check_unchanged(&self, path: &Path) -> io::Result<()> {
+        if Self::take(path) == *self {
+            return Ok(());
+        }
+        Err(io::Error::other(format!(
+            "the output {} was {} while this run worked (another run writing there?): \
+             refusing to replace it; nothing written",
+            path.display(),
+            if self.0.is_none() { "made" } else { "changed" }
+        )))
+    }
+}
+
 /// `path` as a write to it would find it: resolved through symbolic links,
 /// `.` and `..` (its folder only, when it does not exist yet). `None` when
 /// neither it nor its folder exists.
@@ -425,6 +457,31 @@ mod tests {
         let msg = says(locked.join("out"), true);
         assert_eq!(msg.is_some(), !root_writes, "{msg:?}");
         fs::set_permissions(&locked, fs::Permissions::from_mode(0o755)).unwrap();
+    }
+
+    #[test]
+    fn an_output_written_by_another_run_meanwhile_is_found() {
+        let root = tempfile::tempdir().unwrap();
+        let out = root.path().join("model");
+        // Made meanwhile.
+        let before = OutputSnapshot::take(&out);
+        assert!(before.check_unchanged(&out).is_ok());
+        write_dir_atomically::<io::Error>(&out, |tmp| fs::write(tmp.join("a"), "a")).unwrap();
+        let err = before.check_unchanged(&out).unwrap_err().to_string();
+        assert!(err.contains("was made while this run worked"), "{err}");
+        // Replaced meanwhile (a new folder renamed into place), or a file
+        // added to it.
+        let before = OutputSnapshot::take(&out);
+        write_dir_atomically::<io::Error>(&out, |tmp| fs::write(tmp.join("b"), "b")).unwrap();
+        assert!(before.check_unchanged(&out).is_err());
+        let before = OutputSnapshot::take(&out);
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        fs::write(out.join("c"), "c").unwrap();
+        let err = before.check_unchanged(&out).unwrap_err().to_string();
+        assert!(err.contains("was changed while this run worked"), "{err}");
+        // Left alone: unchanged.
+        let before = OutputSnapshot::take(&out);
+        assert!(before.check_unchanged(&out).is_ok());
     }
 
     #[test]
