@@ -463,6 +463,7 @@ fn file_poses(value: Option<toml::Value>) -> Result<Vec<String>> {
     };
     match value {
         None => Ok(Vec::new()),
+        Some(Value::Array(items)) if items.is_empty() => Ok(Vec::new()),
         // One pose as six numbers, or a list of poses.
         Some(Value::Array(items)) if items.iter().all(|v| number(v).is_some()) => {
             Ok(vec![pose(Value::Array(items))?])

@@ -1111,6 +1111,13 @@ fn options_file_and_command_line_merge() {
         assert_eq!(c.init_poses[0].to_degrees_array()[..3], [1.0, 2.5, 3.0]);
         assert!((c.init_poses[0].to_degrees_array()[5] - 90.0).abs() < 1e-12);
     }
+    // An empty list: no pose (each image's known pose).
+    std::fs::write(
+        &file,
+        "database = \"a.db\"\nlidar = \"m.ply\"\noutput = \"out\"\ninit_pose = []\n",
+    )
+    .unwrap();
+    assert!(args.config().unwrap().init_poses.is_empty());
     for (poses, says) in [
         ("true", "[x, y, z, roll, pitch, yaw]"),
         ("[[1, \"a\", 3, 0, 0, 90]]", "must be numbers"),
