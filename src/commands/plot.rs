@@ -294,7 +294,7 @@ pub fn read_report(path: &Path) -> anyhow::Result<(PathBuf, ReportForPlots)> {
 }
 
 pub fn run(args: &PlotArgs) -> anyhow::Result<()> {
-    crate::io::atomic::check_output_location(&args.output, true)?;
+    crate::io::atomic::check_output_folder_to_fill(&args.output)?;
     let (file, report) = read_report(&args.report)?;
     let report = match args.run {
         Some(index) => report

@@ -119,9 +119,25 @@ pub fn check_output_location(path: &Path, is_dir: bool) -> io::Result<()> {
     if !existing.is_dir() {
         return Err(file_in_the_way(&parent, existing));
     }
+    probe(existing, path)
+}
+
+/// [`check_output_location`] for a folder whose files are written into it
+/// one by one (not replaced as a whole): an existing one must take new
+/// entries itself, whatever its parent does.
+pub fn check_output_folder_to_fill(dir: &Path) -> io::Result<()> {
+    if dir.is_dir() && !names_nothing(dir) {
+        return probe(dir, dir);
+    }
+    check_output_location(dir, true)
+}
+
+/// Whether `folder` takes a new entry (a temporary folder, removed at once),
+/// for the output `path`.
+fn probe(folder: &Path, path: &Path) -> io::Result<()> {
     tempfile::Builder::new()
         .prefix(".colmap-lidar-probe-")
-        .tempdir_in(existing)
+        .tempdir_in(folder)
         .map(drop)
         .map_err(|e| {
             // The system's reason, without the probe's own name.
@@ -134,7 +150,7 @@ pub fn check_output_location(path: &Path, is_dir: bool) -> io::Result<()> {
                 format!(
                     "cannot write the output {}: the folder {} takes no new entries ({why})",
                     path.display(),
-                    existing.display()
+                    folder.display()
                 ),
             )
         })
@@ -449,13 +465,19 @@ mod tests {
             .collect();
         left.sort();
         assert_eq!(left, ["adir", "afile"]);
-        // A folder without write permission (only without root's override).
+        // A folder without write permission (only without root's override):
+        // refused as a place for outputs, and as a folder to fill, but a
+        // writable folder inside it may be filled.
         let locked = r.join("locked");
-        fs::create_dir(&locked).unwrap();
+        fs::create_dir_all(locked.join("open")).unwrap();
         fs::set_permissions(&locked, fs::Permissions::from_mode(0o555)).unwrap();
         let root_writes = tempfile::tempdir_in(&locked).is_ok();
         let msg = says(locked.join("out"), true);
         assert_eq!(msg.is_some(), !root_writes, "{msg:?}");
+        assert_eq!(check_output_folder_to_fill(&locked).is_err(), !root_writes);
+        assert!(check_output_folder_to_fill(&locked.join("open")).is_ok());
+        assert!(check_output_folder_to_fill(&r.join("new/figures")).is_ok());
+        assert!(check_output_folder_to_fill(&file).is_err());
         fs::set_permissions(&locked, fs::Permissions::from_mode(0o755)).unwrap();
     }
 
