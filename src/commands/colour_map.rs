@@ -85,7 +85,7 @@ const UNSEEN_GREY: [u8; 3] = [128, 128, 128];
 
 pub fn run(args: &ColourMapArgs) -> anyhow::Result<()> {
     let mut options = args.options()?;
-    super::check_output_file(&args.output, "ply", "a binary PLY point cloud")?;
+    crate::io::atomic::check_output_location(&args.output, false)?;
     if let Some(why) = output_replaces_input(
         &args.output,
         false,
@@ -94,6 +94,7 @@ pub fn run(args: &ColourMapArgs) -> anyhow::Result<()> {
     ) {
         bail!(why);
     }
+    super::check_output_extension(&args.output, "ply", "a binary PLY point cloud")?;
     let start = Instant::now();
     let model = read_model(&args.model)
         .with_context(|| format!("reading the COLMAP model {}", args.model.display()))?;

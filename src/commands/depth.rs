@@ -65,10 +65,11 @@ pub fn widen_splats_for_map(options: &mut ProjectionOptions, cloud: &PointCloud)
 
 pub fn run(args: &DepthArgs) -> anyhow::Result<()> {
     let options = args.options()?;
-    super::check_output_file(&args.output, "png", "a PNG image")?;
+    crate::io::atomic::check_output_location(&args.output, false)?;
     if let Some(why) = output_replaces_input(&args.output, false, &[&args.lidar], &[&args.model]) {
         anyhow::bail!(why);
     }
+    super::check_output_extension(&args.output, "png", "a PNG image")?;
     let start = Instant::now();
     let model = read_model(&args.model)
         .with_context(|| format!("reading the COLMAP model {}", args.model.display()))?;

@@ -15,10 +15,13 @@ use std::path::Path;
 /// Refuses an output file whose name does not end in `.{extension}` (any
 /// case): the command writes `what` (e.g. "a binary PLY"), and a name that
 /// promises another format (`map.pcd`, `depth.jpg`) would mislead every
-/// reader of it. Also checks where it goes
-/// ([`crate::io::atomic::check_output_location`]).
-pub(crate) fn check_output_file(path: &Path, extension: &str, what: &str) -> anyhow::Result<()> {
-    crate::io::atomic::check_output_location(path, false)?;
+/// reader of it. Checked after where it goes and whether it would replace
+/// an input, whose errors say more.
+pub(crate) fn check_output_extension(
+    path: &Path,
+    extension: &str,
+    what: &str,
+) -> anyhow::Result<()> {
     let matches = path
         .extension()
         .is_some_and(|e| e.to_string_lossy().eq_ignore_ascii_case(extension));

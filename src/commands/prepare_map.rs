@@ -363,8 +363,9 @@ fn names(inputs: &[PathBuf]) -> String {
 pub fn run(args: &PrepareMapArgs) -> anyhow::Result<()> {
     let options = args.options()?;
     let read = args.read_options()?;
-    super::check_output_file(&args.output, "ply", "a binary PLY point cloud")?;
+    crate::io::atomic::check_output_location(&args.output, false)?;
     let inputs = input_files(&args.input, &args.output)?;
+    super::check_output_extension(&args.output, "ply", "a binary PLY point cloud")?;
     let (loads, report) = prepare_map_files(&inputs, &args.output, &options, &read)?;
     let by_class: u64 = loads.iter().map(|l| l.dropped_by_class).sum();
     let withheld: u64 = loads.iter().map(|l| l.dropped_withheld).sum();
