@@ -67,11 +67,7 @@ fn known_poses(
     }
     if let Some(path) = pose_file {
         let poses = read_pose_ply(path)?;
-        let largest = poses
-            .values()
-            .flat_map(|p| [p.roll_rad, p.pitch_rad, p.yaw_rad])
-            .fold(0.0f64, |m, a| m.max(a.abs()));
-        hints.extend(crate::io::pose_ply::degrees_suspected(path, largest));
+        hints.extend(crate::io::pose_ply::degrees_suspected(path, &poses));
         for (id, pose) in poses {
             if !db.images.contains_key(&id) {
                 bail!(
@@ -124,7 +120,7 @@ fn init_pose_hints(poses: &[BodyPose]) -> Vec<String> {
 /// above a map of the ground; a centre below the map's lowest point, or a
 /// COLMAP `tvec` given as the centre, usually is not meant).
 fn outside_the_map(poses: &[BodyPose], cloud: &PointCloud) -> Vec<String> {
-    let Some((lo, hi)) = cloud.bounds() else {
+    let Some((lo, hi)) = cloud.bounds().filter(|_| !poses.is_empty()) else {
         return Vec::new();
     };
     let mut hints = Vec::new();
@@ -672,7 +668,6 @@ pub fn run(args: &MapArgs) -> Result<()> {
         None => RunStart::InitialPoses(group_starts(&db, &config, &known_poses)?),
     };
     let (cloud, load) = load_map_reporting(&config.lidar, config.input_units)?;
-    hints.extend(outside_the_map(&config.init_poses, &cloud));
     let total = db.images.len();
     let bar = std::io::stderr().is_terminal().then(|| {
         let bar = indicatif::ProgressBar::new(total as u64);
@@ -716,7 +711,11 @@ pub fn run(args: &MapArgs) -> Result<()> {
                 config.lidar.display()
             )
         })
-        .map_err(|e| with_hints(e, &hints))?;
+        .map_err(|e| {
+            // Only a failed run looks at the map's extent.
+            hints.extend(outside_the_map(&config.init_poses, &cloud));
+            with_hints(e, &hints)
+        })?;
     out.report.mapping_s = Some(mapping.elapsed().as_secs_f64());
     // Every run's record; the kept ones are the model's (one per group).
     let kept: BTreeSet<usize> = std::iter::once(out.report.run_index)

@@ -26,14 +26,18 @@ fn names_nothing(path: &Path) -> bool {
     last == b"." || last == b".." || path.file_name().is_none()
 }
 
-fn names_nothing_error(path: &Path) -> io::Error {
-    io::Error::new(
+/// An error when `path` names no file or folder ([`names_nothing`]).
+fn refuse_nameless(path: &Path) -> io::Result<()> {
+    if !names_nothing(path) {
+        return Ok(());
+    }
+    Err(io::Error::new(
         io::ErrorKind::InvalidInput,
         format!(
             "the output `{}` names no file or folder (it ends in `.` or `..`): give its name",
             path.display()
         ),
-    )
+    ))
 }
 
 fn file_in_the_way(folder: &Path, file: &Path) -> io::Error {
@@ -61,9 +65,7 @@ fn not_a_folder(path: &Path) -> io::Error {
 /// or folder (ending in `.` or `..`) or whose folder cannot be made (a file
 /// in its way) is an error that says so.
 fn prepare_parent(path: &Path) -> io::Result<PathBuf> {
-    if names_nothing(path) {
-        return Err(names_nothing_error(path));
-    }
+    refuse_nameless(path)?;
     let parent = parent_of(path);
     if let Err(e) = fs::create_dir_all(&parent) {
         // A file where a folder should be: name it.
@@ -87,9 +89,7 @@ fn prepare_parent(path: &Path) -> io::Result<PathBuf> {
 /// after a long run). The probe is a temporary folder, removed at once; the
 /// output's missing folders are not made.
 pub fn check_output_location(path: &Path, is_dir: bool) -> io::Result<()> {
-    if names_nothing(path) {
-        return Err(names_nothing_error(path));
-    }
+    refuse_nameless(path)?;
     if let Ok(meta) = fs::metadata(path) {
         if is_dir && !meta.is_dir() {
             return Err(not_a_folder(path));
@@ -105,16 +105,20 @@ pub fn check_output_location(path: &Path, is_dir: bool) -> io::Result<()> {
         }
     }
     let parent = parent_of(path);
+    // The nearest existing folder on the path (a relative path's last
+    // ancestor is empty: the current folder).
     let Some(existing) = parent
         .ancestors()
-        .find(|a| a.as_os_str().is_empty() || a.exists())
+        .map(|a| {
+            if a.as_os_str().is_empty() {
+                Path::new(".")
+            } else {
+                a
+            }
+        })
+        .find(|a| a.exists())
     else {
         return Ok(());
-    };
-    let existing = if existing.as_os_str().is_empty() {
-        Path::new(".")
-    } else {
-        existing
     };
     if !existing.is_dir() {
         return Err(file_in_the_way(&parent, existing));

@@ -278,7 +278,6 @@ pub fn parse_pose_ply(
     }
 
     let mut poses = BTreeMap::new();
-    let mut max_abs_angle_rad: f64 = 0.0;
     for (index, line) in data.iter().enumerate() {
         let line_number = header.line_count + index + 1;
         let id = index as u64 + 1;
@@ -317,10 +316,6 @@ pub fn parse_pose_ply(
             )));
         }
         let [x, y, z, roll_rad, pitch_rad, yaw_rad] = values;
-        max_abs_angle_rad = max_abs_angle_rad
-            .max(roll_rad.abs())
-            .max(pitch_rad.abs())
-            .max(yaw_rad.abs());
         poses.insert(
             image_id,
             BodyPose {
@@ -331,16 +326,21 @@ pub fn parse_pose_ply(
             },
         );
     }
-    if let Some(why) = degrees_suspected(path, max_abs_angle_rad) {
+    if let Some(why) = degrees_suspected(path, &poses) {
         log::warn!("{why}");
     }
     Ok(poses)
 }
 
-/// What to say of a pose file whose angles reach `max_abs_angle_rad`: beyond
-/// 2π they look like degrees, as the file should hold radians. Not an error:
-/// an unwrapped yaw (odometry after a few turns) is radians beyond 2π.
-pub fn degrees_suspected(path: &Path, max_abs_angle_rad: f64) -> Option<String> {
+/// What to say of the `poses` read from `path` when their angles reach
+/// beyond 2π: they look like degrees, as the file should hold radians. Not
+/// an error: an unwrapped yaw (odometry after a few turns) is radians
+/// beyond 2π.
+pub fn degrees_suspected(path: &Path, poses: &BTreeMap<ImageId, BodyPose>) -> Option<String> {
+    let max_abs_angle_rad = poses
+        .values()
+        .flat_map(|p| [p.roll_rad, p.pitch_rad, p.yaw_rad])
+        .fold(0.0f64, |m, a| m.max(a.abs()));
     (max_abs_angle_rad > std::f64::consts::TAU).then(|| {
         format!(
             "{}: angles up to {max_abs_angle_rad} in absolute value; pose files store radians \
@@ -520,14 +520,26 @@ mod tests {
     #[test]
     fn angles_beyond_two_pi_are_suspected_degrees() {
         let path = Path::new("poses.ply");
-        let says = degrees_suspected(path, 106.0).unwrap();
+        let reaching = |yaw_rad: f64| -> BTreeMap<ImageId, BodyPose> {
+            let level = BodyPose {
+                position_m: Vector3::zeros(),
+                roll_rad: 0.0,
+                pitch_rad: 0.0,
+                yaw_rad: 0.0,
+            };
+            BTreeMap::from([
+                (ImageId(1), level),
+                (ImageId(2), BodyPose { yaw_rad, ..level }),
+            ])
+        };
+        let says = degrees_suspected(path, &reaching(-106.0)).unwrap();
         assert!(
             says.starts_with("poses.ply: angles up to 106")
                 && says.contains("were degrees written?"),
             "{says}"
         );
-        assert!(degrees_suspected(path, 6.3).is_some());
-        assert!(degrees_suspected(path, 6.2).is_none());
+        assert!(degrees_suspected(path, &reaching(6.3)).is_some());
+        assert!(degrees_suspected(path, &reaching(6.2)).is_none());
     }
 
     #[test]
