@@ -25,8 +25,8 @@ pub struct DepthArgs {
     /// COLMAP model folder (text or binary) holding the image and its pose.
     #[arg(long, alias = "input_path")]
     pub model: PathBuf,
-    /// Name of the image in the model (as in images.txt).
-    #[arg(long, alias = "image_name")]
+    /// The image in the model: its name (as in images.txt) or its id.
+    #[arg(long, alias = "image_name", value_name = "NAME|ID")]
     pub image: String,
     /// Output PNG.
     #[arg(long, alias = "output_path")]
@@ -73,13 +73,20 @@ pub fn run(args: &DepthArgs) -> anyhow::Result<()> {
     let start = Instant::now();
     let model = read_model(&args.model)
         .with_context(|| format!("reading the COLMAP model {}", args.model.display()))?;
-    let image = model.image_by_name(&args.image).with_context(|| {
-        format!(
-            "no image named `{}` in the model {}",
-            args.image,
-            args.model.display()
-        )
-    })?;
+    let image = model
+        .image_by_name(&args.image)
+        .or_else(|| {
+            let id = args.image.trim().parse::<u32>().ok()?;
+            model.images.get(&crate::scene::ImageId(id))
+        })
+        .with_context(|| {
+            format!(
+                "no image of name or id `{}` in the model {} ({} images)",
+                args.image,
+                args.model.display(),
+                model.images.len()
+            )
+        })?;
     let cam_from_world = image.cam_from_world.with_context(|| {
         format!(
             "image `{}` is not registered in {} (no pose)",

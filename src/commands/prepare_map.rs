@@ -17,6 +17,9 @@ use crate::map::prepare::{
 };
 use crate::map::PointCloud;
 
+/// `--voxel`'s default, metres.
+const DEFAULT_VOXEL_M: f64 = 0.03;
+
 #[derive(clap::Args, Debug, Clone)]
 pub struct PrepareMapArgs {
     /// Raw point cloud: .ply, .pcd, .las, .laz or .e57 (every scan, each at
@@ -29,7 +32,7 @@ pub struct PrepareMapArgs {
     #[arg(long, alias = "output_path")]
     pub output: PathBuf,
     /// Voxel size for downsampling, metres (0 = keep every point).
-    #[arg(long, default_value_t = 0.03)]
+    #[arg(long, default_value_t = DEFAULT_VOXEL_M)]
     pub voxel: f64,
     /// Neighbourhood radius for normal estimation, metres [default: 0.15,
     /// or 3 times the (downsampled) cloud's spacing when that is larger].
@@ -337,6 +340,21 @@ pub fn prepare_map_files(
         report.dropped_without_normal,
         start.elapsed().as_secs_f64()
     );
+    let kept_in_crop = report.input_points - report.dropped_by_crop;
+    // A voxel chosen finer than the default that merged nothing: said, as
+    // a tiny value may be a unit slip (the default on a sparse map is not).
+    let voxel = options.voxel_size_m;
+    if voxel > 0.0
+        && voxel < DEFAULT_VOXEL_M
+        && kept_in_crop > 1
+        && report.after_voxel == kept_in_crop
+    {
+        log::warn!(
+            "the {voxel} m voxel grid merged no two of the {kept_in_crop} points: it is finer than \
+             the map's spacing and only cost time (--voxel 0 keeps every point; \
+             {DEFAULT_VOXEL_M} m, the default, thins a dense scan)"
+        );
+    }
     if cloud.is_empty() {
         anyhow::bail!("{}: no point left to write", names(inputs));
     }

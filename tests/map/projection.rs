@@ -789,6 +789,12 @@ fn depth_command_writes_png() {
     assert_eq!(img.dimensions(), (160, 120));
     // The floor is seen below the horizon: not black there.
     assert_ne!(img.get_pixel(80, 110).0, [0, 0, 0]);
+    // The same image by its id: the same PNG.
+    let by_name = std::fs::read(&output).unwrap();
+    args.image = "1".into();
+    args.output = dir.path().join("by_id.png");
+    run(&args).unwrap();
+    assert_eq!(std::fs::read(&args.output).unwrap(), by_name);
     // Unknown image: a clear error, no output.
     args.image = "missing.jpg".into();
     args.output = dir.path().join("none.png");
