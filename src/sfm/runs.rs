@@ -82,7 +82,7 @@ pub fn run_mapper_with_priors(
     // The first run, which may stop early to map again from where the
     // initial image is (`bundle.restart_early_at_images`), when it is to
     // be mapped again at all (`bundle.restart_first_run`).
-    let restart_first = options.bundle.restart_first_run;
+    let restart_first = options.bundle.restarts_first_run(num_images);
     let look_at = early_look_at(num_images, options).filter(|_| restart_first);
     let end_look = first_run_end_look(options).filter(|_| restart_first);
     let started = Instant::now();
@@ -123,7 +123,7 @@ pub fn run_mapper_with_priors(
         first.report.early_restart = Some(record);
         first.report.early_look = Some(look);
     }
-    Ok(match restart_reason(&first, options) {
+    Ok(match restart_reason(&first, num_images, options) {
         Some(change) => runs.restart_from_end(first, change, first_run_s, &mut *progress),
         None => first,
     })
@@ -659,11 +659,16 @@ pub(super) const RESTART_MIN_CHANGE: (f64, f64) = (0.02, 0.2);
 /// retry freed from the start is (the seed-0 corridor from 0.9 m / 8 deg
 /// off: 3.4 mm, its initial image 0.90 m from the given pose); a run that
 /// held the image for its first registrations only with
-/// `bundle.restart_first_run`.
-fn restart_reason(out: &MapperOutput, options: &MapperOptions) -> Option<PoseChangeRecord> {
+/// `bundle.restart_first_run`, or in a database of `num_images` at least
+/// `bundle.restart_first_run_from_images`.
+fn restart_reason(
+    out: &MapperOutput,
+    num_images: usize,
+    options: &MapperOptions,
+) -> Option<PoseChangeRecord> {
     let freed = out.report.retry.as_ref().is_some_and(|r| r.free_kept);
     if !options.bundle.restart_from_refined_pose
-        || !(freed || options.bundle.restart_first_run)
+        || !(freed || options.bundle.restarts_first_run(num_images))
         || options.association.kind == AssociationKind::None
         || out.report.retry.as_ref().is_some_and(|r| r.held_kept)
         || out.report.restart.is_some()
@@ -1654,10 +1659,10 @@ mod tests {
         assert!(record.second_kept);
         assert_eq!(record.second_fit_share, Some(0.94));
         // A run from an earlier run's end is not mapped once more.
-        assert!(restart_reason(&out, &options).is_none());
+        assert!(restart_reason(&out, 24, &options).is_none());
         let mut first_too = options.clone();
         first_too.bundle.restart_first_run = true;
-        assert!(restart_reason(&finished_run(1.8e-2, 0.3, 3.0, 0.94), &first_too).is_some());
+        assert!(restart_reason(&finished_run(1.8e-2, 0.3, 3.0, 0.94), 24, &first_too).is_some());
         // 0.2 m from the look: mapped again from where it ended.
         let (out, restarted) = judged(0.2);
         let (c, s) = restarted.expect("mapped again");
@@ -1745,10 +1750,17 @@ mod tests {
         // By default the first run (its image held at first) is kept as it
         // ended; the run the retry freed from the start is mapped again.
         let defaults = MapperOptions::default();
-        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), &defaults).is_none());
+        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), 24, &defaults).is_none());
+        // ... in a database of fewer than 48 images; from 48 on it is
+        // mapped again too.
+        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), 47, &defaults).is_none());
+        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), 48, &defaults).is_some());
+        let mut never = defaults.clone();
+        never.bundle.restart_first_run_from_images = 0;
+        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), 500, &never).is_none());
         let mut options = defaults.clone();
         options.bundle.restart_first_run = true;
-        let moved = |m, deg| restart_reason(&finished_run(0.03, m, deg, 0.9), &options);
+        let moved = |m, deg| restart_reason(&finished_run(0.03, m, deg, 0.9), 24, &options);
         // From the exact pose (the seed-0 scenes: 0.9-2.0 mm, 0.009-0.016
         // deg) or a search's placement (3.5-7.6 mm, 0.02-0.07 deg): no.
         assert!(moved(0.002, 0.016).is_none());
@@ -1766,21 +1778,21 @@ mod tests {
             free_kept: true,
             ..Default::default()
         });
-        assert!(restart_reason(&freed, &options).is_some());
-        assert!(restart_reason(&freed, &defaults).is_some());
+        assert!(restart_reason(&freed, 24, &options).is_some());
+        assert!(restart_reason(&freed, 24, &defaults).is_some());
         // Not when turned off, without the map's planes, or held.
         let mut off = options.clone();
         off.bundle.restart_from_refined_pose = false;
-        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), &off).is_none());
+        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), 24, &off).is_none());
         let mut plain = options.clone();
         plain.association.kind = AssociationKind::None;
-        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), &plain).is_none());
+        assert!(restart_reason(&finished_run(0.03, 0.3, 3.0, 0.9), 24, &plain).is_none());
         let mut held = finished_run(0.03, 0.3, 3.0, 0.9);
         held.report.retry = Some(RetryRecord {
             held_kept: true,
             ..Default::default()
         });
-        assert!(restart_reason(&held, &options).is_none());
+        assert!(restart_reason(&held, 24, &options).is_none());
     }
 
     #[test]

@@ -396,10 +396,11 @@ fn a_run_whose_initial_image_turned_early_is_mapped_again_from_there() {
     assert!(steady_err < 0.02, "{steady_err}");
 }
 
-/// By default (`bundle.restart_first_run` off) the first run from a pose 15
-/// cm and 2 deg off is kept as it ended: one run, with no look and no
-/// second run, its initial image where the map put it (15 cm and 2 deg from
-/// the given pose), and as right as the run mapped again from its end.
+/// By default (`bundle.restart_first_run` off, and a database of fewer than
+/// 48 images) the first run from a pose 15 cm and 2 deg off is kept as it
+/// ended: one run, with no look and no second run, its initial image where
+/// the map put it (15 cm and 2 deg from the given pose), and as right as
+/// the run mapped again from its end.
 #[test]
 fn a_first_run_from_a_pose_off_is_kept_as_it_ended_by_default() {
     let scene = toy(30, 0.3, 0.03, 1);
