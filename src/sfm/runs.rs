@@ -6,7 +6,8 @@
 //!   when the map did not hold the model (`bundle.retry_holding_initial`); a
 //!   second run from where the initial image ended
 //!   (`bundle.restart_from_refined_pose`) after the retry's run free from the
-//!   start, and after the first run only with `bundle.restart_first_run`,
+//!   start, and after the first run only with `bundle.restart_first_run`
+//!   or in a database of `bundle.restart_first_run_from_images` or more,
 //!   with an early look that maps again from where the initial image is once
 //!   the model holds it (`bundle.restart_early_at_images`).
 //! * [`run_mapper_from_pose`]: that, followed by a search of the map around
@@ -81,7 +82,8 @@ pub fn run_mapper_with_priors(
 
     // The first run, which may stop early to map again from where the
     // initial image is (`bundle.restart_early_at_images`), when it is to
-    // be mapped again at all (`bundle.restart_first_run`).
+    // be mapped again at all (`bundle.restart_first_run`, or a database of
+    // `bundle.restart_first_run_from_images` or more).
     let restart_first = options.bundle.restarts_first_run(num_images);
     let look_at = early_look_at(num_images, options).filter(|_| restart_first);
     let end_look = first_run_end_look(options).filter(|_| restart_first);
