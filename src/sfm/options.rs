@@ -430,9 +430,12 @@ pub struct BundleOptions {
     /// corridor 1.37 mm in one run against 1.00 mm mapped again (`colmap
     /// mapper` + oracle 0.76 mm), seed 0 2.54 against 2.23 mm, seed 3 0.98
     /// against 0.77 mm (oracle 0.72 mm), each then its exact pose's
-    /// value; the seed-3 room and yard unchanged (sessions 64-65). At 24
-    /// images it bought nothing (above) and at 100 images little (the
-    /// seed-3 corridor 1.1 mm either way) for up to twice the time.
+    /// value; the seed-3 room and yard unchanged (sessions 64-65); a fresh
+    /// seed-4 database 1.52 against 1.14 mm (exact 1.11, oracle 0.75; session
+    /// 66). At 24 images it bought nothing (above), at 48 and 100 images
+    /// nothing either (0.84 / 0.87 mm, 0.98 / 1.07 mm; oracle 0.66, 1.25
+    /// mm), for none to 1.7 times the one run's time (100 images: ratio
+    /// 0.81 to `colmap mapper`).
     pub restart_first_run_from_images: usize,
     /// With `restart_from_refined_pose`, the run looks at its initial image
     /// once, at the first sphere solve with at least this many images
