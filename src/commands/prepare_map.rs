@@ -328,10 +328,11 @@ pub fn prepare_map_files(
         prepare(cloud, &cropped).with_context(|| format!("preparing {}", names(inputs)))?;
     report.input_points = input_points;
     report.dropped_by_crop = dropped_by_crop;
+    let kept_in_crop = report.input_points - report.dropped_by_crop;
     log::info!(
         "prepared: {} -> {} points after the {} m voxel grid; normals kept {}, estimated {}, \
          failed {}; {} points dropped without a normal; {:.2} s",
-        report.input_points - report.dropped_by_crop,
+        kept_in_crop,
         report.after_voxel,
         options.voxel_size_m,
         report.normals.kept,
@@ -340,7 +341,6 @@ pub fn prepare_map_files(
         report.dropped_without_normal,
         start.elapsed().as_secs_f64()
     );
-    let kept_in_crop = report.input_points - report.dropped_by_crop;
     // A voxel chosen finer than the default that merged nothing: said, as
     // a tiny value may be a unit slip (the default on a sparse map is not).
     let voxel = options.voxel_size_m;
