@@ -6,7 +6,8 @@ use std::path::Path;
 
 use colmap_lidar::eval::{evaluate, load_poses, Alignment};
 use colmap_lidar::io::database::read_database;
-use colmap_lidar::scene::Rigid3;
+use colmap_lidar::scene::{CameraModel, Rigid3};
+use colmap_lidar::synth::generate::FISHEYE_FOCAL_FACTOR;
 use colmap_lidar::synth::geometry::{Scene, SolidBox};
 use colmap_lidar::synth::lidar::{sample_lidar, LidarOptions};
 use colmap_lidar::synth::scenes::{build_changed_scene, build_scene, trajectory};
@@ -255,12 +256,52 @@ fn changed_scenes_move_objects_between_scan_and_photos() {
 
 #[test]
 fn synth_projections_agree_with_ray_casting() {
-    // Noise-free samples projected into the true cameras (read from gt/) must
-    // land on a pixel whose ray, cast through the scene, hits the sample or
-    // something in front of it (occlusion), never anything behind it.
+    projections_agree_with_ray_casting(small_options(SceneKind::Corridor, 6));
+    // A fisheye (rays up to 78 deg off the axis).
+    let fisheye = SynthOptions {
+        camera_model: CameraModel::OpenCvFisheye,
+        focal_factor: FISHEYE_FOCAL_FACTOR,
+        ..small_options(SceneKind::Corridor, 6)
+    };
+    let camera = fisheye.camera();
+    let corner = lens::unproject(&camera, &Vector2::new(0.0, 0.0));
+    assert!(corner.xy().norm().atan().to_degrees() > 75.0, "{corner}");
+    projections_agree_with_ray_casting(fisheye);
+}
+
+#[test]
+fn synth_refuses_a_fisheye_wider_than_it_can_render() {
+    let with = |model: CameraModel, focal_factor: f64| SynthOptions {
+        camera_model: model,
+        focal_factor,
+        ..SynthOptions::default()
+    };
+    assert!(with(CameraModel::OpenCvFisheye, FISHEYE_FOCAL_FACTOR)
+        .validate()
+        .is_ok());
+    assert!(with(CameraModel::SimpleRadialFisheye, FISHEYE_FOCAL_FACTOR)
+        .validate()
+        .is_ok());
+    // 640 x 480 at f = 192 px: the corners are 2.08 focal lengths from the
+    // centre, rays about 113 deg off the axis, which (x, y, 1) rays cannot be.
+    let err = with(CameraModel::OpenCvFisheye, 0.3)
+        .validate()
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("OPENCV_FISHEYE") && err.contains("at most 85"),
+        "{err}"
+    );
+    assert!(err.contains("90 deg or more"), "{err}");
+    assert!(with(CameraModel::SimplePinhole, 0.8).validate().is_ok());
+}
+
+/// Noise-free samples projected into the true cameras (read from gt/) must
+/// land on a pixel whose ray, cast through the scene, hits the sample or
+/// something in front of it (occlusion), never anything behind it.
+fn projections_agree_with_ray_casting(opts: SynthOptions) {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("corridor");
-    let opts = small_options(SceneKind::Corridor, 6);
     generate_scene(&opts, &out).unwrap();
     let gt = load_poses(&out.join("gt")).unwrap();
     let camera = opts.camera();
@@ -318,7 +359,8 @@ fn synth_projections_agree_with_ray_casting() {
     }
     assert!(
         visible > 5000 && occluded > 100,
-        "visible {visible} occluded {occluded}"
+        "{}: visible {visible} occluded {occluded}",
+        opts.camera_model.name()
     );
 }
 

@@ -5,6 +5,7 @@ use anyhow::Context;
 use nalgebra::Vector3;
 
 use crate::scene::CameraModel;
+use crate::synth::generate::FISHEYE_FOCAL_FACTOR;
 use crate::synth::{generate_scene, SceneKind, SynthOptions};
 
 /// Render a synthetic scene (images, LiDAR map, true cameras, initial pose).
@@ -32,9 +33,14 @@ pub struct SynthArgs {
     /// World offset added to every coordinate, "X,Y,Z" in metres (e.g. 500000,4400000,200).
     #[arg(long, value_parser = parse_offset, allow_hyphen_values = true)]
     pub offset: Option<[f64; 3]>,
-    /// COLMAP camera model of the true camera: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV.
+    /// COLMAP camera model of the true camera: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL,
+    /// OPENCV, SIMPLE_RADIAL_FISHEYE, OPENCV_FISHEYE.
     #[arg(long, default_value = "SIMPLE_RADIAL")]
     pub camera_model: String,
+    /// Focal length as a fraction of the image width (default 0.8, about 65 deg
+    /// horizontally; fisheye models 0.45, about 125 deg).
+    #[arg(long)]
+    pub focal_factor: Option<f64>,
     /// Anti-aliasing rays per pixel along each axis.
     #[arg(long, default_value_t = 2)]
     pub supersample: u32,
@@ -89,6 +95,11 @@ impl SynthArgs {
             changes: self.changes,
             ..SynthOptions::default()
         };
+        opts.focal_factor = self.focal_factor.unwrap_or(if camera_model.is_fisheye() {
+            FISHEYE_FOCAL_FACTOR
+        } else {
+            opts.focal_factor
+        });
         opts.lidar.spacing_m = self.lidar_spacing;
         opts.lidar.max_points = self.lidar_max_points;
         opts.lidar.noise_sigma_m = self.lidar_noise;

@@ -77,6 +77,18 @@ impl CameraModel {
         }
     }
 
+    /// The fisheye models: image radius about proportional to the ray's angle
+    /// from the axis (equidistant), not to its tangent.
+    pub fn is_fisheye(self) -> bool {
+        matches!(
+            self,
+            CameraModel::SimpleRadialFisheye
+                | CameraModel::RadialFisheye
+                | CameraModel::OpenCvFisheye
+                | CameraModel::ThinPrismFisheye
+        )
+    }
+
     pub fn from_id(id: i64) -> Option<Self> {
         Self::ALL.into_iter().find(|m| i64::from(m.id()) == id)
     }

@@ -20,7 +20,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use nalgebra::{Rotation3, Unit, Vector3};
+use nalgebra::{Rotation3, Unit, Vector2, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -48,9 +48,11 @@ pub struct SynthOptions {
     pub width: u32,
     pub height: u32,
     /// Camera model of the true camera (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL,
-    /// RADIAL or OPENCV). Default SIMPLE_RADIAL with k = -0.04.
+    /// RADIAL, OPENCV, SIMPLE_RADIAL_FISHEYE or OPENCV_FISHEYE). Default
+    /// SIMPLE_RADIAL with k = -0.04.
     pub camera_model: CameraModel,
-    /// Focal length as a fraction of the width. Default 0.8 (about 65 deg horizontal).
+    /// Focal length as a fraction of the width. Default 0.8 (about 65 deg
+    /// horizontal); [`FISHEYE_FOCAL_FACTOR`] suits the fisheye models.
     pub focal_factor: f64,
     /// Seed of textures, trajectory jitter, noise and LiDAR sampling. Default 0.
     pub seed: u64,
@@ -91,6 +93,14 @@ impl Default for SynthOptions {
         }
     }
 }
+
+/// Focal length over width of a fisheye camera: 0.45 gives about 125 deg
+/// horizontally and 156 deg across the diagonal (equidistant).
+pub const FISHEYE_FOCAL_FACTOR: f64 = 0.45;
+
+/// Largest angle from the optical axis a rendered pixel may see: rays are
+/// cast as (x, y, 1), so a fisheye must stay well inside 90 degrees.
+const MAX_HALF_FOV_DEG: f64 = 85.0;
 
 /// Most images `synth` renders (a 400-image corridor is the largest scene
 /// the benchmarks use).
@@ -139,6 +149,26 @@ impl SynthOptions {
         if !(self.focal_factor > 0.1 && self.focal_factor < 10.0) {
             return bad(format!("focal factor {} out of range", self.focal_factor));
         }
+        let camera = self.camera();
+        let (w, h) = (f64::from(self.width), f64::from(self.height));
+        for corner in [[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]] {
+            let angle_deg = camera
+                .unproject(&Vector2::new(corner[0], corner[1]))
+                .map_or(f64::INFINITY, |ray| ray.xy().norm().atan().to_degrees());
+            if !(angle_deg < MAX_HALF_FOV_DEG) {
+                return bad(format!(
+                    "focal factor {} gives a {} camera a view {} deg or more from its axis \
+                     at the image corners (at most {MAX_HALF_FOV_DEG}); use a longer focal length",
+                    self.focal_factor,
+                    self.camera_model.name(),
+                    if angle_deg.is_finite() {
+                        angle_deg.round()
+                    } else {
+                        90.0
+                    }
+                ));
+            }
+        }
         if !self.offset_m.iter().all(|c| c.is_finite()) {
             return bad("--offset must be finite".into());
         }
@@ -175,6 +205,10 @@ impl SynthOptions {
             CameraModel::Pinhole => vec![f, f * 1.003, cx, cy],
             CameraModel::SimpleRadial => vec![f, cx, cy, -0.04],
             CameraModel::Radial => vec![f, cx, cy, -0.04, 0.01],
+            CameraModel::SimpleRadialFisheye => vec![f, cx, cy, 0.02],
+            CameraModel::OpenCvFisheye => {
+                vec![f, f * 1.003, cx + 1.5, cy - 1.0, 0.03, -0.01, 0.002, -0.001]
+            }
             _ => vec![
                 f,
                 f * 1.003,

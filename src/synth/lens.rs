@@ -8,12 +8,14 @@ use nalgebra::{Vector2, Vector3};
 use crate::scene::{Camera, CameraModel};
 
 /// Camera models the generator can render with.
-pub const SUPPORTED_MODELS: [CameraModel; 5] = [
+pub const SUPPORTED_MODELS: [CameraModel; 7] = [
     CameraModel::SimplePinhole,
     CameraModel::Pinhole,
     CameraModel::SimpleRadial,
     CameraModel::Radial,
     CameraModel::OpenCv,
+    CameraModel::SimpleRadialFisheye,
+    CameraModel::OpenCvFisheye,
 ];
 
 /// Pixel coordinates of a point in the camera frame; `None` behind the camera.
@@ -22,8 +24,9 @@ pub fn project(camera: &Camera, point_in_cam: &Vector3<f64>) -> Option<Vector2<f
 }
 
 /// Ray direction (z = 1) of a pixel. For the supported models with the mild
-/// distortion the generator uses, undistortion always converges; the
-/// undistorted-pinhole ray is a fallback that keeps rendering total.
+/// distortion the generator uses, undistortion always converges (a fisheye's
+/// field of view is checked to stay below 180 degrees when the options are
+/// validated); the undistorted-pinhole ray is a fallback that keeps rendering total.
 pub fn unproject(camera: &Camera, pixel: &Vector2<f64>) -> Vector3<f64> {
     camera.unproject(pixel).unwrap_or_else(|| {
         let f = camera.mean_focal_length();
@@ -45,6 +48,10 @@ mod tests {
                 CameraModel::Pinhole => vec![500.0, 510.0, 321.0, 239.0],
                 CameraModel::SimpleRadial => vec![500.0, 320.0, 240.0, -0.05],
                 CameraModel::Radial => vec![500.0, 320.0, 240.0, -0.05, 0.01],
+                CameraModel::SimpleRadialFisheye => vec![280.0, 320.0, 240.0, 0.02],
+                CameraModel::OpenCvFisheye => {
+                    vec![280.0, 281.0, 321.0, 239.0, 0.03, -0.01, 0.002, -0.001]
+                }
                 _ => vec![500.0, 505.0, 320.0, 240.0, -0.05, 0.01, 0.001, -0.0005],
             }
         };
