@@ -244,7 +244,8 @@ pub struct MapArgs {
     #[arg(long, visible_alias = "no_lidar_constraints")]
     pub no_lidar_constraints: bool,
     /// Which bundle adjustments refine focal length and distortion (the
-    /// principal point is held, as in COLMAP): auto (default: every solve
+    /// principal point with them only where the focal length is a guess, or
+    /// as [mapper.bundle] refine_principal_point says): auto (default: every solve
     /// for cameras the database marks as uncalibrated, prior_focal_length =
     /// 0; the others are held unless one solve after the final rounds moves
     /// their focal length by more than 0.1 %), fixed (calibrated cameras),

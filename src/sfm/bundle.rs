@@ -35,9 +35,10 @@ pub struct BundleConfig {
 
 /// Why refined intrinsics cannot be right, if they cannot (COLMAP's bounds
 /// on a camera after bundle adjustment): a focal length outside 0.1 to 10
-/// times the larger image side, a distortion coefficient above 1 in size,
-/// or a value that is not finite.
-pub fn implausible_intrinsics(camera: &Camera) -> Option<String> {
+/// times the larger image side, a distortion coefficient above 1 in size, a
+/// value that is not finite, or, when it was refined
+/// (`principal_point_refined`), a principal point outside the image.
+pub fn implausible_intrinsics(camera: &Camera, principal_point_refined: bool) -> Option<String> {
     if camera.params.iter().any(|p| !p.is_finite()) {
         return Some("a parameter is not finite".into());
     }
@@ -52,6 +53,16 @@ pub fn implausible_intrinsics(camera: &Camera) -> Option<String> {
         }
     }
     let pp = camera.model.principal_point_idxs();
+    let (cx, cy) = (camera.params[pp[0]], camera.params[pp[1]]);
+    if principal_point_refined
+        && !((0.0..=f64::from(camera.width)).contains(&cx)
+            && (0.0..=f64::from(camera.height)).contains(&cy))
+    {
+        return Some(format!(
+            "principal point ({cx:.1}, {cy:.1}) lies outside the {}x{} image",
+            camera.width, camera.height
+        ));
+    }
     let fixed: Vec<usize> = camera
         .model
         .focal_idxs()
@@ -314,8 +325,13 @@ fn build_bundle(state: &MapState, config: &BundleConfig) -> BuiltBundle {
         if let std::collections::btree_map::Entry::Vacant(slot) = camera_idx.entry(cam_id) {
             slot.insert(problem.cameras.len() as u32);
             // Refined: focal length and distortion; the principal point stays
-            // (COLMAP's default: it is poorly determined by BA).
-            let constant = if refined.contains(&cam_id) {
+            // (COLMAP's default: it is poorly determined by BA) unless the
+            // state lists the camera.
+            let constant = if refined.contains(&cam_id)
+                && state.principal_point_refined.contains(&cam_id)
+            {
+                ConstantParams::None
+            } else if refined.contains(&cam_id) {
                 let camera = &state.cameras[&cam_id];
                 let pp = camera.model.principal_point_idxs();
                 ConstantParams::Mask((0..camera.params.len()).map(|k| pp.contains(&k)).collect())
@@ -489,7 +505,8 @@ pub fn bundle_adjust(
                     params: problem.cameras[ci as usize].params.clone(),
                     ..state.cameras[&id].clone()
                 };
-                let why = implausible_intrinsics(&camera)?;
+                let why =
+                    implausible_intrinsics(&camera, state.principal_point_refined.contains(&id))?;
                 log::warn!(
                     "{kind:?} bundle adjustment: the refined intrinsics of camera {} are implausible ({why}): {:?}; solving again with them held",
                     id.0,
@@ -716,51 +733,49 @@ mod tests {
             params,
         };
         let radial = |f: f64, k: f64| camera(CameraModel::SimpleRadial, vec![f, 320.0, 240.0, k]);
-        assert_eq!(implausible_intrinsics(&radial(512.0, -0.04)), None);
+        let radial_at =
+            |cx: f64, cy: f64| camera(CameraModel::SimpleRadial, vec![512.0, cx, cy, 0.0]);
+        assert_eq!(implausible_intrinsics(&radial(512.0, -0.04), false), None);
         // 0.1 and 10 times the larger side (640 px) are the limits.
-        assert_eq!(implausible_intrinsics(&radial(64.0, 0.0)), None);
-        assert_eq!(implausible_intrinsics(&radial(6400.0, 0.0)), None);
-        let low = implausible_intrinsics(&radial(63.0, 0.0)).unwrap();
+        assert_eq!(implausible_intrinsics(&radial(64.0, 0.0), false), None);
+        assert_eq!(implausible_intrinsics(&radial(6400.0, 0.0), false), None);
+        let low = implausible_intrinsics(&radial(63.0, 0.0), false).unwrap();
         assert!(low.contains("63.0 px") && low.contains("0.098"), "{low}");
-        assert!(implausible_intrinsics(&radial(6500.0, 0.0)).is_some());
-        let k = implausible_intrinsics(&radial(512.0, -1.5)).unwrap();
+        assert!(implausible_intrinsics(&radial(6500.0, 0.0), false).is_some());
+        let k = implausible_intrinsics(&radial(512.0, -1.5), false).unwrap();
         assert!(k.contains("parameter 3 is -1.500"), "{k}");
-        assert!(implausible_intrinsics(&radial(f64::NAN, 0.0)).is_some());
+        assert!(implausible_intrinsics(&radial(f64::NAN, 0.0), false).is_some());
         // A principal point far outside 1 is not a distortion parameter; fy counts as a focal.
         let pinhole = camera(CameraModel::Pinhole, vec![500.0, 20.0, 320.0, 240.0]);
-        assert!(implausible_intrinsics(&pinhole)
+        assert!(implausible_intrinsics(&pinhole, false)
             .unwrap()
             .contains("20.0 px"));
         let opencv = camera(
             CameraModel::OpenCv,
             vec![500.0, 500.0, 320.0, 240.0, -0.1, 0.01, 0.0, 0.0],
         );
-        assert_eq!(implausible_intrinsics(&opencv), None);
+        assert_eq!(implausible_intrinsics(&opencv, false), None);
+        // A refined principal point outside the 640 x 480 image (on its edge
+        // is not); one held there is the database's and not questioned.
+        assert_eq!(implausible_intrinsics(&radial_at(640.0, 0.0), true), None);
+        let outside = implausible_intrinsics(&radial_at(320.0, 481.0), true).unwrap();
+        assert!(outside.contains("(320.0, 481.0)"), "{outside}");
+        assert!(implausible_intrinsics(&radial_at(-0.5, 240.0), true).is_some());
+        assert_eq!(implausible_intrinsics(&radial_at(-0.5, 240.0), false), None);
     }
 
-    /// Keypoints of a 40 px focal length (below COLMAP's bound of 64 px for a
-    /// 640 px wide image), a camera that says 45: every solve that refines it
-    /// ends out of bounds and is solved again with it held; after the second
-    /// such solve it is no longer refined at all.
-    #[test]
-    fn intrinsics_refined_out_of_bounds_twice_are_held_for_the_rest_of_the_run() {
+    /// Three images 0.5 m apart, fixed, of a 5 x 5 grid of points at three
+    /// depths, with keypoints projected by `truth` and the database holding
+    /// `database_camera` (camera 1, refined); the points start 2.4 cm off.
+    /// The cameras stand at different depths and off one line: were they side
+    /// by side, a principal point moved by `d` px would be matched exactly by
+    /// the points sheared by `d z / f`; on one line, by another affinity.
+    fn grid_seen_through(truth: &Camera, database_camera: Camera) -> (MapState, BundleConfig) {
         use crate::io::database::DatabaseSnapshot;
         use crate::scene::TrackElement;
-        use crate::sfm::associate::tests::{add_test_image, test_camera};
-        use crate::sfm::associate::NoAssociation;
-        let truth = Camera {
-            params: vec![40.0, 320.0, 240.0],
-            ..test_camera()
-        };
+        use crate::sfm::associate::tests::add_test_image;
         let mut db = DatabaseSnapshot::default();
-        db.cameras.insert(
-            CameraId(1),
-            Camera {
-                params: vec![45.0, 320.0, 240.0],
-                ..truth.clone()
-            },
-        );
-        // A 5 x 5 grid at three depths, seen by three cameras 0.5 m apart.
+        db.cameras.insert(CameraId(1), database_camera);
         let points: Vec<Vector3<f64>> = (0..25)
             .map(|k| {
                 let (i, j) = ((k % 5) as f64, (k / 5) as f64);
@@ -769,9 +784,10 @@ mod tests {
             .collect();
         let poses: Vec<(ImageId, Rigid3)> = (0..3)
             .map(|i| {
-                let centre = Vector3::new(0.5 * (i as f64 - 1.0), 0.1 * i as f64, 0.0);
+                let i = i as f64;
+                let centre = Vector3::new(0.5 * (i - 1.0), 0.1 * i, 0.4 * (i - 1.0).powi(2));
                 (
-                    ImageId(i + 1),
+                    ImageId(i as u32 + 1),
                     Rigid3::new(nalgebra::UnitQuaternion::identity(), -centre),
                 )
             })
@@ -804,6 +820,63 @@ mod tests {
             refine_cameras: BTreeSet::from([CameraId(1)]),
             pose_priors: Vec::new(),
         };
+        (state, config)
+    }
+
+    /// Keypoints seen with the principal point 6 px right of and 4 px above
+    /// the database's (the image centre, as COLMAP guesses it): a refined
+    /// camera's principal point stays unless the state lists it in
+    /// `principal_point_refined`, and then goes where the keypoints put it.
+    #[test]
+    fn the_principal_point_is_refined_only_when_asked() {
+        use crate::sfm::associate::tests::test_camera;
+        use crate::sfm::associate::NoAssociation;
+        let truth = Camera {
+            params: vec![500.0, 326.0, 236.0],
+            ..test_camera()
+        };
+        for refine_principal_point in [false, true] {
+            let (mut state, config) = grid_seen_through(&truth, test_camera());
+            if refine_principal_point {
+                state.principal_point_refined.insert(CameraId(1));
+            }
+            let options = BundleOptions::default();
+            bundle_adjust(
+                &mut state,
+                &config,
+                SolveKind::Global,
+                &NoAssociation,
+                &options,
+            )
+            .expect("solves");
+            let params = &state.cameras[&CameraId(1)].params;
+            if refine_principal_point {
+                for (k, want) in [(0, 500.0), (1, 326.0), (2, 236.0)] {
+                    assert!((params[k] - want).abs() < 0.01, "{params:?}");
+                }
+            } else {
+                assert_eq!(params[1..], [320.0, 240.0], "{params:?}");
+            }
+        }
+    }
+
+    /// Keypoints of a 40 px focal length (below COLMAP's bound of 64 px for a
+    /// 640 px wide image), a camera that says 45: every solve that refines it
+    /// ends out of bounds and is solved again with it held; after the second
+    /// such solve it is no longer refined at all.
+    #[test]
+    fn intrinsics_refined_out_of_bounds_twice_are_held_for_the_rest_of_the_run() {
+        use crate::sfm::associate::tests::test_camera;
+        use crate::sfm::associate::NoAssociation;
+        let truth = Camera {
+            params: vec![40.0, 320.0, 240.0],
+            ..test_camera()
+        };
+        let database_camera = Camera {
+            params: vec![45.0, 320.0, 240.0],
+            ..truth.clone()
+        };
+        let (mut state, config) = grid_seen_through(&truth, database_camera);
         let options = BundleOptions::default();
         let solve = |state: &mut MapState| {
             bundle_adjust(state, &config, SolveKind::Global, &NoAssociation, &options)

@@ -40,6 +40,7 @@ use super::initialize::{
 use super::localise::{SearchError, SearchRegion};
 use super::options::{
     AssociationKind, BundleOptions, IntrinsicsRefinement, MapperOptions, OptionsError, PlaneLoss,
+    PrincipalPointRefinement,
 };
 use super::register::{
     focal_from_points, next_best_images, register_at_known_pose, register_image, PoseOutcome,
@@ -1234,6 +1235,14 @@ fn map_staged(
             );
         }
     }
+    state.principal_point_refined = match options.bundle.refine_principal_point {
+        PrincipalPointRefinement::Never => BTreeSet::new(),
+        PrincipalPointRefinement::Auto => db.cameras_without_focal_prior.clone(),
+        PrincipalPointRefinement::Always => db.cameras.keys().copied().collect(),
+    }
+    .into_iter()
+    .map(|id| state.intrinsics_of(id))
+    .collect();
     // A model's cameras start from its intrinsics, not from a guess.
     let guessed_start: BTreeSet<CameraId> = refine
         .every

@@ -160,6 +160,11 @@ pub struct MapState {
     /// out of COLMAP's bounds (each then solved again with them held); at
     /// [`MAX_IMPLAUSIBLE_REFINEMENTS`] they are held for the rest of the run.
     pub implausible_refinements: BTreeMap<CameraId, u32>,
+    /// Cameras (intrinsics owners) whose principal point is refined with
+    /// their focal length and distortion
+    /// ([`crate::sfm::options::BundleOptions::refine_principal_point`]);
+    /// the others' stays.
+    pub principal_point_refined: BTreeSet<CameraId>,
     next_point_id: u64,
 }
 
@@ -203,6 +208,7 @@ impl MapState {
             registration_order: Vec::new(),
             shared_intrinsics: BTreeMap::new(),
             implausible_refinements: BTreeMap::new(),
+            principal_point_refined: BTreeSet::new(),
             next_point_id: 1,
         }
     }
