@@ -54,7 +54,8 @@ pub struct ColourMapArgs {
         default_value_t = 0.05
     )]
     pub occlusion_margin: f64,
-    /// Points closer than this along the optical axis are not coloured, metres.
+    /// Points closer than this along the optical axis are not coloured,
+    /// metres (a fisheye: closer than this to the camera).
     #[arg(long = "min-depth", alias = "min_depth", default_value_t = 0.5)]
     pub min_depth: f64,
     /// Points deeper than this are not coloured, metres.

@@ -31,7 +31,8 @@ pub struct DepthArgs {
     /// Output PNG.
     #[arg(long, alias = "output_path")]
     pub output: PathBuf,
-    /// Points closer than this along the optical axis are ignored, metres.
+    /// Points closer than this along the optical axis are ignored, metres
+    /// (a fisheye: closer than this to the camera).
     #[arg(long = "min-depth", alias = "min_depth", default_value_t = 0.5)]
     pub min_depth: f64,
     /// Points deeper than this are ignored, metres; also the far end of the

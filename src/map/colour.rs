@@ -30,7 +30,9 @@ use rayon::prelude::*;
 use super::cloud::PointCloud;
 use super::depth_image::depth_image_from_splats;
 use super::grid::FrustumGrid;
-use super::projection::{project_visible_points, ProjectionError, ProjectionOptions};
+use super::projection::{
+    project_visible_points, splat_depth_m, ProjectionError, ProjectionOptions,
+};
 use crate::io::images::sample_bilinear;
 use crate::scene::camera::Camera;
 use crate::scene::pose::Rigid3;
@@ -199,6 +201,7 @@ pub fn seen_points(
     let centre = cam_from_world.camera_center();
     let cos_max = options.max_view_angle_deg.to_radians().cos();
     let focal = camera.mean_focal_length();
+    let fisheye = camera.model.is_fisheye();
     let (w, h) = (f64::from(camera.width), f64::from(camera.height));
     let seen = splats
         .par_iter()
@@ -221,7 +224,7 @@ pub fn seen_points(
             // come up to `half_m * tan(a)` nearer, and an offset along the
             // normal (the map's noise) is `1 / cos(a)` times longer along
             // the ray.
-            let half_m = s.half_size_px * s.depth_m / focal;
+            let half_m = s.half_size_px * splat_depth_m(fisheye, s.depth_m, s.range_m) / focal;
             let sin = (1.0 - cos * cos).sqrt();
             let margin = (options.occlusion_margin_m + half_m * sin) / cos;
             let nearest = f64::from(depth.range_at(x as u32, y as u32));

@@ -171,7 +171,8 @@ impl SplatOptions {
 /// Options of the projection of the map into a camera.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ProjectionOptions {
-    /// Points closer than this along the optical axis are ignored (m). Default 0.5.
+    /// Points closer than this along the optical axis are ignored (m; a
+    /// fisheye's: closer than this to the camera). Default 0.5.
     pub min_depth_m: f64,
     /// Points deeper than this (or farther from the centre) are ignored (m). Default 40.
     pub max_depth_m: f64,
@@ -313,20 +314,25 @@ impl<'a> Projector<'a> {
     }
 }
 
-/// The depth at which a perspective camera of the same focal length shows a
-/// patch as large as a fisheye does: `r / θ` (`r` the distance from the
-/// optical axis, `θ` the ray's angle from it), `z` on the axis. The
-/// equidistant image of a patch at range `ρ` is `f / ρ` per metre radially and
-/// `f θ / (ρ sin θ)` across: `f θ / r` is the larger. Sizing splats by `z`
-/// instead would make them `tan θ / θ` times too large: 2.3 times at 70
-/// degrees off the axis.
+/// The depth at which the splat of a point at `depth_m` (along the optical
+/// axis) and `range_m` (from the camera) is sized: the depth for a
+/// perspective camera; for a fisheye (`fisheye`) the depth at which a
+/// perspective camera of the same focal length shows a patch as large as the
+/// fisheye does, `r / θ` (`r` the point's distance from the axis, `θ` its
+/// angle from it; the depth on the axis). The equidistant image of a patch
+/// at range `ρ` is `f / ρ` per metre radially and `f θ / (ρ sin θ)` across:
+/// `f θ / r` is the larger. Sized by the depth, a fisheye's splats were `tan
+/// θ / θ` times too large: 2.3 times at 70 degrees off the axis.
 #[inline]
-fn fisheye_splat_depth_m(point_in_cam: &Vector3<f64>) -> f64 {
-    let r = point_in_cam.x.hypot(point_in_cam.y);
-    if r <= 1e-9 * point_in_cam.z.abs() {
-        return point_in_cam.z;
+pub fn splat_depth_m(fisheye: bool, depth_m: f64, range_m: f64) -> f64 {
+    if !fisheye {
+        return depth_m;
     }
-    r / r.atan2(point_in_cam.z)
+    let r = (range_m * range_m - depth_m * depth_m).max(0.0).sqrt();
+    if r <= 1e-6 * depth_m.abs() {
+        return depth_m;
+    }
+    r / r.atan2(depth_m)
 }
 
 /// Everything the per-point loop needs, computed once per projection.
@@ -337,7 +343,8 @@ struct Setup<'a> {
     /// Translation for local offsets: `X_cam = R * X_local + t_local`.
     t_local: Vector3<f64>,
     focal_px: f64,
-    /// A fisheye model: splats sized by [`fisheye_splat_depth_m`].
+    /// A fisheye model: splats sized by [`splat_depth_m`], the near limit
+    /// on the range.
     fisheye: bool,
     width: f64,
     height: f64,
@@ -369,10 +376,21 @@ impl<'a> Setup<'a> {
         let t_local = rotation * cloud.origin + cam_from_world.translation;
         let focal_px = camera.mean_focal_length();
         let margin_px = options.splat.max_half_size_px.max(0.0) + 1.0;
+        let fisheye = camera.model.is_fisheye();
+        // A fisheye's near limit is on the range (`project_point`): along
+        // the axis, 0.5 m would be 2.4 m at 78 degrees off it, and the image
+        // corners would show nothing nearer. Its frustum reaches down to the
+        // depth such a point has at the edge of the view.
+        let near_m = if fisheye {
+            let edge_cos = camera.max_half_fov_rad().map_or(0.0, f64::cos);
+            options.min_depth_m * edge_cos.max(1e-3)
+        } else {
+            options.min_depth_m
+        };
         let frustum = Frustum::from_camera(
             camera,
             cam_from_world,
-            options.min_depth_m,
+            near_m,
             options.max_depth_m,
             margin_px,
         );
@@ -382,7 +400,7 @@ impl<'a> Setup<'a> {
             rotation,
             t_local,
             focal_px,
-            fisheye: camera.model.is_fisheye(),
+            fisheye,
             width: f64::from(camera.width),
             height: f64::from(camera.height),
             cells,
@@ -460,20 +478,23 @@ impl<'a> Setup<'a> {
         options: &ProjectionOptions,
     ) -> Option<ProjectedPoint> {
         let depth_m = point_in_cam.z;
-        if depth_m < options.min_depth_m || depth_m > options.max_depth_m {
-            return None;
-        }
         let range_sq = point_in_cam.norm_squared();
-        if range_sq > options.max_depth_m * options.max_depth_m {
+        let near = if self.fisheye {
+            !(depth_m > 0.0) || range_sq < options.min_depth_m * options.min_depth_m
+        } else {
+            depth_m < options.min_depth_m
+        };
+        if near
+            || depth_m > options.max_depth_m
+            || range_sq > options.max_depth_m * options.max_depth_m
+        {
             return None;
         }
         let pixel = self.projector.project(point_in_cam)?;
-        let splat_depth_m = if self.fisheye {
-            fisheye_splat_depth_m(point_in_cam)
-        } else {
-            depth_m
-        };
-        let h = options.splat.half_size_px(splat_depth_m, self.focal_px);
+        let range_m = range_sq.sqrt();
+        let h = options
+            .splat
+            .half_size_px(splat_depth_m(self.fisheye, depth_m, range_m), self.focal_px);
         if !(pixel.x + h >= 0.0
             && pixel.x - h <= self.width
             && pixel.y + h >= 0.0
@@ -485,7 +506,7 @@ impl<'a> Setup<'a> {
             point_idx: idx,
             pixel,
             depth_m,
-            range_m: range_sq.sqrt(),
+            range_m,
             half_size_px: h,
         })
     }
@@ -986,19 +1007,20 @@ mod tests {
 
     #[test]
     fn fisheye_splats_follow_the_angle_not_the_tangent() {
+        // Perspective: the depth, wherever the point is.
+        assert_eq!(splat_depth_m(false, 1.0, 2.0), 1.0);
         // On the axis: the depth.
-        assert_eq!(fisheye_splat_depth_m(&Vector3::new(0.0, 0.0, 2.5)), 2.5);
-        // 60 deg off the axis at range 2 m: r = 2 sin 60 = sqrt(3), θ = π/3,
-        // r / θ = 1.6540 m (z = 1 m: a splat 1.65 times too large by z).
-        let p = Vector3::new(3f64.sqrt() * 0.6, 3f64.sqrt() * 0.8, 1.0);
-        let d = fisheye_splat_depth_m(&p);
+        assert_eq!(splat_depth_m(true, 2.5, 2.5), 2.5);
+        // 60 deg off the axis at range 2 m: z = 1, r = 2 sin 60 = sqrt(3),
+        // θ = π/3, r / θ = 1.6540 m (by z: a splat 1.65 times too large).
+        let d = splat_depth_m(true, 1.0, 2.0);
         assert!(
             (d - 3f64.sqrt() * 3.0 / std::f64::consts::PI).abs() < 1e-12,
             "{d}"
         );
-        // Continuous at the axis.
-        let near_axis = fisheye_splat_depth_m(&Vector3::new(1e-6, 0.0, 2.0));
-        assert!((near_axis - 2.0).abs() < 1e-9, "{near_axis}");
+        // Continuous at the axis (r = 2e-4 m, 1e-4 rad off).
+        let near_axis = splat_depth_m(true, 2.0, 2.0f64.hypot(2e-4));
+        assert!((near_axis - 2.0).abs() < 1e-7, "{near_axis}");
     }
 
     #[test]

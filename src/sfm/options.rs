@@ -72,7 +72,8 @@ const MAX_PLANE_RADIUS_M: f64 = 10.0;
 #[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct InitOptions {
-    /// Map points closer than this along the optical axis are ignored, metres. Default 0.5.
+    /// Map points closer than this along the optical axis are ignored, metres
+    /// (a fisheye camera's: closer than this to it). Default 0.5.
     pub min_depth_m: f64,
     /// Map points deeper than this are ignored, metres. Default 40.
     pub max_depth_m: f64,

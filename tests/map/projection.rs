@@ -7,8 +7,8 @@ use std::collections::BTreeSet;
 use colmap_lidar::map::depth_image::{colourise, render_depth_image, write_png};
 use colmap_lidar::map::grid::{Frustum, FrustumGrid, GridOptions};
 use colmap_lidar::map::projection::{
-    project_map_at_pixels, project_map_at_pixels_reference, LidarHit, ProjectionOptions,
-    SplatOptions,
+    project_map_at_pixels, project_map_at_pixels_reference, project_visible_points, LidarHit,
+    ProjectionOptions, SplatOptions,
 };
 use colmap_lidar::map::PointCloud;
 use colmap_lidar::scene::camera::{Camera, CameraModel};
@@ -163,6 +163,71 @@ fn frustum_grid_never_misses_a_visible_point() {
         }
     }
     assert!(checked > 10_000, "only {checked} visible points checked");
+}
+
+/// A fisheye's near limit is on the range, a perspective camera's on the
+/// depth: points 0.6 m and 0.45 m from the camera, 75 deg off the axis (0.16
+/// and 0.12 m along it), with the default 0.5 m limit. The fisheye sees the
+/// first and not the second; a perspective camera as wide (SIMPLE_PINHOLE,
+/// the same points inside its image) sees neither. The fisheye's splat is
+/// sized at `r / θ` (0.44 m for the first), not at its depth (0.16 m).
+#[test]
+fn fisheye_near_limit_is_on_the_range() {
+    let off_axis = 75f64.to_radians();
+    let at = |range: f64| {
+        let p = Vector3::new(off_axis.sin(), 0.0, off_axis.cos()) * range;
+        [p.x as f32, p.y as f32, p.z as f32]
+    };
+    let cloud = PointCloud {
+        origin: Vector3::zeros(),
+        points: vec![at(0.6), at(0.45)],
+        normals: None,
+        planarity: None,
+    };
+    let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+    // Splats 5 cm either side at every depth (no saturation).
+    let options = test_options(0.05);
+    assert_eq!(options.min_depth_m, 0.5);
+    // 75 deg off the axis is 1.31 rad: at f = 200 px, 262 px from the centre.
+    let fisheye = camera(
+        CameraModel::OpenCvFisheye,
+        640,
+        480,
+        vec![200.0, 200.0, 320.0, 240.0, 0.0, 0.0, 0.0, 0.0],
+    );
+    let seen =
+        project_visible_points(&cloud, &grid, &fisheye, &Rigid3::identity(), &options).unwrap();
+    assert_eq!(seen.len(), 1, "{seen:?}");
+    assert_eq!(seen[0].point_idx, 0);
+    // The grid keeps points in cell-local coordinates (0.004 px here).
+    let x = seen[0].pixel.x;
+    assert!((x - (320.0 + 200.0 * off_axis)).abs() < 0.05, "{x}");
+    // 200 px * 0.05 m / 0.444 m = 22.5 px (by the depth, 0.155 m: 64 px).
+    let splat_depth = 0.6 * off_axis.sin() / off_axis;
+    let want = 200.0 * 0.05 / splat_depth;
+    assert!(
+        (seen[0].half_size_px - want).abs() < 0.01,
+        "{} px, {want} px at r / θ",
+        seen[0].half_size_px
+    );
+    // tan 75 = 3.73: at f = 80 px, 299 px from the centre, in the image.
+    let pinhole = camera(
+        CameraModel::SimplePinhole,
+        640,
+        480,
+        vec![80.0, 320.0, 240.0],
+    );
+    let seen =
+        project_visible_points(&cloud, &grid, &pinhole, &Rigid3::identity(), &options).unwrap();
+    assert!(seen.is_empty(), "{seen:?}");
+    let mut near = options.clone();
+    near.min_depth_m = 0.1;
+    let seen = project_visible_points(&cloud, &grid, &pinhole, &Rigid3::identity(), &near).unwrap();
+    assert_eq!(
+        seen.len(),
+        2,
+        "the points are in the perspective image: {seen:?}"
+    );
 }
 
 /// An axis-aligned or slanted rectangle: origin, two edges, plane id.
