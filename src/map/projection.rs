@@ -491,10 +491,14 @@ impl<'a> Setup<'a> {
             return None;
         }
         let pixel = self.projector.project(point_in_cam)?;
-        let range_m = range_sq.sqrt();
-        let h = options
-            .splat
-            .half_size_px(splat_depth_m(self.fisheye, depth_m, range_m), self.focal_px);
+        // The range's square root only where the splat needs it (a fisheye)
+        // or the point is kept.
+        let splat_depth = if self.fisheye {
+            splat_depth_m(true, depth_m, range_sq.sqrt())
+        } else {
+            depth_m
+        };
+        let h = options.splat.half_size_px(splat_depth, self.focal_px);
         if !(pixel.x + h >= 0.0
             && pixel.x - h <= self.width
             && pixel.y + h >= 0.0
@@ -506,7 +510,7 @@ impl<'a> Setup<'a> {
             point_idx: idx,
             pixel,
             depth_m,
-            range_m,
+            range_m: range_sq.sqrt(),
             half_size_px: h,
         })
     }
