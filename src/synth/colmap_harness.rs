@@ -144,6 +144,17 @@ fn run_with_grace(
     Ok(())
 }
 
+/// Removes the SQLite database `db` and its journal files, where present.
+fn remove_database(db: &Path) -> Result<(), SynthError> {
+    for suffix in ["", "-wal", "-shm"] {
+        let p = PathBuf::from(format!("{}{suffix}", db.display()));
+        if p.exists() {
+            fs::remove_file(&p).map_err(|e| SynthError::io(&p, e))?;
+        }
+    }
+    Ok(())
+}
+
 /// Creates a fresh COLMAP database for the scene in `scene_dir` (with
 /// `images/` and `gt/cameras.txt`) and returns its path. An existing database
 /// at that path is replaced.
@@ -159,12 +170,7 @@ pub fn make_database(scene_dir: &Path, opts: &HarnessOptions) -> Result<PathBuf,
         .database
         .clone()
         .unwrap_or_else(|| scene_dir.join("database.db"));
-    for suffix in ["", "-wal", "-shm"] {
-        let p = PathBuf::from(format!("{}{suffix}", db.display()));
-        if p.exists() {
-            fs::remove_file(&p).map_err(|e| SynthError::io(&p, e))?;
-        }
-    }
+    remove_database(&db)?;
     let s = |v: &str| v.to_string();
     let threads = opts.num_threads.max(1).to_string();
     let mut args = vec![
@@ -193,6 +199,91 @@ pub fn make_database(scene_dir: &Path, opts: &HarnessOptions) -> Result<PathBuf,
     run(&opts.colmap, "feature_extractor", &args)?;
     run_matcher(&db, opts)?;
     Ok(db)
+}
+
+/// A copy of `database` at `copy` with the camera COLMAP's extractor guesses
+/// when it is given none (1.2 x the larger side, the image centre, no
+/// distortion, `prior_focal_length = 0`: `feature_extractor` run on `image`
+/// alone into a scratch database), every pair verified again under that
+/// camera by `opts.matcher`. Features and raw matches are kept: neither
+/// depends on the camera, and COLMAP's matchers only verify a pair whose
+/// matches are already in the database. So this is the database an
+/// extraction without the camera would give, for a few seconds instead of
+/// the matching's minute. `database` must hold one camera of `image`'s size.
+pub fn copy_with_guessed_camera(
+    database: &Path,
+    image: &Path,
+    copy: &Path,
+    opts: &HarnessOptions,
+) -> Result<PathBuf, SynthError> {
+    let sql = |path: &Path| {
+        let path = path.to_path_buf();
+        move |e: rusqlite::Error| SynthError::Parse {
+            path: path.clone(),
+            message: e.to_string(),
+        }
+    };
+    let scratch = tempfile::tempdir()?;
+    let images = scratch.path().join("images");
+    fs::create_dir(&images).map_err(|e| SynthError::io(&images, e))?;
+    let name = image.file_name().ok_or_else(|| {
+        SynthError::InvalidOption(format!("{}: not an image file", image.display()))
+    })?;
+    fs::copy(image, images.join(name)).map_err(|e| SynthError::io(image, e))?;
+    let guess_db = scratch.path().join("guess.db");
+    let s = |v: &str| v.to_string();
+    run(
+        &opts.colmap,
+        "feature_extractor",
+        &[
+            s("--database_path"),
+            guess_db.display().to_string(),
+            s("--image_path"),
+            images.display().to_string(),
+            s("--SiftExtraction.use_gpu"),
+            s("0"),
+            s("--SiftExtraction.max_num_features"),
+            s("64"),
+        ],
+    )?;
+    type CameraRow = (i64, i64, i64, Vec<u8>, i64);
+    let guess: CameraRow = rusqlite::Connection::open(&guess_db)
+        .and_then(|c| {
+            c.query_row(
+                "SELECT model, width, height, params, prior_focal_length FROM cameras",
+                [],
+                |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?, r.get(4)?)),
+            )
+        })
+        .map_err(sql(&guess_db))?;
+    remove_database(copy)?;
+    fs::copy(database, copy).map_err(|e| SynthError::io(database, e))?;
+    {
+        let conn = rusqlite::Connection::open(copy).map_err(sql(copy))?;
+        let sizes: Vec<(i64, i64)> = conn
+            .prepare("SELECT width, height FROM cameras")
+            .and_then(|mut st| {
+                st.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
+                    .collect::<Result<_, _>>()
+            })
+            .map_err(sql(copy))?;
+        if sizes != [(guess.1, guess.2)] {
+            return Err(SynthError::InvalidOption(format!(
+                "{}: cameras {sizes:?}, expected one of {}x{} px",
+                database.display(),
+                guess.1,
+                guess.2
+            )));
+        }
+        conn.execute(
+            "UPDATE cameras SET model = ?1, params = ?2, prior_focal_length = ?3",
+            rusqlite::params![guess.0, guess.3, guess.4],
+        )
+        .and_then(|_| conn.execute("DELETE FROM two_view_geometries", []))
+        .map_err(sql(copy))?;
+    }
+    run_matcher(copy, opts)?;
+    Ok(copy.to_path_buf())
 }
 
 /// Runs `opts.matcher` on the database `db` (its features extracted).

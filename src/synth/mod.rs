@@ -22,7 +22,7 @@ pub mod scenes;
 pub mod texture;
 
 pub use crate::scene::BodyPose;
-pub use colmap_harness::{make_database, HarnessOptions};
+pub use colmap_harness::{copy_with_guessed_camera, make_database, HarnessOptions};
 pub use generate::{generate_scene, read_init_pose, SceneSummary, SynthOptions};
 pub use scenes::SceneKind;
 
