@@ -258,7 +258,8 @@ pub fn copy_with_guessed_camera(
         .map_err(sql(&guess_db))?;
     remove_database(copy)?;
     fs::copy(database, copy).map_err(|e| SynthError::io(database, e))?;
-    {
+    // No copy left behind when it cannot be made right.
+    let made = (|| {
         let conn = rusqlite::Connection::open(copy).map_err(sql(copy))?;
         let sizes: Vec<(i64, i64)> = conn
             .prepare("SELECT width, height FROM cameras")
@@ -281,9 +282,16 @@ pub fn copy_with_guessed_camera(
         )
         .and_then(|_| conn.execute("DELETE FROM two_view_geometries", []))
         .map_err(sql(copy))?;
+        drop(conn);
+        run_matcher(copy, opts)
+    })();
+    match made {
+        Ok(()) => Ok(copy.to_path_buf()),
+        Err(e) => {
+            let _ = remove_database(copy);
+            Err(e)
+        }
     }
-    run_matcher(copy, opts)?;
-    Ok(copy.to_path_buf())
 }
 
 /// Runs `opts.matcher` on the database `db` (its features extracted).
