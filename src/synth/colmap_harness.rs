@@ -155,6 +155,33 @@ fn remove_database(db: &Path) -> Result<(), SynthError> {
     Ok(())
 }
 
+/// `feature_extractor`'s arguments: the images of `images` into `db`, one
+/// camera for all, on the CPU with `opts.num_threads`, at most
+/// `max_num_features` per image.
+fn extractor_args(
+    db: &Path,
+    images: &Path,
+    max_num_features: usize,
+    opts: &HarnessOptions,
+) -> Vec<String> {
+    [
+        "--database_path",
+        &db.display().to_string(),
+        "--image_path",
+        &images.display().to_string(),
+        "--ImageReader.single_camera",
+        "1",
+        "--SiftExtraction.use_gpu",
+        "0",
+        "--SiftExtraction.num_threads",
+        &opts.num_threads.max(1).to_string(),
+        "--SiftExtraction.max_num_features",
+        &max_num_features.to_string(),
+    ]
+    .map(str::to_string)
+    .to_vec()
+}
+
 /// Creates a fresh COLMAP database for the scene in `scene_dir` (with
 /// `images/` and `gt/cameras.txt`) and returns its path. An existing database
 /// at that path is replaced.
@@ -172,21 +199,7 @@ pub fn make_database(scene_dir: &Path, opts: &HarnessOptions) -> Result<PathBuf,
         .unwrap_or_else(|| scene_dir.join("database.db"));
     remove_database(&db)?;
     let s = |v: &str| v.to_string();
-    let threads = opts.num_threads.max(1).to_string();
-    let mut args = vec![
-        s("--database_path"),
-        db.display().to_string(),
-        s("--image_path"),
-        images.display().to_string(),
-        s("--ImageReader.single_camera"),
-        s("1"),
-        s("--SiftExtraction.use_gpu"),
-        s("0"),
-        s("--SiftExtraction.num_threads"),
-        threads,
-        s("--SiftExtraction.max_num_features"),
-        opts.max_num_features.to_string(),
-    ];
+    let mut args = extractor_args(&db, &images, opts.max_num_features, opts);
     if opts.use_true_camera {
         let (model, params) = read_true_camera(&scene_dir.join("gt").join("cameras.txt"))?;
         args.extend([
@@ -231,21 +244,9 @@ pub fn copy_with_guessed_camera(
     })?;
     fs::copy(image, images.join(name)).map_err(|e| SynthError::io(image, e))?;
     let guess_db = scratch.path().join("guess.db");
-    let s = |v: &str| v.to_string();
-    run(
-        &opts.colmap,
-        "feature_extractor",
-        &[
-            s("--database_path"),
-            guess_db.display().to_string(),
-            s("--image_path"),
-            images.display().to_string(),
-            s("--SiftExtraction.use_gpu"),
-            s("0"),
-            s("--SiftExtraction.max_num_features"),
-            s("64"),
-        ],
-    )?;
+    // (Only the camera row is wanted: few features.)
+    let args = extractor_args(&guess_db, &images, 64, opts);
+    run(&opts.colmap, "feature_extractor", &args)?;
     type CameraRow = (i64, i64, i64, Vec<u8>, i64);
     let guess: CameraRow = rusqlite::Connection::open(&guess_db)
         .and_then(|c| {
