@@ -1475,6 +1475,7 @@ mod tests {
             coverage: 0.98,
             covered_fit: 0.46,
             ratio: Some(0.02),
+            before_final: false,
         })
     }
 
