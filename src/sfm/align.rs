@@ -249,10 +249,7 @@ pub(crate) fn fit_similarity(
             let mut used = 0usize;
             // The map's searches on every core; the sums in the points'
             // order, as on one (the same result on any number of threads).
-            let planes: Vec<Option<(Vector3<f64>, f64)>> = current
-                .par_iter()
-                .map(|y| nearest_tangent_plane(nearest, y, radius))
-                .collect();
+            let planes = nearest_tangent_planes(nearest, &current, radius);
             for (y, plane) in current.iter().zip(planes) {
                 let Some((n, d)) = plane else {
                     continue;
@@ -406,19 +403,29 @@ fn similarity_row(r: &Vector3<f64>, n: &Vector3<f64>) -> SVector<f64, 7> {
     SVector::<f64, 7>::from_column_slice(&[rxn.x, rxn.y, rxn.z, n.x, n.y, n.z, n.dot(r)])
 }
 
-/// The tangent plane (normal, offset) of the map point nearest to `y`
-/// within `radius_m`: plain point-to-plane ICP's association. (The mapper's
-/// own association picks among several neighbours the plane closest to the
-/// point, right for a model already in place; from afar that choice finds a
-/// plane near every point and holds the model where it is.)
-pub(crate) fn nearest_tangent_plane(
+/// The tangent plane (normal, offset) of the map point nearest to each of
+/// `points` within `radius_m`: plain point-to-plane ICP's association. (The
+/// mapper's own association picks among several neighbours the plane
+/// closest to the point, right for a model already in place; from afar
+/// that choice finds a plane near every point and holds the model where it
+/// is.) One batch ([`crate::map::index::MapIndex::nearest_within_batch`]:
+/// the queries in the index's memory order, on every core; the answers do
+/// not depend on either).
+pub(crate) fn nearest_tangent_planes(
     nearest: &NearestNeighbourAssociator,
-    y: &Vector3<f64>,
+    points: &[Vector3<f64>],
     radius_m: f64,
-) -> Option<(Vector3<f64>, f64)> {
-    let i = nearest.index.nearest_within(y, radius_m)?.point_idx as usize;
-    let n = nearest.normal_of(i)?;
-    Some((n, n.dot(&nearest.cloud.point_in_map(i))))
+) -> Vec<Option<(Vector3<f64>, f64)>> {
+    nearest
+        .index
+        .nearest_within_batch(points, radius_m)
+        .into_iter()
+        .map(|found| {
+            let i = found?.point_idx as usize;
+            let n = nearest.normal_of(i)?;
+            Some((n, n.dot(&nearest.cloud.point_in_map(i))))
+        })
+        .collect()
 }
 
 /// Moves the whole model by `new_from_old`: 3D points and camera poses

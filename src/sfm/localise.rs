@@ -32,7 +32,7 @@ use rayon::prelude::*;
 
 use super::align::TRIAL_POINTS;
 use super::align::{
-    count_points_on_map, every_kth, fit_similarity, mean, nearest_tangent_plane, within_bounds,
+    count_points_on_map, every_kth, fit_similarity, mean, nearest_tangent_planes, within_bounds,
     AlignOptions,
 };
 use super::associate::NearestNeighbourAssociator;
@@ -336,13 +336,16 @@ fn yaw_grid(half_deg: f64, step_deg: f64) -> Vec<f64> {
         .collect()
 }
 
-/// How well `points` (already placed) lie on the map: each point near a map
-/// plane counts `1 - (e / tol)^2` at a distance `e` below `tol`.
-fn soft_score(nearest: &NearestNeighbourAssociator, points: &[Vector3<f64>], tol: f64) -> f64 {
+/// How well `points` (already placed) lie on the map, given the tangent
+/// plane nearest each within `2 tol` (`planes`, [`nearest_tangent_planes`]):
+/// each point near a map plane counts `1 - (e / tol)^2` at a distance `e`
+/// below `tol`.
+fn soft_score(points: &[Vector3<f64>], planes: &[Option<(Vector3<f64>, f64)>], tol: f64) -> f64 {
     points
         .iter()
-        .filter_map(|y| {
-            let (n, d) = nearest_tangent_plane(nearest, y, 2.0 * tol)?;
+        .zip(planes)
+        .filter_map(|(y, plane)| {
+            let (n, d) = (*plane)?;
             let e = (n.dot(y) - d) / tol;
             (e.abs() < 1.0).then_some(1.0 - e * e)
         })
@@ -404,13 +407,20 @@ pub fn search_placement(
         .flat_map_iter(|&(tilt, yaw_rad, scale, group)| {
             let r = Rotation3::from_axis_angle(&Vector3::z_axis(), yaw_rad) * tilt;
             let turned: Vec<Vector3<f64>> = offsets.iter().map(|o| scale * (r * o)).collect();
+            // Every shift of this turn in one batch of map lookups.
+            let placed: Vec<Vector3<f64>> = shifts
+                .iter()
+                .flat_map(|shift| turned.iter().map(move |o| pivot + shift + o))
+                .collect();
+            let planes = nearest_tangent_planes(nearest, &placed, 2.0 * tol);
+            let n = turned.len();
             shifts
                 .iter()
-                .map(|shift| {
-                    let at = pivot + shift;
-                    let placed: Vec<Vector3<f64>> = turned.iter().map(|o| at + o).collect();
+                .enumerate()
+                .map(|(k, shift)| {
+                    let at = k * n..(k + 1) * n;
                     (
-                        soft_score(nearest, &placed, tol),
+                        soft_score(&placed[at.clone()], &planes[at], tol),
                         Placement {
                             tilt,
                             yaw_rad,
