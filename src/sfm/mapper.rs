@@ -485,7 +485,7 @@ const EARLY_OFF_MAP_NOTE: &str = " (found before the final bundle adjustment: un
 /// which would be time lost: such models converge slowly. Measured
 /// (session 69) before the final rounds and at the end: right models
 /// 0.70-0.99 before (a scene changed since the scan 0.70 -> 0.76, the
-/// rest within 0.04 of their end); wrong ones 0.09 -> 0.17 and
+/// rest within 0.05 of their end); wrong ones 0.09 -> 0.17 and
 /// 0.15 -> 0.07 (the changed seed-0 yard's search from its perturbed pose:
 /// 110 s and 51 s of final rounds), 0.43 -> 0.04 and 0.31 -> 0.57, the
 /// largest rise seen.
