@@ -477,6 +477,7 @@ const EARLY_OFF_MAP_NEAR_SHARE: f64 = 0.5;
 /// and over the covered ones are below this part of
 /// `association.min_points_on_map_share`.
 const EARLY_OFF_MAP_PART: f64 = 0.5;
+/// What the fit check's message adds when it was made there.
 const EARLY_OFF_MAP_NOTE: &str = " (found before the final bundle adjustment: under half the share expected, which its rounds do not make up)";
 
 /// The fit check's error ([`MapperError::OffMap`]) for a model whose
