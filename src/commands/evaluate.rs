@@ -10,10 +10,11 @@ use crate::eval::map_agreement::{map_agreement, MapAgreement};
 use crate::eval::{evaluate, load_poses, Alignment, ReportedSigma, Sim3};
 use crate::io::atomic::write_file_atomically;
 use crate::io::model::read_model;
-use crate::map::index::{MapIndex, SPACING_SAMPLES};
+use crate::map::index::MapIndex;
 use crate::map::PointCloud;
 use crate::scene::Rigid3;
 use crate::sfm::associate::NearestNeighbourAssociator;
+use crate::sfm::mapper::options_for_map;
 use crate::sfm::MapperOptions;
 
 /// Compare a model with reference poses (matched by image name).
@@ -149,10 +150,7 @@ fn agreement_with_map(
             MapperOptions::default()
         }
     };
-    let options = match index.surface_spacing_m(cloud, SPACING_SAMPLES) {
-        Some(spacing) => options.for_map_spacing(spacing),
-        None => options,
-    };
+    let options = options_for_map(&options, cloud, &index).options;
     let planes = NearestNeighbourAssociator::new(cloud, &index, options.association);
     Ok(map_agreement(&model, reference, &planes))
 }

@@ -581,7 +581,7 @@ pub(crate) fn check_output(dir: &Path) -> Result<()> {
 }
 
 /// Reads the map; estimates normals where missing, over a radius that
-/// follows the map's spacing ([`widen_normal_radius`]).
+/// follows the map's spacing and noise ([`widen_normal_radius`]).
 pub fn load_map(path: &Path) -> Result<PointCloud> {
     Ok(load_map_reporting(path, InputUnits::Auto)?.0)
 }
@@ -599,7 +599,11 @@ pub fn load_map_reporting(path: &Path, units: InputUnits) -> Result<(PointCloud,
     }
     if !load.had_normals || load.normals_invalid > 0 {
         let mut options = NormalOptions::default();
-        widen_normal_radius(&mut options, &cloud);
+        let scales = widen_normal_radius(&mut options, &cloud)
+            .with_context(|| format!("estimating normals of {}", path.display()))?;
+        if let Some(noise) = scales.noise_m {
+            log::info!("map noise about {:.1} mm", noise * 1e3);
+        }
         let report = estimate_normals(&mut cloud, &options)
             .with_context(|| format!("estimating normals of {}", path.display()))?;
         log::info!(

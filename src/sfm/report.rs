@@ -305,6 +305,11 @@ pub struct MapReport {
     /// ([`crate::map::index::MapIndex::surface_spacing_m`]); splats and
     /// plane radii grow with it ([`crate::sfm::options::MapperOptions::for_map_spacing`]).
     pub map_spacing_m: Option<f64>,
+    /// The map's range noise along its normals, metres
+    /// ([`crate::sfm::associate::NearestNeighbourAssociator::plane_noise_m`]);
+    /// plane windows grow with it
+    /// ([`crate::sfm::options::MapperOptions::for_map_noise`]).
+    pub map_noise_m: Option<f64>,
     pub num_images: usize,
     pub num_registered: usize,
     pub num_points: usize,
