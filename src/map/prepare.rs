@@ -307,7 +307,7 @@ pub const NORMAL_RADIUS_PER_SPACING: f64 = 3.0;
 /// 15 mm noise, 0.74 at 30 mm (72 % of the map passed the mapper's
 /// planarity gate of 0.7) and 0.53 at 50 mm (0.2 % passed, and no model
 /// fitted the map). Maps that read up to 33 mm at the default radius keep
-/// it (30 mm reads 28 mm there).
+/// it (30 mm reads 30 mm there).
 pub const MIN_NORMAL_RADIUS_PER_NOISE: f64 = 4.5;
 
 /// The normal radius of a map too noisy for the given one, per unit of its

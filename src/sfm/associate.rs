@@ -353,10 +353,10 @@ impl NearestNeighbourAssociator<'_> {
     /// standard deviation of those within 3 sigma (corrected for the cut);
     /// the median over the sample. Patches with fewer than 8 points are
     /// skipped; `None` when none is left. On the synthetic rooms and
-    /// corridors with 15, 30 and 50 mm of noise along the normals it read
-    /// 14.8-15.1, 29.7-30.3 and 49.5-50.6 mm with the true normals,
-    /// 15.8-16.1, 32.0-32.7 and 52.4-52.6 mm from `prepare-map` (3 cm
-    /// voxels, estimated normals).
+    /// corridors with 30 and 50 mm of noise along the normals it read
+    /// 29.5-29.8 and 49.2-49.7 mm with the true normals, 30.8 and 51.3-52.1
+    /// mm from `prepare-map` (3 cm voxels, estimated normals); the seed-0
+    /// room and yard at 15 mm 14.8 and 14.3 mm.
     pub fn plane_noise_m(&self, max_samples: usize, window_m: f64) -> Option<f64> {
         let n = self.cloud.len();
         let stride = n.div_ceil(max_samples.max(1)).max(1);
