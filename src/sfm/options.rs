@@ -1289,9 +1289,10 @@ impl MapperOptions {
     /// follow the points).
     ///
     /// The plane radius does not follow the noise: averaging about 150 map
-    /// points instead of 30-80 (radii of 0.22-0.25 m for 50 mm) moved those
-    /// models by up to 1.5 mm either way, summing to about the same (20.8
-    /// against 19.7 mm over eight runs).
+    /// points instead of 30-80 (radii of 0.22-0.25 m for 50 mm; tried with
+    /// the window at 4 times the noise) moved those models by up to 1.5 mm
+    /// either way, summing to about the same (20.8 against 19.7 mm over
+    /// eight runs).
     pub fn for_map_noise(&self, noise_m: f64) -> MapperOptions {
         let mut adapted = self.clone();
         if noise_m.is_finite() && noise_m > 0.0 {
