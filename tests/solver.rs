@@ -1250,6 +1250,17 @@ fn pose_covariance_matches_finite_differences() {
     }
     let sigma = cov.centre_sigma_m(1).expect("pose 1");
     assert!(sigma.min() > 0.0 && sigma.max() < 0.05, "sigma {sigma}");
+    // The free focal length: the last column; the other cameras are constant.
+    let focal = cov.cameras[0].as_ref().expect("camera 0 varies");
+    assert_eq!(focal.shape(), (1, 1));
+    let expected = full[(n - 1, n - 1)];
+    assert!(
+        (focal[(0, 0)] - expected).abs() < 1e-4 * expected,
+        "focal variance {} vs {expected}",
+        focal[(0, 0)]
+    );
+    assert!(cov.cameras[1..].iter().all(Option::is_none));
+    assert!(cov.clustered_cameras.is_empty());
 
     // A point seen once, without a plane, adds no information.
     let mut with_single = problem.clone();

@@ -4,7 +4,7 @@
 //! points, solves, and writes poses, points and (optionally) intrinsics back.
 use std::collections::{BTreeMap, BTreeSet};
 
-use nalgebra::Vector3;
+use nalgebra::{DMatrix, Vector3};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -16,7 +16,7 @@ use crate::scene::{Camera, CameraId, ImageId, Point3DId, Rigid3};
 use crate::solver::{
     clustered_pose_covariances, pose_covariances, sigma_of_variance, solve, BaCamera,
     BaObservation, BaPoint, BaPose, BundleAdjustmentProblem, ConstantParams, CovarianceError,
-    LossFunction, PlaneFamily, PosePrior, SolveTimes, SolverError, SolverOptions,
+    LossFunction, PlaneFamily, PoseCovariances, PosePrior, SolveTimes, SolverError, SolverOptions,
 };
 
 /// What varies in one solve.
@@ -659,28 +659,17 @@ fn cell_clusters(positions: impl Iterator<Item = Vector3<f64>>, cell_m: f64) -> 
 }
 
 /// Pose uncertainties of the variable images of `config`, from a solve of
-/// `kind` at the current state (planes associated afresh); also the residual
-/// standard deviation (pixels) and the number of points whose own position
-/// was not fully determined.
+/// `kind` at the current state (planes associated afresh), and of the focal
+/// lengths it refines; also the residual standard deviation (pixels) and the
+/// number of points whose own position was not fully determined.
 pub fn pose_uncertainty(
     state: &MapState,
     config: &BundleConfig,
     kind: SolveKind,
     associator: &dyn PlaneAssociator,
     options: &BundleOptions,
-) -> Result<(BTreeMap<ImageId, PoseUncertainty>, f64, usize), CovarianceError> {
-    let mut built = build_bundle(state, config);
-    add_planes(&mut built, state, kind, associator);
-    let solver_options = solver_options(kind, associator, options);
-    let cov = if options.uncertainty_cluster_m > 0.0 {
-        let clusters = cell_clusters(
-            built.point_list.iter().map(|pid| state.points[pid].xyz),
-            options.uncertainty_cluster_m,
-        );
-        clustered_pose_covariances(&built.problem, &solver_options, &clusters)?
-    } else {
-        pose_covariances(&built.problem, &solver_options)?
-    };
+) -> Result<Uncertainties, CovarianceError> {
+    let (built, cov) = covariances_at(state, config, kind, associator, options)?;
     let mut out = BTreeMap::new();
     for (&image, &pi) in &built.pose_idx {
         let pi = pi as usize;
@@ -715,7 +704,118 @@ pub fn pose_uncertainty(
             },
         );
     }
-    Ok((out, cov.residual_variance.sqrt(), cov.num_degenerate_points))
+    Ok(Uncertainties {
+        poses: out,
+        focal_lengths: focal_uncertainties(state, &built, &cov),
+        residual_sigma_px: cov.residual_variance.sqrt(),
+        num_degenerate_points: cov.num_degenerate_points,
+    })
+}
+
+/// The problem of a solve of `kind` at the current state (planes
+/// associated afresh, then held) and its covariances: cluster-robust too
+/// when `options.uncertainty_cluster_m` is set.
+fn covariances_at(
+    state: &MapState,
+    config: &BundleConfig,
+    kind: SolveKind,
+    associator: &dyn PlaneAssociator,
+    options: &BundleOptions,
+) -> Result<(BuiltBundle, PoseCovariances), CovarianceError> {
+    let mut built = build_bundle(state, config);
+    add_planes(&mut built, state, kind, associator);
+    let solver_options = solver_options(kind, associator, options);
+    let cov = if options.uncertainty_cluster_m > 0.0 {
+        let clusters = cell_clusters(
+            built.point_list.iter().map(|pid| state.points[pid].xyz),
+            options.uncertainty_cluster_m,
+        );
+        clustered_pose_covariances(&built.problem, &solver_options, &clusters)?
+    } else {
+        pose_covariances(&built.problem, &solver_options)?
+    };
+    Ok((built, cov))
+}
+
+/// How well the data fix a refined camera's focal length: one standard
+/// deviation of its mean focal length (fx and fy averaged where the model
+/// has both), pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FocalUncertainty {
+    /// From the residuals' own variance (as [`PoseUncertainty`]).
+    pub sigma_px: f64,
+    /// Cluster-robust (`bundle.uncertainty_cluster_m`); `None` when off.
+    pub clustered_sigma_px: Option<f64>,
+}
+
+/// What [`pose_uncertainty`] finds.
+#[derive(Clone, Debug)]
+pub struct Uncertainties {
+    /// Per variable image.
+    pub poses: BTreeMap<ImageId, PoseUncertainty>,
+    /// Per camera whose focal length varies in the solve (the owner of
+    /// shared intrinsics).
+    pub focal_lengths: BTreeMap<CameraId, FocalUncertainty>,
+    /// Standard deviation of a unit-weight residual, pixels.
+    pub residual_sigma_px: f64,
+    /// Points whose own position was not fully determined.
+    pub num_degenerate_points: usize,
+}
+
+/// The focal length uncertainties of the cameras whose focal length varies
+/// in `built`, from its covariances `cov`.
+fn focal_uncertainties(
+    state: &MapState,
+    built: &BuiltBundle,
+    cov: &PoseCovariances,
+) -> BTreeMap<CameraId, FocalUncertainty> {
+    let mut out = BTreeMap::new();
+    for (&id, &ci) in &built.camera_idx {
+        let ci = ci as usize;
+        let camera = &built.problem.cameras[ci];
+        let (Some(model), Some(Some(block))) =
+            (state.cameras.get(&id).map(|c| c.model), cov.cameras.get(ci))
+        else {
+            continue;
+        };
+        // The covariance's rows are the variable parameters in order.
+        let variable: Vec<usize> = (0..camera.params.len())
+            .filter(|&k| match &camera.constant {
+                ConstantParams::None => true,
+                ConstantParams::All => false,
+                ConstantParams::Mask(mask) => !mask[k],
+            })
+            .collect();
+        let Some(rows) = model
+            .focal_idxs()
+            .iter()
+            .map(|k| variable.iter().position(|v| v == k))
+            .collect::<Option<Vec<usize>>>()
+        else {
+            continue;
+        };
+        let n = rows.len() as f64;
+        let sigma = |block: &DMatrix<f64>| {
+            let variance = rows
+                .iter()
+                .flat_map(|&a| rows.iter().map(move |&b| block[(a, b)]))
+                .sum::<f64>()
+                / (n * n);
+            sigma_of_variance(variance)
+        };
+        out.insert(
+            id,
+            FocalUncertainty {
+                sigma_px: sigma(block),
+                clustered_sigma_px: cov
+                    .clustered_cameras
+                    .get(ci)
+                    .and_then(Option::as_ref)
+                    .map(sigma),
+            },
+        );
+    }
+    out
 }
 
 #[cfg(test)]

@@ -2607,7 +2607,7 @@ fn estimate_uncertainty(
         refine_cameras: refine.last.clone(),
         pose_priors: priors.to_vec(),
     };
-    let (poses, residual_sigma_px, num_degenerate_points) = match pose_uncertainty(
+    let found = match pose_uncertainty(
         state,
         &config,
         SolveKind::Final,
@@ -2620,6 +2620,29 @@ fn estimate_uncertainty(
             return;
         }
     };
+    for rec in &mut report.intrinsics {
+        let owner = state.intrinsics_of(CameraId(rec.camera_id));
+        if let Some(u) = found.focal_lengths.get(&owner) {
+            rec.focal_sigma_px = Some(u.sigma_px);
+            rec.clustered_focal_sigma_px = u.clustered_sigma_px;
+        }
+    }
+    for (id, u) in &found.focal_lengths {
+        log::info!(
+            "camera {}: refined focal length {:.2} px, 1 sigma {:.3} px{}",
+            id.0,
+            state.cameras[id].mean_focal_length(),
+            u.sigma_px,
+            u.clustered_sigma_px
+                .map(|c| format!(" ({c:.3} px cluster-robust)"))
+                .unwrap_or_default()
+        );
+    }
+    let (poses, residual_sigma_px, num_degenerate_points) = (
+        found.poses,
+        found.residual_sigma_px,
+        found.num_degenerate_points,
+    );
     if poses.is_empty() {
         log::info!("pose uncertainty: no image's pose varies in the final solve");
         return;
@@ -2917,6 +2940,8 @@ impl RefinedCameras {
                 }
                 .to_string(),
                 probe_focal_change: None,
+                focal_sigma_px: None,
+                clustered_focal_sigma_px: None,
                 focal_from_pairs_px: estimates.get(&c.id).map(|e| e.focal_px),
                 focal_from_map_px: map_focal.get(&c.id).map(|e| e.focal_px),
                 focal_from_points_px: None,

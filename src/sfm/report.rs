@@ -599,6 +599,13 @@ pub struct IntrinsicsRecord {
     pub final_params: Vec<f64>,
     /// Final mean focal length over the database's, minus 1.
     pub focal_change: f64,
+    /// A focal length refined to the end: one standard deviation of its
+    /// final value (mean of fx and fy where the model has both), pixels,
+    /// from the same final solve as the images' `pose_uncertainty` (with
+    /// the poses and points marginalised); `None` when held or not computed.
+    pub focal_sigma_px: Option<f64>,
+    /// The same, cluster-robust (`bundle.uncertainty_cluster_m`).
+    pub clustered_focal_sigma_px: Option<f64>,
 }
 
 /// One final round: how far its solve moved the camera centres, metres.

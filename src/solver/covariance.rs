@@ -32,6 +32,7 @@ use super::SolverError;
 const BLOCK_POINT: u32 = 0;
 const BLOCK_POSE_ROTATION: u32 = 1;
 const BLOCK_POSE_TRANSLATION: u32 = 2;
+const BLOCK_CAMERA: u32 = 3;
 
 /// Covariances of the variable poses of a problem.
 #[derive(Clone, Debug)]
@@ -45,6 +46,14 @@ pub struct PoseCovariances {
     /// The same from [`clustered_pose_covariances`] (the cluster-robust
     /// estimate, not scaled by `residual_variance`); empty otherwise.
     pub clustered_poses: Vec<Option<Matrix6<f64>>>,
+    /// Per camera of the problem (same index): the covariance of its
+    /// variable intrinsics, in the model's parameter order with the
+    /// constant ones left out (pixels squared for focal lengths), scaled by
+    /// `residual_variance`. `None` for a camera whose intrinsics are all
+    /// constant.
+    pub cameras: Vec<Option<DMatrix<f64>>>,
+    /// The same from [`clustered_pose_covariances`]; empty otherwise.
+    pub clustered_cameras: Vec<Option<DMatrix<f64>>>,
     /// Variance of a unit-weight residual, estimated from the fit
     /// (pixels squared for reprojections).
     pub residual_variance: f64,
@@ -173,6 +182,8 @@ fn covariances(
     let mut start = 0usize;
     let mut num_point_cols = 0usize;
     let mut pose_cols: Vec<[Option<usize>; 2]> = vec![[None, None]; problem.poses.len()];
+    // Per camera: its first column (after the points) and its size.
+    let mut camera_cols: Vec<Option<(usize, usize)>> = vec![None; problem.cameras.len()];
     for ((&kind, &index), &size) in jac
         .block_kind
         .iter()
@@ -193,6 +204,15 @@ fn covariances(
                 }
                 pose_cols[index][(kind - BLOCK_POSE_ROTATION) as usize] =
                     Some(start - num_point_cols);
+            }
+            BLOCK_CAMERA => {
+                if index >= camera_cols.len() {
+                    return Err(layout(format!(
+                        "camera block {index} of {}",
+                        camera_cols.len()
+                    )));
+                }
+                camera_cols[index] = Some((start - num_point_cols, size as usize));
             }
             _ => {}
         }
@@ -363,8 +383,20 @@ fn covariances(
         }
         out
     };
+    // Intrinsics: the tangent of a camera block is its variable parameters
+    // in order (Ceres' subset manifold), so the block is the covariance.
+    let camera_blocks = |cov: &DMatrix<f64>, scale: f64| -> Vec<Option<DMatrix<f64>>> {
+        camera_cols
+            .iter()
+            .map(|cols| cols.map(|(at, size)| cov.view((at, at), (size, size)) * scale))
+            .collect()
+    };
     Ok(PoseCovariances {
         poses: world_blocks(&inverse, residual_variance),
+        cameras: camera_blocks(&inverse, residual_variance),
+        clustered_cameras: sandwich
+            .as_ref()
+            .map_or_else(Vec::new, |m| camera_blocks(m, 1.0)),
         clustered_poses: sandwich.map_or_else(Vec::new, |m| world_blocks(&m, 1.0)),
         residual_variance,
         redundancy: rows - fitted,

@@ -568,6 +568,19 @@ fn yard_self_calibrates_colmaps_guessed_camera() {
         "k {}",
         refined[3]
     );
+    // Its uncertainty (one sigma, px): the data fix it well under a pixel.
+    let sigma = rec["focal_sigma_px"].as_f64().expect("focal_sigma_px");
+    let clustered = rec["clustered_focal_sigma_px"]
+        .as_f64()
+        .expect("clustered_focal_sigma_px");
+    eprintln!(
+        "focal length sigma {sigma:.3} px, cluster-robust {clustered:.3} px; error {:.2} of those",
+        (refined[0] - truth.params[0]) / clustered
+    );
+    assert!(
+        sigma > 0.0 && sigma < 1.0 && clustered > 0.0 && clustered < 1.0,
+        "{rec}"
+    );
     // COLMAP's guessed principal point (the centre) is refined with the
     // rest; here the truth is the centre, and it stays within a pixel
     // (measured 0.03 / 0.08 px on a database like it).

@@ -1331,6 +1331,15 @@ fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
         (1, "final rounds", 454.5)
     );
     assert!((rec.final_params[0] - 450.0).abs() < 0.9, "{rec:?}");
+    // Refined to the end: its uncertainty is in the report, and the truth
+    // lies within a few sigmas of it.
+    let sigma = rec.focal_sigma_px.expect("a refined focal length's sigma");
+    let clustered = rec.clustered_focal_sigma_px.expect("cluster-robust too");
+    assert!(sigma > 0.0 && clustered > 0.0, "{rec:?}");
+    assert!(
+        (rec.final_params[0] - 450.0).abs() < 4.0 * sigma.max(clustered),
+        "{rec:?}"
+    );
     assert!((rec.focal_change - (rec.final_params[0] / 454.5 - 1.0)).abs() < 1e-15);
     assert!(err_auto < err_fixed, "{err_auto} vs {err_fixed}");
     // Given right, it is held: the probe moves it less than 0.1 % and the
@@ -1340,6 +1349,10 @@ fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
     let rec = &held.report.intrinsics[0];
     assert!(rec.probe_focal_change.unwrap().abs() < 0.001, "{rec:?}");
     assert_eq!(rec.refined, "held");
+    assert_eq!(
+        (rec.focal_sigma_px, rec.clustered_focal_sigma_px),
+        (None, None)
+    );
     // The probe (the last solve, discarded) is capped; Ceres counts its
     // starting point as one successful step.
     let probe_solve = held.report.solves.last().expect("solves");
