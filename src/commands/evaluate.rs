@@ -6,8 +6,10 @@ use anyhow::Context;
 use std::collections::BTreeMap;
 
 use super::map::load_map;
+use crate::eval::intrinsics::focal_errors;
 use crate::eval::map_agreement::{map_agreement, MapAgreement};
-use crate::eval::{evaluate, load_poses, Alignment, ReportedSigma, Sim3};
+use crate::eval::model_poses::{load_model, poses_of};
+use crate::eval::{evaluate, Alignment, ReportedSigma, Sim3};
 use crate::io::atomic::write_file_atomically;
 use crate::io::model::read_model;
 use crate::map::index::MapIndex;
@@ -46,8 +48,11 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
     if let Some(path) = &args.json {
         crate::io::atomic::check_output_location(path, false)?;
     }
-    let model = load_poses(&args.model).context("cannot read the model")?;
-    let reference = load_poses(&args.reference).context("cannot read the reference")?;
+    let model_rec = load_model(&args.model).context("cannot read the model")?;
+    let reference_rec = load_model(&args.reference).context("cannot read the reference")?;
+    let model = poses_of(&model_rec, &args.model).context("cannot read the model")?;
+    let reference =
+        poses_of(&reference_rec, &args.reference).context("cannot read the reference")?;
     if !model.keys().any(|name| reference.contains_key(name)) {
         anyhow::bail!(
             "no image of the model {} ({} images) is in the reference {} ({} images) by name: is it the reference of the same images?",
@@ -64,15 +69,21 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
         None => None,
     };
     let mut report = evaluate(&model, &reference, args.align)?;
+    report.focal_lengths = focal_errors(&model_rec, &reference_rec);
     // A model written by `map` reports its own pose uncertainty: with no
     // alignment, say how the true errors compare with it (an optional extra:
     // a report that cannot be read is skipped with a warning).
     let own = args.model.join("report.json");
     if args.align == Alignment::None && own.is_file() {
         match reported_sigmas(&own) {
-            Ok((formal, clustered)) => {
+            Ok((formal, clustered, focal)) => {
                 report.error_over_sigma = report.errors_over(&formal);
                 report.error_over_clustered_sigma = report.errors_over(&clustered);
+                for e in &mut report.focal_lengths {
+                    if let Some(&(sigma, clustered)) = focal.get(&e.camera_id) {
+                        (e.sigma_px, e.clustered_sigma_px) = (sigma, clustered);
+                    }
+                }
             }
             Err(e) => log::warn!(
                 "{}: uncertainties not read ({e:#}); errors not compared with them",
@@ -174,11 +185,28 @@ fn options_of_run(path: &Path) -> anyhow::Result<Option<MapperOptions>> {
 
 /// Sigmas by image name.
 type Sigmas = BTreeMap<String, ReportedSigma>;
+/// Per camera id, the formal and the cluster-robust sigma of its focal
+/// length, px.
+type FocalSigmas = BTreeMap<u32, (Option<f64>, Option<f64>)>;
 
 /// Per image name, the formal and the cluster-robust sigmas of `report.json`
-/// (`images[].pose_uncertainty`); empty when the report has none.
-fn reported_sigmas(path: &std::path::Path) -> anyhow::Result<(Sigmas, Sigmas)> {
+/// (`images[].pose_uncertainty`), and per camera id those of its focal
+/// length (`intrinsics[]`); empty when the report has none.
+fn reported_sigmas(path: &std::path::Path) -> anyhow::Result<(Sigmas, Sigmas, FocalSigmas)> {
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path)?)?;
+    let focal = report["intrinsics"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|c| {
+            let id = u32::try_from(c["camera_id"].as_u64()?).ok()?;
+            let sigmas = (
+                c["focal_sigma_px"].as_f64(),
+                c["clustered_focal_sigma_px"].as_f64(),
+            );
+            Some((id, sigmas))
+        })
+        .collect();
     let mut formal = BTreeMap::new();
     let mut clustered = BTreeMap::new();
     for image in report["images"].as_array().into_iter().flatten() {
@@ -205,7 +233,7 @@ fn reported_sigmas(path: &std::path::Path) -> anyhow::Result<(Sigmas, Sigmas)> {
             }
         }
     }
-    Ok((formal, clustered))
+    Ok((formal, clustered, focal))
 }
 
 #[cfg(test)]

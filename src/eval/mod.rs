@@ -19,6 +19,7 @@ use serde::Serialize;
 
 use crate::scene::Rigid3;
 
+pub mod intrinsics;
 pub mod map_agreement;
 pub mod model_poses;
 
@@ -193,6 +194,10 @@ pub struct EvaluationReport {
     /// The model's error split into where it is placed as a whole and its
     /// shape (with at least 3 registered images with distinct centres).
     pub placement: Option<Placement>,
+    /// Per model camera, its focal length against the reference's (filled
+    /// by the caller from the two models' cameras; see
+    /// [`intrinsics::focal_errors`]).
+    pub focal_lengths: Vec<intrinsics::FocalError>,
 }
 
 /// A model's error as a whole: the best similarity from the model to the
@@ -351,6 +356,7 @@ pub fn evaluate(
         error_over_sigma: None,
         error_over_clustered_sigma: None,
         placement,
+        focal_lengths: Vec::new(),
     })
 }
 
@@ -436,6 +442,7 @@ impl EvaluationReport {
                 p.shape_error_m.median, p.shape_error_m.p90, p.shape_error_m.max
             );
         }
+        s += &intrinsics::focal_table(&self.focal_lengths);
         for t in &self.within {
             s += &format!(
                 "within {:>3.0} cm {:>4.1} deg  {} / {} ({:.1} %)\n",

@@ -4,15 +4,25 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use super::EvalError;
-use crate::scene::Rigid3;
+use crate::scene::{Reconstruction, Rigid3};
 
 /// Poses by image name, read with [`crate::io::model::read_model`] (text or
 /// binary). Unregistered images are left out.
 pub fn load_poses(dir: &Path) -> Result<BTreeMap<String, Rigid3>, EvalError> {
-    let rec = crate::io::model::read_model(dir).map_err(|e| EvalError::Model {
+    poses_of(&load_model(dir)?, dir)
+}
+
+/// The model in `dir` (text or binary), its errors naming the folder.
+pub fn load_model(dir: &Path) -> Result<Reconstruction, EvalError> {
+    crate::io::model::read_model(dir).map_err(|e| EvalError::Model {
         path: dir.to_path_buf(),
         message: e.to_string(),
-    })?;
+    })
+}
+
+/// The registered images' poses of `rec` (read from `dir`) by name; an
+/// error when a name appears twice.
+pub fn poses_of(rec: &Reconstruction, dir: &Path) -> Result<BTreeMap<String, Rigid3>, EvalError> {
     let mut out = BTreeMap::new();
     for image in rec.images.values() {
         if let Some(pose) = image.cam_from_world {
@@ -45,7 +55,7 @@ fn insert(
 mod tests {
     use super::*;
     use crate::io::model::{write_model, ModelFormat};
-    use crate::scene::{Camera, CameraId, CameraModel, Image, ImageId, Reconstruction};
+    use crate::scene::{Camera, CameraId, CameraModel, Image, ImageId};
 
     #[test]
     fn poses_of_text_and_binary_models() {

@@ -837,6 +837,22 @@ fn yard_with_colmap_database() {
         clustered["centre"]["median"].as_f64().unwrap() > 0.0,
         "{clustered}"
     );
+    // And the focal length with the reference's (one camera, the true one
+    // given): exact where the probe held it, else within its sigmas' reach.
+    let focal = &evaluation["focal_lengths"];
+    assert_eq!(focal.as_array().map(Vec::len), Some(1), "{focal}");
+    assert_eq!(
+        focal[0]["num_images"].as_u64(),
+        Some(a.none.num_registered as u64)
+    );
+    let relative = focal[0]["relative_error"].as_f64().unwrap();
+    if a.report["intrinsics"][0]["refined"] == "held" {
+        assert_eq!(relative, 0.0, "{focal}");
+        assert!(focal[0]["clustered_sigma_px"].is_null(), "{focal}");
+    } else {
+        assert!(relative.abs() < 0.002, "{focal}");
+        assert!(focal[0]["clustered_sigma_px"].as_f64().unwrap() > 0.0);
+    }
     // The tracks at the true poses and the model's points lie on the map
     // where seen head-on (measured: medians within 0.25 mm; the map's
     // noise is 15 mm, its planes average it).
