@@ -14,7 +14,7 @@ use crate::io::atomic::write_file_atomically;
 use crate::io::model::read_model;
 use crate::map::index::MapIndex;
 use crate::map::PointCloud;
-use crate::scene::Rigid3;
+use crate::scene::{CameraModel, Rigid3};
 use crate::sfm::associate::NearestNeighbourAssociator;
 use crate::sfm::mapper::options_for_map;
 use crate::sfm::MapperOptions;
@@ -70,18 +70,33 @@ pub fn run(args: &EvaluateArgs) -> anyhow::Result<()> {
     };
     let mut report = evaluate(&model, &reference, args.align)?;
     report.focal_lengths = focal_errors(&model_rec, &reference_rec);
-    // A model written by `map` reports its own pose uncertainty: with no
-    // alignment, say how the true errors compare with it (an optional extra:
-    // a report that cannot be read is skipped with a warning).
+    // A model written by `map` reports its own uncertainties: say how the
+    // true errors compare with them (the poses' with no alignment only; an
+    // optional extra: a report that cannot be read is skipped with a
+    // warning).
     let own = args.model.join("report.json");
-    if args.align == Alignment::None && own.is_file() {
+    if own.is_file() {
         match reported_sigmas(&own) {
             Ok((formal, clustered, focal)) => {
-                report.error_over_sigma = report.errors_over(&formal);
-                report.error_over_clustered_sigma = report.errors_over(&clustered);
+                if args.align == Alignment::None {
+                    report.error_over_sigma = report.errors_over(&formal);
+                    report.error_over_clustered_sigma = report.errors_over(&clustered);
+                }
                 for e in &mut report.focal_lengths {
-                    if let Some(&(sigma, clustered)) = focal.get(&e.camera_id) {
+                    // Only where the report's camera is this one (its final
+                    // focal length the model's to rounding).
+                    let Some(&(focal_px, sigma, clustered)) = focal.get(&e.camera_id) else {
+                        continue;
+                    };
+                    if (focal_px - e.focal_px).abs() <= 1e-9 * e.focal_px {
                         (e.sigma_px, e.clustered_sigma_px) = (sigma, clustered);
+                    } else {
+                        log::warn!(
+                            "{}: camera {} has a final focal length of {focal_px} px there and {} px in the model; its sigmas not used",
+                            own.display(),
+                            e.camera_id,
+                            e.focal_px
+                        );
                     }
                 }
             }
@@ -185,9 +200,9 @@ fn options_of_run(path: &Path) -> anyhow::Result<Option<MapperOptions>> {
 
 /// Sigmas by image name.
 type Sigmas = BTreeMap<String, ReportedSigma>;
-/// Per camera id, the formal and the cluster-robust sigma of its focal
-/// length, px.
-type FocalSigmas = BTreeMap<u32, (Option<f64>, Option<f64>)>;
+/// Per camera id, its final mean focal length and the formal and the
+/// cluster-robust sigma of it, px.
+type FocalSigmas = BTreeMap<u32, (f64, Option<f64>, Option<f64>)>;
 
 /// Per image name, the formal and the cluster-robust sigmas of `report.json`
 /// (`images[].pose_uncertainty`), and per camera id those of its focal
@@ -200,7 +215,16 @@ fn reported_sigmas(path: &std::path::Path) -> anyhow::Result<(Sigmas, Sigmas, Fo
         .flatten()
         .filter_map(|c| {
             let id = u32::try_from(c["camera_id"].as_u64()?).ok()?;
+            let model = CameraModel::from_name(c["model"].as_str()?)?;
+            let params = c["final_params"].as_array()?;
+            let focal = model
+                .focal_idxs()
+                .iter()
+                .map(|&k| params.get(k).and_then(serde_json::Value::as_f64))
+                .sum::<Option<f64>>()?
+                / model.focal_idxs().len() as f64;
             let sigmas = (
+                focal,
                 c["focal_sigma_px"].as_f64(),
                 c["clustered_focal_sigma_px"].as_f64(),
             );

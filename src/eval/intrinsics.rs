@@ -23,7 +23,8 @@ pub struct FocalError {
     /// `focal_px / reference_focal_px - 1`.
     pub relative_error: f64,
     /// The one-sigma uncertainty the model reported for it (`map`'s
-    /// `report.json` → `intrinsics` → `focal_sigma_px`), px.
+    /// `report.json` → `intrinsics` → `focal_sigma_px`, where that
+    /// record's final focal length is this one), px.
     pub sigma_px: Option<f64>,
     /// The same, cluster-robust (`clustered_focal_sigma_px`).
     pub clustered_sigma_px: Option<f64>,
@@ -77,14 +78,15 @@ pub fn focal_table(errors: &[FocalError]) -> String {
                 .unwrap_or_default()
         };
         s += &format!(
-            "focal length (px)    {:.3} against {:.3} ({:+.4} %{}{}; camera {}, {} images)\n",
+            "focal length (px)    {:.3} against {:.3} ({:+.4} %{}{}; camera {}, {} image{})\n",
             e.focal_px,
             e.reference_focal_px,
             100.0 * e.relative_error,
             over(e.sigma_px, "own sigmas"),
             over(e.clustered_sigma_px, "clustered sigmas"),
             e.camera_id,
-            e.num_images
+            e.num_images,
+            if e.num_images == 1 { "" } else { "s" }
         );
     }
     s
@@ -188,7 +190,7 @@ mod tests {
             "{table}"
         );
         assert!(
-            table.contains("602.000 against 600.000 (+0.3333 %; camera 2, 1 images)"),
+            table.contains("602.000 against 600.000 (+0.3333 %; camera 2, 1 image)"),
             "{table}"
         );
     }

@@ -780,11 +780,7 @@ fn focal_uncertainties(
         };
         // The covariance's rows are the variable parameters in order.
         let variable: Vec<usize> = (0..camera.params.len())
-            .filter(|&k| match &camera.constant {
-                ConstantParams::None => true,
-                ConstantParams::All => false,
-                ConstantParams::Mask(mask) => !mask[k],
-            })
+            .filter(|&k| !camera.is_param_constant(k))
             .collect();
         let Some(rows) = model
             .focal_idxs()

@@ -1,5 +1,6 @@
 //! Pose uncertainty at a bundle-adjustment solution: the covariance of each
-//! variable pose with every point (and any free intrinsics) marginalised.
+//! variable pose with every point (and any free intrinsics) marginalised,
+//! and of each camera's free intrinsics with the points marginalised.
 //!
 //! The bridge returns the Jacobian `J` (robust losses applied as the solver
 //! applies them). With the points first, the normal matrix
@@ -34,7 +35,7 @@ const BLOCK_POSE_ROTATION: u32 = 1;
 const BLOCK_POSE_TRANSLATION: u32 = 2;
 const BLOCK_CAMERA: u32 = 3;
 
-/// Covariances of the variable poses of a problem.
+/// Covariances of the variable poses and intrinsics of a problem.
 #[derive(Clone, Debug)]
 pub struct PoseCovariances {
     /// Per pose of the problem (same index): the 6x6 covariance of
@@ -50,7 +51,7 @@ pub struct PoseCovariances {
     /// variable intrinsics, in the model's parameter order with the
     /// constant ones left out (pixels squared for focal lengths), scaled by
     /// `residual_variance`. `None` for a camera whose intrinsics are all
-    /// constant.
+    /// constant or that no residual touches.
     pub cameras: Vec<Option<DMatrix<f64>>>,
     /// The same from [`clustered_pose_covariances`]; empty otherwise.
     pub clustered_cameras: Vec<Option<DMatrix<f64>>>,

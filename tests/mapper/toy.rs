@@ -1332,7 +1332,8 @@ fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
     );
     assert!((rec.final_params[0] - 450.0).abs() < 0.9, "{rec:?}");
     // Refined to the end: its uncertainty is in the report, and the truth
-    // lies within a few sigmas of it.
+    // lies within a few sigmas of it (measured: 450.022 px, sigma 0.132 px,
+    // cluster-robust 0.138 px, so 0.17 sigma off).
     let sigma = rec.focal_sigma_px.expect("a refined focal length's sigma");
     let clustered = rec.clustered_focal_sigma_px.expect("cluster-robust too");
     assert!(sigma > 0.0 && clustered > 0.0, "{rec:?}");
