@@ -706,7 +706,7 @@ pub fn pose_uncertainty(
     }
     Ok(Uncertainties {
         poses: out,
-        focal_lengths: focal_uncertainties(state, &built, &cov),
+        intrinsics: intrinsics_uncertainties(state, &built, &cov),
         residual_sigma_px: cov.residual_variance.sqrt(),
         num_degenerate_points: cov.num_degenerate_points,
     })
@@ -737,15 +737,20 @@ fn covariances_at(
     Ok((built, cov))
 }
 
-/// How well the data fix a refined camera's focal length: one standard
+/// How well the data fix a refined camera's intrinsics: one standard
 /// deviation of its mean focal length (fx and fy averaged where the model
-/// has both), pixels.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct FocalUncertainty {
+/// has both), pixels, and of each parameter.
+#[derive(Clone, Debug, PartialEq)]
+pub struct IntrinsicsUncertainty {
     /// From the residuals' own variance (as [`PoseUncertainty`]).
-    pub sigma_px: f64,
+    pub focal_sigma_px: f64,
     /// Cluster-robust (`bundle.uncertainty_cluster_m`); `None` when off.
-    pub clustered_sigma_px: Option<f64>,
+    pub clustered_focal_sigma_px: Option<f64>,
+    /// Per parameter in the model's order: its sigma, `None` where held
+    /// (the principal point unless it is refined).
+    pub params_sigma: Vec<Option<f64>>,
+    /// The same, cluster-robust; `None` when off.
+    pub clustered_params_sigma: Option<Vec<Option<f64>>>,
 }
 
 /// What [`pose_uncertainty`] finds.
@@ -755,20 +760,20 @@ pub struct Uncertainties {
     pub poses: BTreeMap<ImageId, PoseUncertainty>,
     /// Per camera whose focal length varies in the solve (the owner of
     /// shared intrinsics).
-    pub focal_lengths: BTreeMap<CameraId, FocalUncertainty>,
+    pub intrinsics: BTreeMap<CameraId, IntrinsicsUncertainty>,
     /// Standard deviation of a unit-weight residual, pixels.
     pub residual_sigma_px: f64,
     /// Points whose own position was not fully determined.
     pub num_degenerate_points: usize,
 }
 
-/// The focal length uncertainties of the cameras whose focal length varies
+/// The intrinsics' uncertainties of the cameras whose focal length varies
 /// in `built`, from its covariances `cov`.
-fn focal_uncertainties(
+fn intrinsics_uncertainties(
     state: &MapState,
     built: &BuiltBundle,
     cov: &PoseCovariances,
-) -> BTreeMap<CameraId, FocalUncertainty> {
+) -> BTreeMap<CameraId, IntrinsicsUncertainty> {
     let mut out = BTreeMap::new();
     for (&id, &ci) in &built.camera_idx {
         let ci = ci as usize;
@@ -791,7 +796,7 @@ fn focal_uncertainties(
             continue;
         };
         let n = rows.len() as f64;
-        let sigma = |block: &DMatrix<f64>| {
+        let focal = |block: &DMatrix<f64>| {
             let variance = rows
                 .iter()
                 .flat_map(|&a| rows.iter().map(move |&b| block[(a, b)]))
@@ -799,15 +804,22 @@ fn focal_uncertainties(
                 / (n * n);
             sigma_of_variance(variance)
         };
+        let params = |block: &DMatrix<f64>| {
+            (0..camera.params.len())
+                .map(|k| {
+                    let row = variable.iter().position(|&v| v == k)?;
+                    Some(sigma_of_variance(block[(row, row)]))
+                })
+                .collect::<Vec<_>>()
+        };
+        let clustered = cov.clustered_cameras.get(ci).and_then(Option::as_ref);
         out.insert(
             id,
-            FocalUncertainty {
-                sigma_px: sigma(block),
-                clustered_sigma_px: cov
-                    .clustered_cameras
-                    .get(ci)
-                    .and_then(Option::as_ref)
-                    .map(sigma),
+            IntrinsicsUncertainty {
+                focal_sigma_px: focal(block),
+                clustered_focal_sigma_px: clustered.map(focal),
+                params_sigma: params(block),
+                clustered_params_sigma: clustered.map(params),
             },
         );
     }

@@ -2622,18 +2622,20 @@ fn estimate_uncertainty(
     };
     for rec in &mut report.intrinsics {
         let owner = state.intrinsics_of(CameraId(rec.camera_id));
-        if let Some(u) = found.focal_lengths.get(&owner) {
-            rec.focal_sigma_px = Some(u.sigma_px);
-            rec.clustered_focal_sigma_px = u.clustered_sigma_px;
+        if let Some(u) = found.intrinsics.get(&owner) {
+            rec.focal_sigma_px = Some(u.focal_sigma_px);
+            rec.clustered_focal_sigma_px = u.clustered_focal_sigma_px;
+            rec.params_sigma = Some(u.params_sigma.clone());
+            rec.clustered_params_sigma = u.clustered_params_sigma.clone();
         }
     }
-    for (id, u) in &found.focal_lengths {
+    for (id, u) in &found.intrinsics {
         log::info!(
             "camera {}: refined focal length {:.2} px, 1 sigma {:.3} px{}",
             id.0,
             state.cameras[id].mean_focal_length(),
-            u.sigma_px,
-            u.clustered_sigma_px
+            u.focal_sigma_px,
+            u.clustered_focal_sigma_px
                 .map(|c| format!(" ({c:.3} px cluster-robust)"))
                 .unwrap_or_default()
         );
@@ -2942,6 +2944,8 @@ impl RefinedCameras {
                 probe_focal_change: None,
                 focal_sigma_px: None,
                 clustered_focal_sigma_px: None,
+                params_sigma: None,
+                clustered_params_sigma: None,
                 focal_from_pairs_px: estimates.get(&c.id).map(|e| e.focal_px),
                 focal_from_map_px: map_focal.get(&c.id).map(|e| e.focal_px),
                 focal_from_points_px: None,

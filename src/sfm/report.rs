@@ -606,6 +606,11 @@ pub struct IntrinsicsRecord {
     pub focal_sigma_px: Option<f64>,
     /// The same, cluster-robust (`bundle.uncertainty_cluster_m`).
     pub clustered_focal_sigma_px: Option<f64>,
+    /// Then also each parameter's sigma, in `final_params`' order (`null`
+    /// for the held ones, e.g. the principal point).
+    pub params_sigma: Option<Vec<Option<f64>>>,
+    /// The same, cluster-robust.
+    pub clustered_params_sigma: Option<Vec<Option<f64>>>,
 }
 
 /// One final round: how far its solve moved the camera centres, metres.

@@ -583,6 +583,14 @@ fn yard_self_calibrates_colmaps_guessed_camera() {
         sigma > 0.0 && sigma < 1.0 && clustered > 0.0 && clustered < 1.0,
         "{rec}"
     );
+    // Every parameter refined here (the principal point with a guessed
+    // focal length) has its own sigma, the focal length's the one above
+    // (measured: f 0.135, cx 0.064, cy 0.090 px, k 8.5e-5).
+    let params = json_numbers(&rec["params_sigma"]);
+    eprintln!("parameter sigmas {params:?}");
+    assert_eq!(params.len(), refined.len(), "{rec}");
+    assert_eq!(params[0], sigma);
+    assert!(params.iter().all(|s| *s > 0.0), "{rec}");
     // COLMAP's guessed principal point (the centre) is refined with the
     // rest; here the truth is the centre, and it stays within a pixel
     // (measured 0.03 / 0.08 px on a database like it).

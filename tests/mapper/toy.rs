@@ -1341,6 +1341,12 @@ fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
         (rec.final_params[0] - 450.0).abs() < 4.0 * sigma.max(clustered),
         "{rec:?}"
     );
+    // Per parameter: the focal length's the same, the held principal
+    // point's none.
+    let params = rec.params_sigma.as_ref().expect("per parameter");
+    assert_eq!(params.len(), rec.final_params.len());
+    assert_eq!(params[0], Some(sigma));
+    assert_eq!((params[1], params[2]), (None, None), "{rec:?}");
     assert!((rec.focal_change - (rec.final_params[0] / 454.5 - 1.0)).abs() < 1e-15);
     assert!(err_auto < err_fixed, "{err_auto} vs {err_fixed}");
     // Given right, it is held: the probe moves it less than 0.1 % and the
@@ -1354,6 +1360,7 @@ fn toy_room_refines_a_wrong_focal_length_and_holds_the_principal_point() {
         (rec.focal_sigma_px, rec.clustered_focal_sigma_px),
         (None, None)
     );
+    assert_eq!(rec.params_sigma, None);
     // The probe (the last solve, discarded) is capped; Ceres counts its
     // starting point as one successful step.
     let probe_solve = held.report.solves.last().expect("solves");
