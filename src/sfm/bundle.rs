@@ -659,9 +659,9 @@ fn cell_clusters(positions: impl Iterator<Item = Vector3<f64>>, cell_m: f64) -> 
 }
 
 /// Pose uncertainties of the variable images of `config`, from a solve of
-/// `kind` at the current state (planes associated afresh), and of the focal
-/// lengths it refines; also the residual standard deviation (pixels) and the
-/// number of points whose own position was not fully determined.
+/// `kind` at the current state (planes associated afresh), and of the
+/// intrinsics it refines; also the residual standard deviation (pixels) and
+/// the number of points whose own position was not fully determined.
 pub fn pose_uncertainty(
     state: &MapState,
     config: &BundleConfig,
