@@ -14,7 +14,7 @@ use crate::io::atomic::write_file_atomically;
 use crate::io::model::read_model;
 use crate::map::index::MapIndex;
 use crate::map::PointCloud;
-use crate::scene::{CameraModel, Rigid3};
+use crate::scene::{Camera, CameraId, CameraModel, Rigid3};
 use crate::sfm::associate::NearestNeighbourAssociator;
 use crate::sfm::mapper::options_for_map;
 use crate::sfm::MapperOptions;
@@ -216,15 +216,21 @@ fn reported_sigmas(path: &std::path::Path) -> anyhow::Result<(Sigmas, Sigmas, Fo
         .filter_map(|c| {
             let id = u32::try_from(c["camera_id"].as_u64()?).ok()?;
             let model = CameraModel::from_name(c["model"].as_str()?)?;
-            let params = c["final_params"].as_array()?;
-            let focal = model
-                .focal_idxs()
+            let params = c["final_params"]
+                .as_array()?
                 .iter()
-                .map(|&k| params.get(k).and_then(serde_json::Value::as_f64))
-                .sum::<Option<f64>>()?
-                / model.focal_idxs().len() as f64;
+                .map(serde_json::Value::as_f64)
+                .collect::<Option<Vec<f64>>>()
+                .filter(|p| p.len() == model.num_params())?;
+            let camera = Camera {
+                id: CameraId(id),
+                model,
+                width: 0,
+                height: 0,
+                params,
+            };
             let sigmas = (
-                focal,
+                camera.mean_focal_length(),
                 c["focal_sigma_px"].as_f64(),
                 c["clustered_focal_sigma_px"].as_f64(),
             );

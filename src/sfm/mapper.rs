@@ -26,7 +26,9 @@ use super::associate::{
     AssociationQuery, NearestNeighbourAssociator, NoAssociation, PlaneAssociator,
     ProjectionAssociator, SolveKind,
 };
-use super::bundle::{bundle_adjust, pose_uncertainty, BundleConfig, SoftPosePrior, SolveRecord};
+use super::bundle::{
+    bundle_adjust, pose_uncertainty, BundleConfig, SoftPosePrior, SolveRecord, Uncertainties,
+};
 use super::existing::ExistingModel;
 use super::filter::{
     filter_observations, filter_points_behind_map, filter_small_angle_points,
@@ -2607,7 +2609,12 @@ fn estimate_uncertainty(
         refine_cameras: refine.last.clone(),
         pose_priors: priors.to_vec(),
     };
-    let found = match pose_uncertainty(
+    let Uncertainties {
+        poses,
+        intrinsics,
+        residual_sigma_px,
+        num_degenerate_points,
+    } = match pose_uncertainty(
         state,
         &config,
         SolveKind::Final,
@@ -2622,14 +2629,14 @@ fn estimate_uncertainty(
     };
     for rec in &mut report.intrinsics {
         let owner = state.intrinsics_of(CameraId(rec.camera_id));
-        if let Some(u) = found.intrinsics.get(&owner) {
+        if let Some(u) = intrinsics.get(&owner) {
             rec.focal_sigma_px = Some(u.focal_sigma_px);
             rec.clustered_focal_sigma_px = u.clustered_focal_sigma_px;
             rec.params_sigma = Some(u.params_sigma.clone());
             rec.clustered_params_sigma = u.clustered_params_sigma.clone();
         }
     }
-    for (id, u) in &found.intrinsics {
+    for (id, u) in &intrinsics {
         log::info!(
             "camera {}: refined focal length {:.2} px, 1 sigma {:.3} px{}",
             id.0,
@@ -2640,11 +2647,6 @@ fn estimate_uncertainty(
                 .unwrap_or_default()
         );
     }
-    let (poses, residual_sigma_px, num_degenerate_points) = (
-        found.poses,
-        found.residual_sigma_px,
-        found.num_degenerate_points,
-    );
     if poses.is_empty() {
         log::info!("pose uncertainty: no image's pose varies in the final solve");
         return;
