@@ -8,5 +8,6 @@ pub mod index;
 pub mod io;
 pub mod prepare;
 pub mod projection;
+pub mod surfels;
 
 pub use cloud::PointCloud;

@@ -994,6 +994,22 @@ pub struct AssociationOptions {
     /// [`PLANE_WINDOW_PER_NOISE`] times the map's measured noise for noisier
     /// maps ([`MapperOptions::for_map_noise`]). Default 0.1.
     pub plane_window_m: f64,
+    /// A plane's offset may come from a least-squares plane fitted over a
+    /// patch of the map up to this radius (metres; patches of twice, four
+    /// times ... the plane radius in turn, each taken while it agrees with
+    /// the narrower one within the map's noise, and used where it agrees
+    /// with the plane radius's mean): a flat wall or floor then averages
+    /// thousands of map points instead of tens, a curved or stepped
+    /// surface keeps its local plane ([`crate::map::surfels`]). 0 (or
+    /// anything under twice the plane radius) turns it off. Default 0
+    /// (off): 1.2 m took the synthetic yard's 15 mm noise out of its plane
+    /// offsets (0.5 mm RMS instead of 3.3 mm) and the seed-0 yards closer
+    /// to the truth (640 x 480: 3.9 -> 3.0 mm; 1024 x 768: 2.15 -> 1.57
+    /// mm), but the corridors came out worse (their grazing-angle feature
+    /// bias, which the noisier local offsets partly absorbed) and so did
+    /// maps of 30-50 mm noise prepared by `prepare-map` (session 72,
+    /// `docs/results.md`).
+    pub plane_fit_max_radius_m: f64,
     /// A map point gives no plane when fewer map points than this (itself
     /// included) lie on its plane inside that cylinder and window, and
     /// inside one of twice the radius: a stray point (a LiDAR outlier:
@@ -1050,6 +1066,7 @@ impl Default for AssociationOptions {
             same_plane_max_angle_deg: 15.0,
             plane_radius_m: 0.1,
             plane_window_m: 0.1,
+            plane_fit_max_radius_m: 0.0,
             min_plane_support: 5,
             min_points_on_map_share: 0.6,
         }
@@ -1167,6 +1184,14 @@ impl AssociationOptions {
                 format!("must be in (0, {MAX_PLANE_RADIUS_M}] metres (a plane's neighbourhood), got {v}"),
             )?;
         }
+        check(
+            self.plane_fit_max_radius_m >= 0.0 && self.plane_fit_max_radius_m <= MAX_PLANE_RADIUS_M,
+            "association.plane_fit_max_radius_m",
+            format!(
+                "must be in [0, {MAX_PLANE_RADIUS_M}] metres, got {}",
+                self.plane_fit_max_radius_m
+            ),
+        )?;
         check(
             (0.0..=1.0).contains(&self.min_points_on_map_share),
             "association.min_points_on_map_share",
@@ -1367,7 +1392,7 @@ mod tests {
         // Values that passed before and then hung a run, made every cost
         // NaN or made a sigma meaningless (session 64's review).
         type Spoil = fn(&mut MapperOptions);
-        let spoilt: [(Spoil, &str); 6] = [
+        let spoilt: [(Spoil, &str); 8] = [
             (
                 |o| o.register.max_iterations = 1_000_000_000_000_000,
                 "register.max_iterations",
@@ -1375,6 +1400,14 @@ mod tests {
             (
                 |o| o.association.plane_radius_m = 100.0,
                 "association.plane_radius_m",
+            ),
+            (
+                |o| o.association.plane_fit_max_radius_m = 100.0,
+                "association.plane_fit_max_radius_m",
+            ),
+            (
+                |o| o.association.plane_fit_max_radius_m = f64::NAN,
+                "association.plane_fit_max_radius_m",
             ),
             (|o| o.bundle.reprojection_loss_px = 1e200, "got 1e200"),
             (|o| o.bundle.uncertainty_cluster_m = 1e-300, "got 1e-300"),
