@@ -60,8 +60,9 @@ impl FittedPlane {
     /// Where the plane crosses the line `at + t n` (`n` a unit normal near
     /// the plane's): the offset `n . x` of that crossing, and its variance
     /// in units of the map's noise variance (`1 / count` at the centroid,
-    /// growing with the distance from it). `None` when `n` lies in the
-    /// plane.
+    /// growing with the distance from it; measured along the plane's
+    /// normal, about right for `n` within a few degrees of it). `None` when
+    /// `n` is more than 60 degrees from the plane's normal.
     pub fn offset_along(&self, at: &Vector3<f64>, n: &Vector3<f64>) -> Option<(f64, f64)> {
         let c = self.normal.dot(n);
         if c.abs() < 0.5 {
@@ -99,7 +100,7 @@ pub struct SurfelMap {
     /// Per map point, its surfel, or `u32::MAX` for a point left out.
     of_point: Vec<u32>,
     /// Surfels by coarse cell (`search_m` edge), for neighbourhood queries.
-    buckets: HashMap<[i32; 3], Vec<u32>>,
+    buckets: HashMap<[i64; 3], Vec<u32>>,
     search_m: f64,
     options: SurfelOptions,
     /// The map's range noise read from the surfels (metres; see
@@ -113,11 +114,13 @@ const NONE: u32 = u32::MAX;
 /// normals before choosing them about its plane (45 degrees).
 const LOOSE_COS: f64 = std::f64::consts::FRAC_1_SQRT_2;
 
-fn cell_of(p: &Vector3<f64>, size: f64) -> [i32; 3] {
+/// The cell of `p` (coordinates saturate far out: such cells merge, no
+/// overflow).
+fn cell_of(p: &Vector3<f64>, size: f64) -> [i64; 3] {
     [
-        (p.x / size).floor() as i32,
-        (p.y / size).floor() as i32,
-        (p.z / size).floor() as i32,
+        (p.x / size).floor() as i64,
+        (p.y / size).floor() as i64,
+        (p.z / size).floor() as i64,
     ]
 }
 
@@ -142,7 +145,7 @@ impl SurfelMap {
         options: SurfelOptions,
         search_m: f64,
     ) -> Self {
-        let mut by_cell: Vec<([i32; 3], u32)> = (0..cloud.len())
+        let mut by_cell: Vec<([i64; 3], u32)> = (0..cloud.len())
             .into_par_iter()
             .filter_map(|i| {
                 normal_of(i)?;
@@ -171,9 +174,10 @@ impl SurfelMap {
                 group_cell(&members, &point, &options)
             })
             .collect();
+        drop(by_cell);
         let mut surfels = Vec::new();
         let mut of_point = vec![NONE; cloud.len()];
-        let mut buckets: HashMap<[i32; 3], Vec<u32>> = HashMap::new();
+        let mut buckets: HashMap<[i64; 3], Vec<u32>> = HashMap::new();
         for (surfel, ids) in groups.into_iter().flatten() {
             let id = surfels.len() as u32;
             for i in ids {
@@ -227,13 +231,17 @@ impl SurfelMap {
     /// (ties by id); `radius` at most twice the search cell.
     fn same_surface_near(&self, s: u32, radius: f64, cos_min: f64) -> Vec<(f64, u32)> {
         let seed = &self.surfels[s as usize];
-        let reach = (radius / self.search_m).ceil() as i32;
+        let reach = (radius / self.search_m).ceil() as i64;
         let home = cell_of(&seed.mean, self.search_m);
         let mut near: Vec<(f64, u32)> = Vec::new();
         for dx in -reach..=reach {
             for dy in -reach..=reach {
                 for dz in -reach..=reach {
-                    let key = [home[0] + dx, home[1] + dy, home[2] + dz];
+                    let key = [
+                        home[0].saturating_add(dx),
+                        home[1].saturating_add(dy),
+                        home[2].saturating_add(dz),
+                    ];
                     let Some(ids) = self.buckets.get(&key) else {
                         continue;
                     };
@@ -313,8 +321,9 @@ impl SurfelMap {
     /// surfel's mean along the surfel's normal, lies within 3 sigma of the
     /// narrower plane's (both planes' uncertainty from `noise_m`, at least
     /// `min_noise_m`) and its points lie within `max_spread` times the noise of
-    /// it (RMS). `None` when even the narrowest patch has fewer than `min_count`
-    /// points.
+    /// it (RMS). A patch of fewer than `min_count` points is skipped (the
+    /// next radius is compared with the last patch taken); `None` when no
+    /// patch is taken.
     pub fn fit_around(
         &self,
         s: u32,
@@ -335,13 +344,14 @@ impl SurfelMap {
         // The plane members are chosen about: the seed's, then each fit's.
         let (mut plane_n, mut plane_at) = (seed.normal, seed.mean);
         for &radius in radii {
+            let before = (plane_n, plane_at);
             let fit = self.pool_about(&near, radius, &mut plane_n, &mut plane_at, seed);
-            let Some(fit) = fit else {
+            // Too few points: the next radius chooses its members about the
+            // last plane taken, not about this one.
+            let Some(fit) = fit.filter(|f| f.plane.count >= min_count) else {
+                (plane_n, plane_at) = before;
                 continue;
             };
-            if fit.plane.count < min_count {
-                continue;
-            }
             let spread =
                 (fit.residual_sq / f64::from(fit.plane.count.saturating_sub(3).max(1))).sqrt();
             if spread > max_spread * noise {

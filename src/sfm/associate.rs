@@ -115,8 +115,11 @@ pub struct NearestNeighbourAssociator<'a> {
     /// [`NO_PLANE`] for a point without enough support.
     offsets: Vec<AtomicU32>,
     /// The map's surfels and each surfel's wide plane, once computed
-    /// ([`Self::wide_offset`]); built on first use.
-    wide: OnceLock<Wide>,
+    /// ([`Self::wide_offset`]); `None` when the option is off. Built in
+    /// [`Self::new`], outside the parallel loops that ask for offsets: a
+    /// lazy build there (itself parallel) could run a piece of such a loop
+    /// on its own thread while it builds, which would wait for itself.
+    wide: Option<Wide>,
 }
 
 /// [`NearestNeighbourAssociator`]'s wide plane fits.
@@ -140,6 +143,10 @@ const WIDE_MAX_SPREAD: f64 = 1.5;
 /// Map points a wide fit needs at least.
 const WIDE_MIN_COUNT: u32 = 20;
 
+/// Patch radii a wide fit tries at most (doublings of twice the plane
+/// radius; the last one is the option's).
+const MAX_WIDE_STEPS: usize = 12;
+
 /// The standard deviation of a normal distribution cut at 3 sigma, in
 /// sigmas: `sqrt(1 - 6 phi(3) / (2 Phi(3) - 1))`.
 const CLIPPED_SIGMA: f64 = 0.986_58;
@@ -158,13 +165,15 @@ const NO_PLANE: u32 = u32::MAX - 1;
 
 impl<'a> NearestNeighbourAssociator<'a> {
     pub fn new(cloud: &'a PointCloud, index: &'a MapIndex, options: AssociationOptions) -> Self {
-        Self {
+        let mut assoc = Self {
             cloud,
             index,
             options,
             offsets: (0..cloud.len()).map(|_| AtomicU32::new(NOT_YET)).collect(),
-            wide: OnceLock::new(),
-        }
+            wide: None,
+        };
+        assoc.wide = assoc.build_wide();
+        assoc
     }
 }
 
@@ -277,7 +286,10 @@ impl NearestNeighbourAssociator<'_> {
     /// averaged over nearest neighbours carried both biases (on a floor
     /// with the synthetic maps' 15 mm noise: 11 mm at the points a camera
     /// sees, see the test), and the mapper's models came out a little too
-    /// large inside rooms and corridors. Cached per map point.
+    /// large inside rooms and corridors. With `plane_fit_max_radius_m` on,
+    /// a wide plane fitted around the point replaces that mean where it is
+    /// known better and agrees with it ([`Self::wide_offset`]). Cached per
+    /// map point.
     pub fn plane_offset_at(&self, i: usize) -> Option<f64> {
         let normal = self.normal_of(i)?;
         let point = self.cloud.point_in_map(i);
@@ -309,9 +321,11 @@ impl NearestNeighbourAssociator<'_> {
     /// The offset of the wide plane fitted around map point `i` (at
     /// `point`, normal `normal`) where it crosses the normal through the
     /// point, when `plane_fit_max_radius_m` allows a patch of at least twice
-    /// the plane radius, one was fitted ([`SurfelMap::fit_around`]), and it
-    /// agrees within 3 sigma of the map's noise with `local`, the mean of
-    /// `support` map points within the plane radius.
+    /// the plane radius, one was fitted ([`SurfelMap::fit_around`]), it is
+    /// known better there than `local` (the mean of `support` map points
+    /// within the plane radius), and the two agree within 3 sigma of the
+    /// map's noise (their variances summed: loose, as the patch holds the
+    /// local points too).
     fn wide_offset(
         &self,
         i: usize,
@@ -320,8 +334,10 @@ impl NearestNeighbourAssociator<'_> {
         local: f64,
         support: usize,
     ) -> Option<f64> {
-        let wide = self.wide()?;
+        let wide = self.wide.as_ref()?;
         let s = wide.surfels.surfel_of(i)?;
+        // `fit_around` runs on this thread only (no rayon inside), so a
+        // surfel's fit may be computed here from inside a parallel loop.
         let fit = wide.fits[s as usize]
             .get_or_init(|| {
                 wide.surfels
@@ -336,46 +352,54 @@ impl NearestNeighbourAssociator<'_> {
             })
             .as_ref()?;
         let (offset, var) = fit.offset_along(point, normal)?;
+        // Only a plane known better than the local mean here (a patch far
+        // from the point extrapolates), and only where the two agree.
+        let local_var = 1.0 / support.max(1) as f64;
+        if var >= local_var {
+            return None;
+        }
         let noise = wide.surfels.noise_m().max(WIDE_MIN_NOISE_M);
-        let sigma = noise * (1.0 / support.max(1) as f64 + var).sqrt();
+        let sigma = noise * (local_var + var).sqrt();
         ((offset - local).abs() <= 3.0 * sigma).then_some(offset)
     }
 
-    /// The surfels and the radii of the wide fits (`None` when they are
-    /// off), built on first use.
-    fn wide(&self) -> Option<&Wide> {
+    /// The surfels and the radii of the wide fits; `None` when they are
+    /// off (`plane_fit_max_radius_m` under twice the plane radius).
+    fn build_wide(&self) -> Option<Wide> {
         let (r, max) = (
             self.options.plane_radius_m,
             self.options.plane_fit_max_radius_m,
         );
-        if !(max >= 2.0 * r) {
+        // Not for options that were never validated either: a radius of
+        // zero or less would never reach `max`.
+        if !(r > 0.0 && max.is_finite() && max >= 2.0 * r) {
             return None;
         }
-        Some(self.wide.get_or_init(|| {
-            let mut radii = Vec::new();
-            let mut radius = 2.0 * r;
-            while radius < max {
-                radii.push(radius);
-                radius *= 2.0;
-            }
-            radii.push(max);
-            let surfels = SurfelMap::build(
-                self.cloud,
-                |i| self.normal_of(i).filter(|_| self.is_planar(i)),
-                SurfelOptions {
-                    cell_m: r,
-                    cos_same: self.options.same_plane_max_angle_deg.to_radians().cos(),
-                    window_m: self.options.plane_window_m,
-                },
-                0.5 * max,
-            );
-            let fits = (0..surfels.len()).map(|_| OnceLock::new()).collect();
-            Wide {
-                surfels,
-                radii,
-                fits,
-            }
-        }))
+        let mut radii = Vec::new();
+        let mut radius = 2.0 * r;
+        while radius < max && radii.len() < MAX_WIDE_STEPS {
+            radii.push(radius);
+            radius *= 2.0;
+        }
+        radii.push(max);
+        let surfels = SurfelMap::build(
+            self.cloud,
+            |i| self.normal_of(i).filter(|_| self.is_planar(i)),
+            SurfelOptions {
+                // Cells of at least 2 cm: a tiny plane radius would make
+                // every point a surfel.
+                cell_m: r.max(0.02),
+                cos_same: self.options.same_plane_max_angle_deg.to_radians().cos(),
+                window_m: self.options.plane_window_m,
+            },
+            0.5 * max,
+        );
+        let fits = (0..surfels.len()).map(|_| OnceLock::new()).collect();
+        Some(Wide {
+            surfels,
+            radii,
+            fits,
+        })
     }
 
     /// The cylinder mean of [`Self::plane_offset_at`] around `at` (a map
@@ -519,7 +543,9 @@ impl NearestNeighbourAssociator<'_> {
     /// this one is zero or not finite.
     pub fn normal_of(&self, i: usize) -> Option<Vector3<f64>> {
         let m = self.cloud.normals.as_ref()?[i];
-        Vector3::new(f64::from(m[0]), f64::from(m[1]), f64::from(m[2])).try_normalize(1e-9)
+        Vector3::new(f64::from(m[0]), f64::from(m[1]), f64::from(m[2]))
+            .try_normalize(1e-9)
+            .filter(|n| n.iter().all(|c| c.is_finite()))
     }
 
     /// The map's plane near `x` (world frame): among the `num_neighbours`
@@ -959,7 +985,10 @@ pub(crate) mod tests {
         let index = MapIndex::build(&cloud).unwrap();
         let rms_error = |options: AssociationOptions, shelf: bool| {
             let assoc = NearestNeighbourAssociator::new(&cloud, &index, options);
+            // In parallel, as the mapper asks (the surfels are built
+            // beforehand; each surfel's fit is computed once, on any thread).
             let errors: Vec<f64> = (0..n)
+                .into_par_iter()
                 .step_by(37)
                 .filter(|&i| (heights[i] > 0.0) == shelf)
                 .map(|i| assoc.plane_offset_at(i).unwrap() - origin.z - heights[i])

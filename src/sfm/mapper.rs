@@ -1406,9 +1406,20 @@ fn map_staged(
         options.association.plane_radius_m,
         options.association.plane_window_m
     );
-    stages.done("map index");
-    // One associator for every stage: it caches the map's plane offsets.
+    let assoc = &options.association;
+    if assoc.plane_fit_max_radius_m > 0.0
+        && assoc.plane_fit_max_radius_m < 2.0 * assoc.plane_radius_m
+    {
+        log::warn!(
+            "wide plane fits off: plane_fit_max_radius_m {} m is under twice the plane radius ({:.3} m on this map)",
+            assoc.plane_fit_max_radius_m,
+            assoc.plane_radius_m
+        );
+    }
+    // One associator for every stage: it caches the map's plane offsets
+    // (and builds the wide fits' surfels when they are on).
     let nearest = NearestNeighbourAssociator::new(cloud, &index, options.association.clone());
+    stages.done("map index");
     let projection;
     let associator: &dyn PlaneAssociator = match options.association.kind {
         AssociationKind::None => &NoAssociation,
