@@ -997,13 +997,15 @@ pub struct AssociationOptions {
     /// A plane's offset may come from a least-squares plane fitted over a
     /// patch of the map up to this radius (metres; patches of twice, four
     /// times ... the plane radius in turn, each taken while it agrees with
-    /// the narrower one within the map's noise, and used where it agrees
-    /// with the plane radius's mean): a flat wall or floor then averages
+    /// the narrower one within the map's noise, and used where it is known
+    /// better than the plane radius's mean and agrees with it): a flat wall
+    /// or floor then averages
     /// thousands of map points instead of tens, a curved or stepped
     /// surface keeps its local plane ([`crate::map::surfels`]). 0 (or
     /// anything under twice the plane radius) turns it off. Default 0
-    /// (off): 1.2 m took the synthetic yard's 15 mm noise out of its plane
-    /// offsets (0.5 mm RMS instead of 3.3 mm) and the seed-0 yards closer
+    /// (off): 1.2 m took most of the synthetic yard's 15 mm noise out of
+    /// its plane offsets (0.5 mm RMS from the truth where a fit was taken,
+    /// 0.8 mm over all, instead of 3.3 mm) and the seed-0 yards closer
     /// to the truth (640 x 480: 3.9 -> 3.0 mm; 1024 x 768: 2.15 -> 1.57
     /// mm), but the corridors came out worse (their grazing-angle feature
     /// bias, which the noisier local offsets partly absorbed) and so did
