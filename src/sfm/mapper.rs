@@ -41,8 +41,8 @@ use super::initialize::{
 };
 use super::localise::{SearchError, SearchRegion};
 use super::options::{
-    AssociationKind, BundleOptions, IntrinsicsRefinement, MapperOptions, OptionsError, PlaneLoss,
-    PrincipalPointRefinement,
+    AssociationKind, AssociationOptions, BundleOptions, IntrinsicsRefinement, MapperOptions,
+    OptionsError, PlaneLoss, PrincipalPointRefinement,
 };
 use super::register::{
     focal_from_points, next_best_images, register_at_known_pose, register_image, PoseOutcome,
@@ -442,7 +442,13 @@ pub fn options_for_map(
 ) -> MapAdapted {
     let spacing_m = index.surface_spacing_m(cloud, SPACING_SAMPLES);
     let spaced = options.for_map_spacing(spacing_m.unwrap_or(0.0));
-    let noise_m = NearestNeighbourAssociator::new(cloud, index, spaced.association.clone())
+    // The noise is read from the local planes only: no wide fits' surfels
+    // for this throwaway associator (the mapper's own builds them).
+    let probe = AssociationOptions {
+        plane_fit_max_radius_m: 0.0,
+        ..spaced.association.clone()
+    };
+    let noise_m = NearestNeighbourAssociator::new(cloud, index, probe)
         .plane_noise_m(NOISE_SAMPLES, NOISE_WINDOW_M);
     MapAdapted {
         options: spaced.for_map_noise(noise_m.unwrap_or(0.0)),
