@@ -63,6 +63,8 @@ enum Command {
     Evaluate(commands::evaluate::EvaluateArgs),
     /// Render what the map looks like from a registered image: a colour-mapped depth PNG.
     Depth(commands::depth::DepthArgs),
+    /// The map's depth at every pixel of every registered image of a model (16-bit PNG or .npy), for depth-supervised NeRF or Gaussian splatting.
+    DepthMaps(commands::depth_maps::DepthMapsArgs),
     /// Colour the LiDAR map with the photos of a model (occlusion-aware): a PLY with red, green, blue.
     #[command(visible_alias = "colorize-map")]
     ColourMap(commands::colour_map::ColourMapArgs),
@@ -92,6 +94,7 @@ fn main() -> ExitCode {
         Command::Merge(args) => commands::merge::run(args),
         Command::PrepareMap(args) => commands::prepare_map::run(args),
         Command::Depth(args) => commands::depth::run(args),
+        Command::DepthMaps(args) => commands::depth_maps::run(args),
         Command::ColourMap(args) => commands::colour_map::run(args),
         Command::Plot(args) => commands::plot::run(args),
         Command::Synth(args) => commands::synth::run(args),

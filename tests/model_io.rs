@@ -1017,6 +1017,10 @@ fn every_command_refuses_an_unwritable_output_before_its_inputs() {
             (&colour, &ply),
             (&["plot", m, "--output"], &dir),
             (
+                &["depth-maps", "--lidar", m, "--model", m, "--output"],
+                &dir,
+            ),
+            (
                 &["evaluate", "--model", m, "--reference", m, "--json"],
                 &png,
             ),

@@ -2,7 +2,6 @@
 //! model, as a PLY (the map's points with `red green blue` and `views`, the
 //! number of images that gave the colour). See [`crate::map::colour`] for
 //! how a point's colour is chosen and when a surface in front hides it.
-use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -99,18 +98,7 @@ pub fn run(args: &ColourMapArgs) -> anyhow::Result<()> {
     let start = Instant::now();
     let model = read_model(&args.model)
         .with_context(|| format!("reading the COLMAP model {}", args.model.display()))?;
-    let mut images = Vec::new();
-    for image in model.registered_images() {
-        let camera = model.cameras.get(&image.camera_id).with_context(|| {
-            format!(
-                "image `{}` refers to camera {}, missing from {}",
-                image.name,
-                image.camera_id,
-                args.model.display()
-            )
-        })?;
-        images.push((image, camera));
-    }
+    let images = super::registered_with_cameras(&model, &args.model)?;
     if images.is_empty() {
         bail!("the model {} has no registered image", args.model.display());
     }
@@ -141,16 +129,7 @@ pub fn run(args: &ColourMapArgs) -> anyhow::Result<()> {
         images.len(),
         start.elapsed().as_secs_f64()
     );
-    let bar = std::io::stderr().is_terminal().then(|| {
-        let bar = indicatif::ProgressBar::new(images.len() as u64);
-        bar.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{elapsed_precise} [{bar:40}] {pos}/{len} images",
-            )
-            .expect("the template is valid"),
-        );
-        bar
-    });
+    let bar = super::image_progress_bar(images.len(), "images");
     let mut colours = MapColours::new(cloud.len());
     for (image, camera) in &images {
         let pose = image.cam_from_world.expect("registered");

@@ -15,7 +15,6 @@
 //! Command-line values win over the file.
 use std::collections::{BTreeMap, BTreeSet};
 use std::f64::consts::TAU;
-use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
@@ -674,16 +673,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
     };
     let (cloud, load) = load_map_reporting(&config.lidar, config.input_units)?;
     let total = db.images.len();
-    let bar = std::io::stderr().is_terminal().then(|| {
-        let bar = indicatif::ProgressBar::new(total as u64);
-        bar.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{elapsed_precise} [{bar:40}] {pos}/{len} images registered",
-            )
-            .expect("the template is valid"),
-        );
-        bar
-    });
+    let bar = super::image_progress_bar(total, "images registered");
     let mut progress = |done: usize, _total: usize| {
         if let Some(bar) = &bar {
             bar.set_position(done as u64);

@@ -2,6 +2,7 @@
 pub mod bench_map;
 pub mod colour_map;
 pub mod depth;
+pub mod depth_maps;
 pub mod evaluate;
 pub mod inspect;
 pub mod map;
@@ -10,7 +11,49 @@ pub mod plot;
 pub mod prepare_map;
 pub mod synth;
 
+use std::io::IsTerminal;
 use std::path::Path;
+
+use crate::scene::{Camera, Image, Reconstruction};
+
+/// A progress bar over `len` images, `what` after the count (e.g. "images
+/// registered"); `None` when stderr is not a terminal (logs and pipes get
+/// no bar).
+pub(crate) fn image_progress_bar(len: usize, what: &str) -> Option<indicatif::ProgressBar> {
+    std::io::stderr().is_terminal().then(|| {
+        let bar = indicatif::ProgressBar::new(len as u64);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(&format!(
+                "{{elapsed_precise}} [{{bar:40}}] {{pos}}/{{len}} {what}"
+            ))
+            .expect("the template is valid"),
+        );
+        bar
+    })
+}
+
+/// The registered images of `model` (read from `path`) with their cameras,
+/// in id order; an error for an image whose camera is missing.
+pub(crate) fn registered_with_cameras<'a>(
+    model: &'a Reconstruction,
+    path: &Path,
+) -> anyhow::Result<Vec<(&'a Image, &'a Camera)>> {
+    use anyhow::Context;
+    model
+        .registered_images()
+        .map(|image| {
+            let camera = model.cameras.get(&image.camera_id).with_context(|| {
+                format!(
+                    "image `{}` refers to camera {}, missing from {}",
+                    image.name,
+                    image.camera_id,
+                    path.display()
+                )
+            })?;
+            Ok((image, camera))
+        })
+        .collect()
+}
 
 /// Refuses an output file whose name does not end in `.{extension}` (any
 /// case): the command writes `what` (e.g. "a binary PLY"), and a name that

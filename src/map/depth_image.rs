@@ -86,86 +86,102 @@ pub fn render_depth_image(
 /// `width` x `height` image: at each pixel the smallest range of the splats
 /// covering its centre.
 pub fn depth_image_from_splats(splats: &[ProjectedPoint], width: u32, height: u32) -> DepthImage {
-    let (w, h) = (width as usize, height as usize);
-    let mut range_m = vec![f32::INFINITY; w * h];
-    if w > 0 && h > 0 {
-        // Splats bucketed by the bands their rows reach (CSR, splat order
-        // kept within a band), so that a band visits only its own splats.
-        let bands = h.div_ceil(BAND_ROWS);
-        let band_range = |y: f64, hs: f64| -> Option<(usize, usize)> {
-            let (y0, y1) = (y - hs - 0.5, y + hs - 0.5);
-            if !(y1 >= 0.0 && y0 <= (h - 1) as f64) {
-                return None;
-            }
-            let b0 = (y0.max(0.0) as usize / BAND_ROWS).min(bands - 1);
-            let b1 = ((y1.max(0.0) as usize).min(h - 1) / BAND_ROWS).min(bands - 1);
-            Some((b0, b1))
-        };
-        let mut band_starts = vec![0usize; bands + 1];
-        for sp in splats {
-            if let Some((b0, b1)) = band_range(sp.pixel.y, sp.half_size_px) {
-                for b in b0..=b1 {
-                    band_starts[b + 1] += 1;
-                }
-            }
-        }
-        for b in 0..bands {
-            band_starts[b + 1] += band_starts[b];
-        }
-        let mut fill = band_starts.clone();
-        let mut band_splats = vec![0u32; band_starts[bands]];
-        for (k, sp) in splats.iter().enumerate() {
-            if let Some((b0, b1)) = band_range(sp.pixel.y, sp.half_size_px) {
-                for b in b0..=b1 {
-                    band_splats[fill[b]] = k as u32;
-                    fill[b] += 1;
-                }
-            }
-        }
-        range_m
-            .par_chunks_mut(BAND_ROWS * w)
-            .enumerate()
-            .for_each(|(band, rows)| {
-                let row0 = band * BAND_ROWS;
-                let nrows = rows.len() / w;
-                // Pixel centres of this band span [row0 + 0.5, row0 + nrows - 0.5].
-                let (band_y0, band_y1) = (row0 as f64 + 0.5, (row0 + nrows) as f64 - 0.5);
-                let mine = &band_splats[band_starts[band]..band_starts[band + 1]];
-                for s in mine.iter().map(|&k| &splats[k as usize]) {
-                    let (y0, y1) = (s.pixel.y - s.half_size_px, s.pixel.y + s.half_size_px);
-                    if y1 < band_y0 || y0 > band_y1 {
-                        continue;
-                    }
-                    let (x0, x1) = (s.pixel.x - s.half_size_px, s.pixel.x + s.half_size_px);
-                    // Pixel k is covered when x0 <= k + 0.5 <= x1.
-                    let kx0 = (x0 - 0.5).ceil().max(0.0) as usize;
-                    let kx1 = (x1 - 0.5).floor();
-                    if kx1 < 0.0 {
-                        continue;
-                    }
-                    let kx1 = (kx1 as usize).min(w - 1);
-                    let ky0 = ((y0 - 0.5).ceil().max(row0 as f64) as usize).max(row0);
-                    let ky1 = ((y1 - 0.5).floor() as i64).min((row0 + nrows) as i64 - 1);
-                    if ky1 < ky0 as i64 || kx0 > kx1 {
-                        continue;
-                    }
-                    let r = s.range_m as f32;
-                    for ky in ky0..=ky1 as usize {
-                        let row = &mut rows[(ky - row0) * w..(ky - row0 + 1) * w];
-                        for px in &mut row[kx0..=kx1] {
-                            if r < *px {
-                                *px = r;
-                            }
-                        }
-                    }
-                }
-            });
-    }
     DepthImage {
         width,
         height,
-        range_m,
+        range_m: nearest_splats(splats, width, height)
+            .into_iter()
+            .map(|(range, _)| range)
+            .collect(),
     }
+}
+
+/// Marks a pixel no splat covers in [`nearest_splats`].
+pub const NO_SPLAT: u32 = u32::MAX;
+
+/// The z-buffer of `splats` in a `width` x `height` image, row-major: at each
+/// pixel the smallest range of the splats covering its centre and that
+/// splat's index in `splats` (`f32::INFINITY` and [`NO_SPLAT`] where none
+/// does; ties keep the first splat).
+pub fn nearest_splats(splats: &[ProjectedPoint], width: u32, height: u32) -> Vec<(f32, u32)> {
+    let (w, h) = (width as usize, height as usize);
+    let mut nearest = vec![(f32::INFINITY, NO_SPLAT); w * h];
+    if w == 0 || h == 0 {
+        return nearest;
+    }
+    // Splats bucketed by the bands their rows reach (CSR, splat order
+    // kept within a band), so that a band visits only its own splats.
+    let bands = h.div_ceil(BAND_ROWS);
+    let band_range = |y: f64, hs: f64| -> Option<(usize, usize)> {
+        let (y0, y1) = (y - hs - 0.5, y + hs - 0.5);
+        if !(y1 >= 0.0 && y0 <= (h - 1) as f64) {
+            return None;
+        }
+        let b0 = (y0.max(0.0) as usize / BAND_ROWS).min(bands - 1);
+        let b1 = ((y1.max(0.0) as usize).min(h - 1) / BAND_ROWS).min(bands - 1);
+        Some((b0, b1))
+    };
+    let mut band_starts = vec![0usize; bands + 1];
+    for sp in splats {
+        if let Some((b0, b1)) = band_range(sp.pixel.y, sp.half_size_px) {
+            for b in b0..=b1 {
+                band_starts[b + 1] += 1;
+            }
+        }
+    }
+    for b in 0..bands {
+        band_starts[b + 1] += band_starts[b];
+    }
+    let mut fill = band_starts.clone();
+    let mut band_splats = vec![0u32; band_starts[bands]];
+    for (k, sp) in splats.iter().enumerate() {
+        if let Some((b0, b1)) = band_range(sp.pixel.y, sp.half_size_px) {
+            for b in b0..=b1 {
+                band_splats[fill[b]] = k as u32;
+                fill[b] += 1;
+            }
+        }
+    }
+    nearest
+        .par_chunks_mut(BAND_ROWS * w)
+        .enumerate()
+        .for_each(|(band, rows)| {
+            let row0 = band * BAND_ROWS;
+            let nrows = rows.len() / w;
+            // Pixel centres of this band span [row0 + 0.5, row0 + nrows - 0.5].
+            let (band_y0, band_y1) = (row0 as f64 + 0.5, (row0 + nrows) as f64 - 0.5);
+            let mine = &band_splats[band_starts[band]..band_starts[band + 1]];
+            for &k in mine {
+                let s = &splats[k as usize];
+                let (y0, y1) = (s.pixel.y - s.half_size_px, s.pixel.y + s.half_size_px);
+                if y1 < band_y0 || y0 > band_y1 {
+                    continue;
+                }
+                let (x0, x1) = (s.pixel.x - s.half_size_px, s.pixel.x + s.half_size_px);
+                // Pixel k is covered when x0 <= k + 0.5 <= x1.
+                let kx0 = (x0 - 0.5).ceil().max(0.0) as usize;
+                let kx1 = (x1 - 0.5).floor();
+                if kx1 < 0.0 {
+                    continue;
+                }
+                let kx1 = (kx1 as usize).min(w - 1);
+                let ky0 = ((y0 - 0.5).ceil().max(row0 as f64) as usize).max(row0);
+                let ky1 = ((y1 - 0.5).floor() as i64).min((row0 + nrows) as i64 - 1);
+                if ky1 < ky0 as i64 || kx0 > kx1 {
+                    continue;
+                }
+                let r = s.range_m as f32;
+                for ky in ky0..=ky1 as usize {
+                    let row = &mut rows[(ky - row0) * w..(ky - row0 + 1) * w];
+                    for px in &mut row[kx0..=kx1] {
+                        if r < px.0 {
+                            *px = (r, k);
+                        }
+                    }
+                }
+            }
+        });
+    nearest
 }
 
 /// Colour of a normalised range `t` in [0, 1]: near = dark violet, through

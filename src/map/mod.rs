@@ -8,6 +8,7 @@ pub mod index;
 pub mod io;
 pub mod prepare;
 pub mod projection;
+pub mod surface_depth;
 pub mod surfels;
 
 pub use cloud::PointCloud;

@@ -4,8 +4,6 @@ use std::collections::BTreeSet;
 
 use colmap_lidar::map::colour::{seen_points, MapColourOptions};
 use colmap_lidar::map::grid::{FrustumGrid, GridOptions};
-use colmap_lidar::map::PointCloud;
-use colmap_lidar::synth::lidar::{sample_lidar, LidarOptions};
 use colmap_lidar::synth::scenes::{build_scene, trajectory};
 use colmap_lidar::synth::{SceneKind, SynthOptions};
 use image::RgbImage;
@@ -24,29 +22,11 @@ use nalgebra::Vector3;
 fn the_points_an_image_sees_are_those_ray_casting_finds() {
     for kind in [SceneKind::Room, SceneKind::Yard] {
         let scene = build_scene(kind, 0);
-        // Without the synthetic scans' holes (0.25-1 m wide), which leave
-        // out parts of surfaces in front: the image would see those, the
-        // map cannot.
-        let lidar = LidarOptions {
-            num_holes: 0,
-            ..Default::default()
-        };
-        let map = sample_lidar(&scene, &lidar);
-        let keep: Vec<usize> = (0..map.points.len())
-            .filter(|&i| !map.is_outlier[i])
-            .collect();
-        let cloud = PointCloud {
-            origin: Vector3::zeros(),
-            points: keep
-                .iter()
-                .map(|&i| map.points[i].map(|c| c as f32).into())
-                .collect(),
-            normals: Some(keep.iter().map(|&i| map.normals[i].into()).collect()),
-            planarity: None,
-        };
+        // The scan's 15 mm noise.
+        let (cloud, spacing_m) = super::scan_without_holes(&scene, 0.015);
         let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
         let mut options = MapColourOptions::default();
-        options.widen_splats_for_spacing(map.spacing_m);
+        options.widen_splats_for_spacing(spacing_m);
         let camera = SynthOptions::default().camera();
         let blank = RgbImage::new(camera.width, camera.height);
         let max_radius = camera.max_normalized_radius();

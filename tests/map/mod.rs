@@ -1,10 +1,41 @@
 //! Integration tests: the LiDAR map (readers, preparation, index, projection),
 //! plus hand-written encoders used to build test files byte by byte.
 mod colour;
+mod depth_maps;
 mod index;
 mod io;
 mod prepare;
 mod projection;
+
+/// The synthetic scan of `scene` with `noise_m` along the normals, without
+/// its holes (0.25-1 m wide, which leave out parts of surfaces in front: an
+/// image would see those, the map cannot) and its outliers, with the true
+/// normals; and its sample spacing.
+pub fn scan_without_holes(
+    scene: &colmap_lidar::synth::geometry::Scene,
+    noise_m: f64,
+) -> (colmap_lidar::map::PointCloud, f64) {
+    use colmap_lidar::synth::lidar::{sample_lidar, LidarOptions};
+    let lidar = LidarOptions {
+        num_holes: 0,
+        noise_sigma_m: noise_m,
+        ..Default::default()
+    };
+    let map = sample_lidar(scene, &lidar);
+    let keep: Vec<usize> = (0..map.points.len())
+        .filter(|&i| !map.is_outlier[i])
+        .collect();
+    let cloud = colmap_lidar::map::PointCloud {
+        origin: nalgebra::Vector3::zeros(),
+        points: keep
+            .iter()
+            .map(|&i| map.points[i].map(|c| c as f32).into())
+            .collect(),
+        normals: Some(keep.iter().map(|&i| map.normals[i].into()).collect()),
+        planarity: None,
+    };
+    (cloud, map.spacing_m)
+}
 
 /// Body encodings of the hand-written PLY files.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
