@@ -4,7 +4,7 @@
 //! `depth_maps.json` saying what they hold. For depth-supervised NeRF or
 //! Gaussian splatting on the model, or to check a dense reconstruction
 //! against the scan.
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::io::Write;
 use std::path::{Component, Path, PathBuf};
 use std::time::Instant;
@@ -12,14 +12,15 @@ use std::time::Instant;
 use anyhow::{bail, Context};
 use image::{ImageBuffer, ImageFormat, Luma};
 
-use crate::io::atomic::{output_replaces_input, write_dir_atomically};
+use crate::io::atomic::{output_replaces_input, write_dir_atomically, OutputSnapshot};
 use crate::io::model::read_model;
 use crate::map::grid::{FrustumGrid, GridOptions};
 use crate::map::index::MapIndex;
 use crate::map::projection::ProjectionOptions;
 use crate::map::surface_depth::{
-    render_surface_depth, DepthKind, DepthMap, PixelRays, SurfaceDepthOptions,
+    render_surface_depth, DepthKind, DepthMap, MapSurface, PixelRays, SurfaceDepthOptions,
 };
+use crate::scene::{Camera, CameraModel};
 use crate::sfm::associate::NearestNeighbourAssociator;
 use crate::sfm::mapper::options_for_map;
 use crate::sfm::options::MapperOptions;
@@ -113,8 +114,9 @@ impl DepthMapsArgs {
             if !(units > 0.0 && units.is_finite()) {
                 bail!("--png-units-per-metre must be a positive number, not {units}");
             }
-            // A range may exceed the depth along the axis by the field's
-            // slant: the limit is checked on every pixel as written too.
+            // Every depth written, along the axis or from the camera, is
+            // within --max-depth (the points drawn are, and so are the
+            // planes' crossings kept).
             if self.max_depth * units > f64::from(u16::MAX) {
                 bail!(
                     "--max-depth {} m at {units} per metre is beyond what a 16-bit PNG holds \
@@ -154,6 +156,21 @@ struct Summary {
     lidar: String,
     model: String,
     images: Vec<ImageSummary>,
+}
+
+/// A map point without another within this many times the map's spacing is
+/// a stray return (dust, a bird, multipath), not drawn in the depth maps.
+const STRAY_RADIUS_PER_SPACING: f64 = 3.0;
+
+/// The spacing assumed for a map whose own cannot be measured, metres.
+const DEFAULT_SPACING_M: f64 = 0.03;
+
+/// What makes two cameras' pixel rays the same: model, size, parameters.
+type IntrinsicsKey = (CameraModel, u32, u32, Vec<u64>);
+
+fn intrinsics_key(camera: &Camera) -> IntrinsicsKey {
+    let params = camera.params.iter().map(|p| p.to_bits()).collect();
+    (camera.model, camera.width, camera.height, params)
 }
 
 /// The depth map's file for image `name`: its relative path with the
@@ -264,6 +281,7 @@ pub fn run(args: &DepthMapsArgs) -> anyhow::Result<()> {
     if let Some(why) = output_replaces_input(&args.output, true, &[&args.lidar], &[&args.model]) {
         bail!(why);
     }
+    let output_before = OutputSnapshot::take(&args.output);
     let start = Instant::now();
     let model = read_model(&args.model)
         .with_context(|| format!("reading the COLMAP model {}", args.model.display()))?;
@@ -298,7 +316,18 @@ pub fn run(args: &DepthMapsArgs) -> anyhow::Result<()> {
         );
     }
     let planes = NearestNeighbourAssociator::new(&cloud, &index, adapted.options.association);
-    let plane_offset = |i: usize| planes.plane_offset_at(i);
+    let stray_radius = STRAY_RADIUS_PER_SPACING * adapted.spacing_m.unwrap_or(DEFAULT_SPACING_M);
+    let surface_at = |i: usize| match planes.plane_offset_at(i) {
+        Some(d) => MapSurface::Plane(d),
+        None if index
+            .k_nearest_within(&cloud.point_in_map(i), 2, stray_radius)
+            .len()
+            < 2 =>
+        {
+            MapSurface::Stray
+        }
+        None => MapSurface::NoPlane,
+    };
     let grid = FrustumGrid::build(&cloud, &GridOptions::default()).with_context(index_error)?;
     log::info!(
         "read {} map points and {} registered images ({:.1} s)",
@@ -312,14 +341,19 @@ pub fn run(args: &DepthMapsArgs) -> anyhow::Result<()> {
     };
     let bar = super::image_progress_bar(images.len(), "images");
     let mut summaries = Vec::with_capacity(images.len());
-    let mut rays: BTreeMap<_, PixelRays> = BTreeMap::new();
+    // The last camera's pixel rays (8 bytes a pixel): COLMAP makes a camera
+    // per image unless told otherwise, so they are kept for one set of
+    // intrinsics at a time, not per camera.
+    let mut rays: Option<(IntrinsicsKey, PixelRays)> = None;
     let mut any_filled = false;
-    write_dir_atomically::<anyhow::Error>(&args.output, |dir| {
+    let written = write_dir_atomically::<anyhow::Error>(&args.output, |dir| {
         for (image, camera, file) in &images {
             let pose = image.cam_from_world.expect("registered");
-            let rays = rays
-                .entry(camera.id)
-                .or_insert_with(|| PixelRays::new(camera));
+            let key = intrinsics_key(camera);
+            if rays.as_ref().is_none_or(|(k, _)| *k != key) {
+                rays = Some((key, PixelRays::new(camera)));
+            }
+            let rays = &rays.as_ref().expect("just set").1;
             let depth = render_surface_depth(
                 &cloud,
                 &grid,
@@ -328,7 +362,7 @@ pub fn run(args: &DepthMapsArgs) -> anyhow::Result<()> {
                 &pose,
                 &options,
                 args.depth,
-                Some(&plane_offset),
+                Some(&surface_at),
             )
             .with_context(|| format!("the depth map of image `{}`", image.name))?;
             write_depth_map(&dir.join(file), &depth, args.format, units_per_metre)?;
@@ -373,12 +407,14 @@ pub fn run(args: &DepthMapsArgs) -> anyhow::Result<()> {
         let json = serde_json::to_string_pretty(&summary)?;
         std::fs::write(dir.join(SUMMARY_FILE), json + "\n")
             .with_context(|| format!("writing {SUMMARY_FILE}"))?;
+        // Not over what another run wrote there meanwhile.
+        output_before.check_unchanged(&args.output)?;
         Ok(())
-    })
-    .with_context(|| format!("writing the depth maps to {}", args.output.display()))?;
+    });
     if let Some(bar) = &bar {
         bar.finish_and_clear();
     }
+    written.with_context(|| format!("writing the depth maps to {}", args.output.display()))?;
     log::info!(
         "wrote {} depth maps to {} ({:.1} s)",
         images.len(),

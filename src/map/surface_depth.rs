@@ -165,19 +165,32 @@ impl DepthMap {
     }
 }
 
-/// A map point's plane: the offset `d` of the plane `n . x = d` through the
-/// map's surface at map point `i` (world frame, `n` its normal), e.g. the
-/// mean over its neighbours
-/// ([`crate::sfm::associate::NearestNeighbourAssociator::plane_offset_at`]);
-/// `None` where there is none (the point's own tangent plane is taken).
-pub type PlaneOffset<'a> = &'a (dyn Fn(usize) -> Option<f64> + Sync);
+/// What the map holds around one of its points.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum MapSurface {
+    /// A surface: the offset `d` of its plane `n . x = d` (world frame, `n`
+    /// the point's normal), e.g. the mean over the point's neighbours
+    /// ([`crate::sfm::associate::NearestNeighbourAssociator::plane_offset_at`]).
+    Plane(f64),
+    /// Other points but no plane (a pole thinner than the plane radius,
+    /// foliage): a pixel where it is the nearest has no depth.
+    NoPlane,
+    /// No other point near it (dust, a bird, a scan's stray return): it is
+    /// not drawn, and the surface behind shows.
+    Stray,
+}
+
+/// [`MapSurface`] of map point `i`.
+pub type SurfaceAt<'a> = &'a (dyn Fn(usize) -> MapSurface + Sync);
 
 /// The depth map of the map's surfaces seen by `camera` at `cam_from_world`
 /// (`rays` from [`PixelRays::new`] for this camera): see the module's doc.
-/// With `plane_offset`, each point's plane is the one it gives (a plane
+/// With `surface_at`, each point's plane is the one it gives (a plane
 /// through the mean of its neighbours is less noisy than one through the
-/// point), and points it gives none (no surface around them) are not drawn;
-/// without, each point's own tangent plane.
+/// point), stray points are not drawn, and where a point with no plane is
+/// the nearest the pixel has no depth (rather than a square of the point's
+/// depth, or the surface behind it); without, each point's own tangent
+/// plane.
 #[allow(clippy::too_many_arguments)]
 pub fn render_surface_depth(
     cloud: &PointCloud,
@@ -187,7 +200,7 @@ pub fn render_surface_depth(
     cam_from_world: &Rigid3,
     options: &SurfaceDepthOptions,
     kind: DepthKind,
-    plane_offset: Option<PlaneOffset>,
+    surface_at: Option<SurfaceAt>,
 ) -> Result<DepthMap, ProjectionError> {
     options.validate()?;
     if (rays.width, rays.height) != (camera.width, camera.height) {
@@ -196,31 +209,58 @@ pub fn render_surface_depth(
             rays.width, rays.height, camera.width, camera.height
         )));
     }
-    let mut splats =
-        project_visible_points(cloud, grid, camera, cam_from_world, &options.projection)?;
-    if let Some(plane_offset) = plane_offset {
-        // Stray points (no surface around them: dust, birds, a scan's
-        // outliers) would each put a square of wrong depth into the image.
-        splats = splats
-            .into_par_iter()
-            .filter(|s| plane_offset(s.point_idx as usize).is_some())
+    let focal = camera.mean_focal_length();
+    let mut projection = options.projection.clone();
+    // Splats as wide as the map's spacing down to the nearest depth drawn,
+    // whatever the focal length (a 5 cm map at 3200 px needs 80 px at 1 m).
+    let splat = &mut projection.splat;
+    let nearest_half_size = focal * splat.near_half_width_m / projection.min_depth_m;
+    if nearest_half_size.is_finite() {
+        splat.max_half_size_px = splat.max_half_size_px.max(nearest_half_size);
+    }
+    let mut splats = project_visible_points(cloud, grid, camera, cam_from_world, &projection)?;
+    // Each splat's plane offset (`None`: no depth where it is the nearest).
+    let mut offsets: Vec<Option<f64>> = Vec::new();
+    if let Some(surface_at) = surface_at {
+        let surfaces: Vec<MapSurface> = splats
+            .par_iter()
+            .map(|s| surface_at(s.point_idx as usize))
+            .collect();
+        let mut k = 0;
+        splats.retain(|_| {
+            k += 1;
+            surfaces[k - 1] != MapSurface::Stray
+        });
+        offsets = surfaces
+            .into_iter()
+            .filter_map(|s| match s {
+                MapSurface::Plane(d) => Some(Some(d)),
+                MapSurface::NoPlane => Some(None),
+                MapSurface::Stray => None,
+            })
             .collect();
     }
     let nearest = nearest_splats(&splats, camera.width, camera.height);
-    let focal = camera.mean_focal_length();
     let min_cos = options.max_view_angle_deg.to_radians().cos();
+    let (min_depth, max_depth) = (projection.min_depth_m, projection.max_depth_m);
+    let fisheye = camera.model.is_fisheye();
     let rotation = cam_from_world.rotation.to_rotation_matrix();
-    // The depth (of `kind`) of the surface of splat `k`'s point along `ray`,
-    // and whether it is its plane's crossing (else the point's own depth).
-    let surface = |k: u32, ray: &Vector3<f64>| -> (f64, bool) {
+    // The depth (of `kind`) of the surface of splat `k`'s point along `ray`
+    // and whether it is its plane's crossing (else the point's own depth);
+    // `None` for a point without a surface.
+    let surface = |k: u32, ray: &Vector3<f64>| -> Option<(f64, bool)> {
+        let offset = match offsets.get(k as usize) {
+            Some(None) => return None,
+            Some(&Some(d)) => Some(d),
+            None => None,
+        };
         let splat = &splats[k as usize];
         let i = splat.point_idx as usize;
         let crossing = cloud.normals.as_ref().and_then(|normals| {
             let n_world = Vector3::from(normals[i].map(f64::from)).try_normalize(1e-9)?;
             let p_world = cloud.point_in_map(i);
             // The plane's offset from the point, along the normal.
-            let shift = plane_offset
-                .and_then(|f| f(i))
+            let shift = offset
                 .map(|d| d - n_world.dot(&p_world))
                 .filter(|s| s.is_finite())
                 .unwrap_or(0.0);
@@ -240,89 +280,122 @@ pub fn render_surface_depth(
                 options.max_reach_half_widths * splat.half_size_px * splat.range_m / focal / cos
                     + shift.abs() * tan;
             let on_plane = t * ray - p;
-            (t > 0.0 && on_plane.norm() <= reach).then_some(t)
+            let depth = match kind {
+                DepthKind::Z => t,
+                DepthKind::Range => t * ray.norm(),
+            };
+            // Within the depth range, as the points drawn are: not nearer
+            // than its start along the axis (a fisheye: from the camera),
+            // neither deeper nor farther than its end.
+            let range = t * ray.norm();
+            let near = if fisheye { range } else { t };
+            let in_range = near >= min_depth && t <= max_depth && range <= max_depth;
+            (on_plane.norm() <= reach && in_range).then_some(depth)
         });
-        match (crossing, kind) {
-            (Some(t), DepthKind::Z) => (t, true),
-            (Some(t), DepthKind::Range) => (t * ray.norm(), true),
+        Some(match (crossing, kind) {
+            (Some(depth), _) => (depth, true),
             (None, DepthKind::Z) => (splat.depth_m, false),
             (None, DepthKind::Range) => (splat.range_m, false),
-        }
+        })
     };
     let (w, h) = (camera.width as usize, camera.height as usize);
-    // First the nearest splat's surface at each pixel ...
-    let first: Vec<(f32, bool)> = (0..w * h)
+    // The nearest splat's surface at each pixel, then the gaps closed.
+    let mut depth: Vec<(f32, bool)> = (0..w * h)
         .into_par_iter()
         .map(|px| {
             let (_, k) = nearest[px];
             match rays.ray(px) {
                 Some(ray) if k != NO_SPLAT => {
-                    let (d, on_plane) = surface(k, &ray);
-                    (d as f32, on_plane)
+                    surface(k, &ray).map_or((0.0, false), |(d, on_plane)| (d as f32, on_plane))
                 }
                 _ => (0.0, false),
             }
         })
         .collect();
-    // ... then the pixels that see past a surface through a gap between its
-    // splats (at least 3/4 of the others in their 5 x 5 window see a surface
-    // nearer by 10 % or more; beside a straight edge of a surface in front
-    // 10 of 24 do, in a corner of one 15) take the nearest of those
-    // neighbours' surfaces that reaches them; twice (the second pass closes
-    // what the first narrowed).
-    let mut depth = first;
     let mut winner: Vec<u32> = nearest.iter().map(|n| n.1).collect();
-    for _ in 0..GAP_PASSES {
-        let fill_gap = |px: usize| -> Option<(f32, bool, u32)> {
-            let ray = rays.ray(px)?;
-            let (x, y) = (px % w, px / w);
-            let d = depth[px].0;
-            let (mut front, mut around) = (Vec::new(), 0usize);
-            for ny in y.saturating_sub(GAP_WINDOW)..(y + GAP_WINDOW + 1).min(h) {
-                for nx in x.saturating_sub(GAP_WINDOW)..(x + GAP_WINDOW + 1).min(w) {
-                    let nb = ny * w + nx;
-                    if nb == px {
-                        continue;
-                    }
-                    around += 1;
-                    let nd = depth[nb].0;
-                    if nd > 0.0 && (d == 0.0 || nd < GAP_RATIO * d) {
-                        front.push(winner[nb]);
-                    }
-                }
-            }
-            if (front.len() as f64) < MIN_FRONT_SHARE * around as f64 || front.is_empty() {
-                return None;
-            }
-            front.sort_unstable();
-            front.dedup();
-            front
-                .into_iter()
-                .filter_map(|k| {
-                    let (t, on_plane) = surface(k, &ray);
-                    (on_plane && (d == 0.0 || t < f64::from(d))).then_some((t, k))
-                })
-                .min_by(|a, b| a.0.total_cmp(&b.0))
-                .map(|(t, k)| (t as f32, true, k))
-        };
-        let filled: Vec<Option<(f32, bool, u32)>> =
-            (0..w * h).into_par_iter().map(fill_gap).collect();
-        if filled.iter().all(Option::is_none) {
-            break;
-        }
-        for (px, f) in filled.into_iter().enumerate() {
-            if let Some((d, on_plane, k)) = f {
-                depth[px] = (d, on_plane);
-                winner[px] = k;
-            }
-        }
-    }
+    close_gaps(w, &mut depth, &mut winner, |px, k| {
+        surface(k, &rays.ray(px)?).filter(|s| s.1).map(|s| s.0)
+    });
     Ok(DepthMap {
         width: camera.width,
         height: camera.height,
         num_on_tangent_planes: depth.iter().filter(|d| d.1).count(),
         depth_m: depth.into_iter().map(|d| d.0).collect(),
     })
+}
+
+/// Closes the gaps between a surface's splats in a depth map `width` pixels
+/// wide (`depth`: depth and whether on a plane, 0 where none; `winner`: the
+/// splat each pixel's depth comes from): a pixel that sees past a surface
+/// (at least 3/4 of the others in its 5 x 5 window see a surface nearer by
+/// 10 % or more, or any surface where it sees none; beside a straight edge
+/// of a surface in front 10 of 24 do, in a corner of one 15) takes the
+/// nearest of those neighbours' surfaces that reaches it (`crossing(pixel,
+/// splat)`: the depth of the splat's plane there, `None` where it does not
+/// reach), twice (the second pass closes what the first narrowed). Closes
+/// one-pixel slits and holes up to about 2 x 2 pixels; wider ones are left
+/// (a slit 2 pixels wide: 15 of 24).
+fn close_gaps(
+    width: usize,
+    depth: &mut [(f32, bool)],
+    winner: &mut [u32],
+    crossing: impl Fn(usize, u32) -> Option<f64> + Sync,
+) {
+    if width == 0 {
+        return;
+    }
+    let height = depth.len() / width;
+    for _ in 0..GAP_PASSES {
+        let fill_gap = |px: usize| -> Option<(f32, u32)> {
+            let (x, y) = (px % width, px / width);
+            let d = depth[px].0;
+            let mut front = [0u32; (2 * GAP_WINDOW + 1) * (2 * GAP_WINDOW + 1)];
+            let (mut num_front, mut around) = (0usize, 0usize);
+            for ny in y.saturating_sub(GAP_WINDOW)..(y + GAP_WINDOW + 1).min(height) {
+                for nx in x.saturating_sub(GAP_WINDOW)..(x + GAP_WINDOW + 1).min(width) {
+                    let nb = ny * width + nx;
+                    if nb == px {
+                        continue;
+                    }
+                    around += 1;
+                    let nd = depth[nb].0;
+                    if nd > 0.0 && (d == 0.0 || nd < GAP_RATIO * d) {
+                        front[num_front] = winner[nb];
+                        num_front += 1;
+                    }
+                }
+            }
+            if num_front == 0 || (num_front as f64) < MIN_FRONT_SHARE * around as f64 {
+                return None;
+            }
+            let front = &mut front[..num_front];
+            front.sort_unstable();
+            let mut best: Option<(f64, u32)> = None;
+            for (j, &k) in front.iter().enumerate() {
+                if j > 0 && front[j - 1] == k {
+                    continue;
+                }
+                let Some(t) = crossing(px, k) else {
+                    continue;
+                };
+                if (d == 0.0 || t < f64::from(d)) && best.is_none_or(|b| t < b.0) {
+                    best = Some((t, k));
+                }
+            }
+            best.map(|(t, k)| (t as f32, k))
+        };
+        let filled: Vec<Option<(f32, u32)>> =
+            (0..depth.len()).into_par_iter().map(fill_gap).collect();
+        if filled.iter().all(Option::is_none) {
+            break;
+        }
+        for (px, f) in filled.into_iter().enumerate() {
+            if let Some((d, k)) = f {
+                depth[px] = (d, true);
+                winner[px] = k;
+            }
+        }
+    }
 }
 
 /// Passes that close gaps between a surface's splats.
@@ -418,5 +491,138 @@ mod tests {
         // Half a splat (0.8 x 1 cm) times tan 60° is 14 mm; projected on the
         // optical axis about half of that.
         assert!(worst_own > 3e-3, "{worst_own}");
+    }
+
+    /// The gap rule on a 12 x 12 map of a surface in front (depth 2, splat
+    /// 0) with the one behind (depth 5, splat 1) showing through a 1-pixel
+    /// hole, a 2 x 2 hole, an empty pixel, a 3 x 3 hole and beside an edge
+    /// (a block 3 wide reaching to the corner): the first three close onto
+    /// the front plane, the rest stay.
+    #[test]
+    fn gaps_close_and_edges_stay() {
+        let w = 12;
+        let mut depth = vec![(2.0f32, true); w * w];
+        let mut winner = vec![0u32; w * w];
+        let mut behind = |x: usize, y: usize| {
+            depth[y * w + x] = (5.0, true);
+            winner[y * w + x] = 1;
+        };
+        behind(2, 2);
+        for (x, y) in [(6, 2), (7, 2), (6, 3), (7, 3)] {
+            behind(x, y);
+        }
+        for x in 2..5 {
+            for y in 7..10 {
+                behind(x, y);
+            }
+        }
+        for x in 9..12 {
+            for y in 6..12 {
+                behind(x, y);
+            }
+        }
+        depth[2 * w + 10] = (0.0, false);
+        let before = depth.clone();
+        close_gaps(w, &mut depth, &mut winner, |_, k| {
+            Some(if k == 0 { 2.0 } else { 5.0 })
+        });
+        for y in 0..w {
+            for x in 0..w {
+                let closed = (x, y) == (2, 2)
+                    || (6..8).contains(&x) && (2..4).contains(&y)
+                    || (x, y) == (10, 2);
+                let expected = if closed {
+                    (2.0, true)
+                } else {
+                    before[y * w + x]
+                };
+                assert_eq!(depth[y * w + x], expected, "{x} {y}");
+                assert_eq!(winner[y * w + x] == 0, expected.0 == 2.0, "{x} {y}");
+            }
+        }
+        // A neighbour whose plane does not reach closes nothing.
+        let mut depth = before.clone();
+        let mut winner: Vec<u32> = before.iter().map(|d| u32::from(d.0 != 2.0)).collect();
+        close_gaps(w, &mut depth, &mut winner, |_, k| (k == 1).then_some(5.0));
+        assert_eq!(depth, before);
+    }
+
+    /// A map point in front of a wall with no plane around it leaves its
+    /// pixels without a depth, rather than its own or the wall's; a stray
+    /// one (nothing near it) is not drawn.
+    #[test]
+    fn points_without_a_plane_leave_no_depth() {
+        let camera = Camera {
+            id: crate::scene::CameraId(1),
+            model: CameraModel::Pinhole,
+            width: 100,
+            height: 80,
+            params: vec![90.0, 90.0, 50.0, 40.0],
+        };
+        let mut points: Vec<[f32; 3]> = Vec::new();
+        for i in -100..=100 {
+            for j in -100..=100 {
+                points.push([i as f32 * 0.02, j as f32 * 0.02, 3.0]);
+            }
+        }
+        let stray = points.len();
+        points.push([0.0, 0.0, 0.7]);
+        let cloud = PointCloud {
+            origin: Vector3::zeros(),
+            normals: Some(vec![[0.0, 0.0, -1.0]; points.len()]),
+            points,
+            planarity: None,
+        };
+        let grid = FrustumGrid::build(&cloud, &GridOptions::default()).unwrap();
+        let rays = PixelRays::new(&camera);
+        let mut options = SurfaceDepthOptions::default();
+        options.splats_for_spacing(0.02);
+        let pose = Rigid3::new(UnitQuaternion::identity(), Vector3::zeros());
+        let planes = |i: usize| {
+            if i == stray {
+                MapSurface::NoPlane
+            } else {
+                MapSurface::Plane(-3.0)
+            }
+        };
+        let render = |planes: Option<SurfaceAt>| {
+            render_surface_depth(
+                &cloud,
+                &grid,
+                &camera,
+                &rays,
+                &pose,
+                &options,
+                DepthKind::Z,
+                planes,
+            )
+            .unwrap()
+        };
+        let (with, without) = (render(Some(&planes)), render(None));
+        let centre = 40 * 100 + 50;
+        assert!((without.depth_m[centre] - 0.7).abs() < 1e-6);
+        assert_eq!(with.depth_m[centre], 0.0);
+        // The stray point's splat: 0.8 x 2 cm at 0.7 m, 2.06 px either side
+        // (4 x 4 pixels: too large a hole to close; one of 2 x 2 would take
+        // the wall's depth).
+        let empty = with.depth_m.iter().filter(|&&d| d == 0.0).count();
+        assert_eq!(empty, 16);
+        for (a, b) in with.depth_m.iter().zip(&without.depth_m) {
+            let on_wall = |d: f32| (d - 3.0).abs() < 1e-5;
+            assert!(*a == 0.0 && (b - 0.7).abs() < 1e-6 || on_wall(*a) && on_wall(*b));
+        }
+        // A stray point (nothing near it) is not drawn: the wall shows.
+        let strays = |i: usize| {
+            if i == stray {
+                MapSurface::Stray
+            } else {
+                MapSurface::Plane(-3.0)
+            }
+        };
+        let without_stray = render(Some(&strays));
+        assert!(without_stray
+            .depth_m
+            .iter()
+            .all(|&d| (d - 3.0).abs() < 1e-5));
     }
 }
