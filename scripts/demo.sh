@@ -52,11 +52,16 @@ step "the LiDAR map coloured by the photos (PLY)"
 "$bin" colour-map --lidar "$out/scene/lidar.ply" --model "$out/sparse/0" \
   --image-path "$out/scene/images" --output "$out/map_rgb.ply"
 
+step "the map's metric depth at every pixel of every image (16-bit PNG, millimetres)"
+"$bin" depth-maps --lidar "$out/scene/lidar.ply" --model "$out/sparse/0" \
+  --output "$out/depth_maps"
+
 step "done"
 cat <<MSG
 Model (map frame, metres): $out/sparse/0   (report: $out/sparse/0/report.json)
 Figures (planes, point-to-plane distances, reprojection errors per solve): $out/figures
 Coloured map (any point-cloud viewer): $out/map_rgb.ply
+Depth maps (for depth-supervised splatting or NeRF): $out/depth_maps
 Open it in COLMAP:
   colmap gui --import_path $out/sparse/0 --database_path $db --image_path $out/scene/images
 MSG
