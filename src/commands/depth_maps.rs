@@ -94,6 +94,12 @@ pub struct DepthMapsArgs {
         default_value_t = 85.0
     )]
     pub max_view_angle: f64,
+    /// No depth beside a step between surfaces (occluding edges, corners,
+    /// where the map ends), within the splat's reach of it: the splats of a
+    /// surface in front may reach past its edge there. For depth losses
+    /// that should not see those pixels.
+    #[arg(long = "drop-edges", alias = "drop_edges")]
+    pub drop_edges: bool,
 }
 
 impl DepthMapsArgs {
@@ -106,6 +112,7 @@ impl DepthMapsArgs {
                 ..Default::default()
             },
             max_view_angle_deg: self.max_view_angle,
+            drop_edges: self.drop_edges,
             ..Default::default()
         };
         options.validate()?;
@@ -153,6 +160,8 @@ struct Summary {
     units_per_metre: f64,
     /// The value of pixels that see no map surface.
     empty_value: u32,
+    /// Whether pixels beside steps between surfaces were left empty.
+    edges_dropped: bool,
     lidar: String,
     model: String,
     images: Vec<ImageSummary>,
@@ -400,6 +409,7 @@ pub fn run(args: &DepthMapsArgs) -> anyhow::Result<()> {
             depth: args.depth,
             units_per_metre,
             empty_value: 0,
+            edges_dropped: args.drop_edges,
             lidar: args.lidar.display().to_string(),
             model: args.model.display().to_string(),
             images: std::mem::take(&mut summaries),

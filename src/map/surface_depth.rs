@@ -49,6 +49,10 @@ pub struct SurfaceDepthOptions {
     /// The tangent plane is crossed at most this many splat half-widths from
     /// its point (measured on the plane); farther, the point's own depth.
     pub max_reach_half_widths: f64,
+    /// No depth within the nearer splat's half-size of a step between
+    /// surfaces (an occluding edge, a corner, the map's end), where the
+    /// splats of the surface in front may reach past its edge. Default off.
+    pub drop_edges: bool,
 }
 
 impl Default for SurfaceDepthOptions {
@@ -58,6 +62,7 @@ impl Default for SurfaceDepthOptions {
             splat_per_spacing: 0.8,
             max_view_angle_deg: 85.0,
             max_reach_half_widths: 4.0,
+            drop_edges: false,
         }
     }
 }
@@ -248,7 +253,7 @@ pub fn render_surface_depth(
     // The depth (of `kind`) of the surface of splat `k`'s point along `ray`
     // and whether it is its plane's crossing (else the point's own depth);
     // `None` for a point without a surface.
-    let surface = |k: u32, ray: &Vector3<f64>| -> Option<(f64, bool)> {
+    let surface = |k: u32, ray: &Vector3<f64>, bounded: bool| -> Option<(f64, bool)> {
         let offset = match offsets.get(k as usize) {
             Some(None) => return None,
             Some(&Some(d)) => Some(d),
@@ -290,7 +295,7 @@ pub fn render_surface_depth(
             let range = t * ray.norm();
             let near = if fisheye { range } else { t };
             let in_range = near >= min_depth && t <= max_depth && range <= max_depth;
-            (on_plane.norm() <= reach && in_range).then_some(depth)
+            (!bounded || on_plane.norm() <= reach && in_range).then_some(depth)
         });
         Some(match (crossing, kind) {
             (Some(depth), _) => (depth, true),
@@ -305,17 +310,31 @@ pub fn render_surface_depth(
         .map(|px| {
             let (_, k) = nearest[px];
             match rays.ray(px) {
-                Some(ray) if k != NO_SPLAT => {
-                    surface(k, &ray).map_or((0.0, false), |(d, on_plane)| (d as f32, on_plane))
-                }
+                Some(ray) if k != NO_SPLAT => surface(k, &ray, true)
+                    .map_or((0.0, false), |(d, on_plane)| (d as f32, on_plane)),
                 _ => (0.0, false),
             }
         })
         .collect();
     let mut winner: Vec<u32> = nearest.iter().map(|n| n.1).collect();
     close_gaps(w, &mut depth, &mut winner, |px, k| {
-        surface(k, &rays.ray(px)?).filter(|s| s.1).map(|s| s.0)
+        surface(k, &rays.ray(px)?, true)
+            .filter(|s| s.1)
+            .map(|s| s.0)
     });
+    if options.drop_edges {
+        drop_edges(
+            w,
+            &mut depth,
+            &winner,
+            |px, k| {
+                surface(k, &rays.ray(px)?, false)
+                    .filter(|s| s.1)
+                    .map(|s| s.0)
+            },
+            |k| splats[k as usize].half_size_px,
+        );
+    }
     Ok(DepthMap {
         width: camera.width,
         height: camera.height,
@@ -397,6 +416,84 @@ fn close_gaps(
         }
     }
 }
+
+/// Clears the depth (`depth`, `winner` as for [`close_gaps`]) within the
+/// nearer splat's half-size (`half_size(splat)`, pixels) of every step
+/// between two neighbouring pixels: one has a depth and the other none, or
+/// neither's plane (`plane(pixel, splat)`: the depth of the splat's plane
+/// along the pixel's ray, unbounded) passes within [`EDGE_STEP_M`] plus
+/// [`EDGE_STEP_SHARE`] of the depth of the other's surface (one surface
+/// seen through two splats agrees both ways; across an occluding edge or a
+/// corner neither does).
+fn drop_edges(
+    width: usize,
+    depth: &mut [(f32, bool)],
+    winner: &[u32],
+    plane: impl Fn(usize, u32) -> Option<f64> + Sync,
+    half_size: impl Fn(u32) -> f64 + Sync,
+) {
+    if width == 0 {
+        return;
+    }
+    let height = depth.len() / width;
+    let differs = |p: usize, q: usize| -> bool {
+        let (dp, dq) = (depth[p].0, depth[q].0);
+        if (dp > 0.0) != (dq > 0.0) {
+            return true;
+        }
+        if dp == 0.0 || winner[p] == winner[q] {
+            return false;
+        }
+        let (dp, dq) = (f64::from(dp), f64::from(dq));
+        let tolerance = EDGE_STEP_M + EDGE_STEP_SHARE * dp.min(dq);
+        let apart = |from: usize, to: usize, d_to: f64| {
+            plane(to, winner[from]).is_none_or(|d| (d - d_to).abs() > tolerance)
+        };
+        apart(p, q, dq) && apart(q, p, dp)
+    };
+    // Each step: the nearer pixel and how far around it to clear.
+    let near = |a: usize| {
+        if depth[a].0 > 0.0 {
+            depth[a].0
+        } else {
+            f32::INFINITY
+        }
+    };
+    let steps: Vec<(usize, usize)> = (0..depth.len())
+        .into_par_iter()
+        .flat_map_iter(|p| {
+            let (x, y) = (p % width, p / width);
+            let mut found = Vec::new();
+            for q in [
+                (x + 1 < width).then_some(p + 1),
+                (y + 1 < height).then_some(p + width),
+            ]
+            .into_iter()
+            .flatten()
+            {
+                if differs(p, q) {
+                    let nearer = if near(p) <= near(q) { p } else { q };
+                    found.push((nearer, half_size(winner[nearer]).ceil().max(1.0) as usize));
+                }
+            }
+            found
+        })
+        .collect();
+    for (p, r) in steps {
+        let (x, y) = (p % width, p / width);
+        for ny in y.saturating_sub(r)..(y + r + 1).min(height) {
+            for nx in x.saturating_sub(r)..(x + r + 1).min(width) {
+                depth[ny * width + nx] = (0.0, false);
+            }
+        }
+    }
+}
+
+/// A step between surfaces is at least this deep, metres ...
+const EDGE_STEP_M: f64 = 0.05;
+
+/// ... plus this share of the nearer depth.
+const EDGE_STEP_SHARE: f64 = 0.02;
 
 /// Passes that close gaps between a surface's splats.
 const GAP_PASSES: usize = 2;
@@ -624,5 +721,36 @@ mod tests {
             .depth_m
             .iter()
             .all(|&d| (d - 3.0).abs() < 1e-5));
+    }
+
+    /// `drop_edges` on a 12 x 6 map: a surface in front (depth 2, splats 0
+    /// and 2 alternating, half-size 1.5 px) left of x = 6, one behind (5,
+    /// splat 1) right of it, one pixel without a depth: the pixels within
+    /// 2 px of the nearer side of each step are cleared (the front's beside
+    /// the surface behind, and around the empty pixel), the rest kept; the
+    /// two front splats agree and make no step.
+    #[test]
+    fn edges_are_dropped_beside_steps_only() {
+        let (w, h) = (12, 6);
+        let mut depth: Vec<(f32, bool)> = (0..w * h)
+            .map(|p| if p % w < 6 { (2.0, true) } else { (5.0, true) })
+            .collect();
+        let winner: Vec<u32> = (0..w * h)
+            .map(|p| if p % w < 6 { 2 * (p as u32 % 2) } else { 1 })
+            .collect();
+        depth[w + 1] = (0.0, false);
+        let plane = |_, k: u32| Some(if k == 1 { 5.0 } else { 2.0 });
+        drop_edges(w, &mut depth, &winner, plane, |_| 1.5);
+        for y in 0..h {
+            for x in 0..w {
+                // Around the empty pixel's four neighbours, which have a
+                // depth (the nearer side of each step).
+                let beside_empty = [(2, 1), (1, 2), (0, 1), (1, 0)]
+                    .iter()
+                    .any(|&(cx, cy): &(usize, usize)| x.abs_diff(cx) <= 2 && y.abs_diff(cy) <= 2);
+                let cleared = (3..8).contains(&x) || beside_empty;
+                assert_eq!(depth[y * w + x].0 == 0.0, cleared, "{x} {y}");
+            }
+        }
     }
 }
