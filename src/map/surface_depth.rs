@@ -273,7 +273,9 @@ pub fn render_surface_depth(
             let p = cam_from_world.transform_point(&p_world) + n * shift;
             let n_dot_ray = n.dot(ray);
             let cos = n_dot_ray.abs() / ray.norm();
-            if !(cos >= min_cos && cos > 0.0) {
+            // (Unbounded, as for comparing two pixels' surfaces, at any
+            // slant: one plane still agrees with itself.)
+            if !(cos > 0.0 && (cos >= min_cos || !bounded)) {
                 return None;
             }
             // The crossing t * ray; its z is t.
