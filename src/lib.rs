@@ -11,6 +11,7 @@
 pub mod commands;
 pub mod estimators;
 pub mod eval;
+pub mod geo;
 pub mod io;
 pub mod map;
 pub mod scene;

@@ -425,6 +425,26 @@ fn bad_databases_give_clear_errors() {
         "{prior:?}"
     );
 
+    // A translation without a rotation is COLMAP 3.8's EXIF GPS (latitude,
+    // longitude, altitude); one that cannot be a latitude and longitude is
+    // no prior at all.
+    let p = variant(
+        "gps_prior.db",
+        "UPDATE images SET prior_qw = NULL, prior_qx = NULL, prior_qy = NULL, prior_qz = NULL, \
+         prior_tx = 47.376887, prior_ty = 8.541694, prior_tz = 408.5 WHERE image_id = 2; \
+         UPDATE images SET prior_tx = 120.0, prior_ty = 8.5, prior_tz = 400.0 WHERE image_id = 1;",
+    );
+    let db = read_database(&p).unwrap();
+    let gps = &db.pose_priors[&ImageId(2)];
+    assert!(gps.is_gps() && gps.cam_from_world.is_none(), "{gps:?}");
+    assert_eq!(gps.position, Some([47.376887, 8.541694, 408.5]));
+    assert!(!db.pose_priors.contains_key(&ImageId(1)));
+    let text = colmap_lidar::commands::inspect::summary(&db, false);
+    assert!(
+        text.contains("GPS          1 images, latitude 47.376887 to 47.376887")
+            && !text.contains("Pose priors"),
+        "{text}"
+    );
     // An image size no camera has.
     for (name, size, says) in [
         (

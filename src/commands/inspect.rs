@@ -161,8 +161,34 @@ pub fn summary(db: &DatabaseSnapshot, per_image: bool) -> String {
             );
         }
     }
-    if !db.pose_priors.is_empty() {
-        let _ = writeln!(w, "\nPose priors  {} images", db.pose_priors.len());
+    let gps: Vec<[f64; 3]> = db
+        .pose_priors
+        .values()
+        .filter(|p| p.is_gps())
+        .filter_map(|p| p.position)
+        .collect();
+    if gps.len() < db.pose_priors.len() {
+        let _ = writeln!(
+            w,
+            "\nPose priors  {} images",
+            db.pose_priors.len() - gps.len()
+        );
+    }
+    if !gps.is_empty() {
+        let range = |k: usize| {
+            gps.iter()
+                .map(|p| p[k])
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| {
+                    (lo.min(v), hi.max(v))
+                })
+        };
+        let ((lat0, lat1), (lon0, lon1)) = (range(0), range(1));
+        let _ = writeln!(
+            w,
+            "\nGPS          {} images, latitude {lat0:.6} to {lat1:.6}, longitude {lon0:.6} to {lon1:.6}\n             \
+             (map places the model from them without an initial pose, given the map's CRS: --map-crs)",
+            gps.len()
+        );
     }
     if !db.schema.notes.is_empty() {
         let _ = writeln!(w, "\nNotes");

@@ -21,6 +21,7 @@ use anyhow::{bail, Context, Result};
 use serde::Deserialize;
 
 use crate::commands::prepare_map::parse_input_units;
+use crate::geo::MapCrs;
 use crate::io::atomic::output_replaces_input;
 use crate::io::database::{read_database, DatabaseSnapshot};
 use crate::io::images::{check_image_folder, colour_points, ExpectedImage};
@@ -33,6 +34,7 @@ use crate::scene::{BodyPose, ImageId, Rigid3};
 use crate::sfm::existing::{match_to_database, ExistingModel};
 use crate::sfm::localise::SearchRegion;
 use crate::sfm::options::{AssociationKind, IntrinsicsRefinement};
+use crate::sfm::positions::run_mapper_from_positions;
 use crate::sfm::report::{RunLog, StageRecord};
 use crate::sfm::{extend_model, map_groups, GroupStart, KnownPose, MapperInputs, MapperOptions};
 
@@ -44,6 +46,10 @@ fn known_poses(
 ) -> Result<BTreeMap<ImageId, KnownPose>> {
     let mut known = BTreeMap::new();
     for (&id, prior) in &db.pose_priors {
+        if prior.is_gps() {
+            // Latitude and longitude: see [`gps_positions`].
+            continue;
+        }
         if let Some(pose) = prior.cam_from_world {
             known.insert(
                 id,
@@ -89,6 +95,45 @@ fn known_poses(
         log::info!("{} images with a known pose", known.len());
     }
     Ok(known)
+}
+
+/// The images' GPS positions (the database's priors in latitude, longitude
+/// and altitude) in the map's frame, with `crs`; none without it (logged
+/// when the database has some).
+fn gps_positions(
+    db: &DatabaseSnapshot,
+    crs: Option<&MapCrs>,
+) -> BTreeMap<ImageId, nalgebra::Vector3<f64>> {
+    let gps: Vec<(ImageId, [f64; 3])> = db
+        .pose_priors
+        .iter()
+        .filter(|(_, p)| p.is_gps())
+        .filter_map(|(&id, p)| Some((id, p.position?)))
+        .collect();
+    match crs {
+        Some(crs) => {
+            if gps.is_empty() {
+                log::warn!(
+                    "--map-crs {} is given, but no image in {} has a GPS position",
+                    crs.name,
+                    db.path.display()
+                );
+            }
+            gps.into_iter()
+                .map(|(id, [lat, lon, alt])| (id, crs.to_map(lat, lon, alt)))
+                .collect()
+        }
+        None => {
+            if !gps.is_empty() {
+                log::info!(
+                    "{} images of {} have a GPS position; they are not used without the map's CRS (--map-crs)",
+                    gps.len(),
+                    db.path.display()
+                );
+            }
+            BTreeMap::new()
+        }
+    }
 }
 
 /// Hints on the initial poses as given: roll, pitch and yaw all within
@@ -230,6 +275,23 @@ pub struct MapArgs {
     /// map holds the model and they are refined with the new ones.
     #[arg(long, visible_alias = "fix_existing_images")]
     pub fix_existing_images: bool,
+    /// The map's coordinate reference system, to place the model from the
+    /// images' GPS positions (COLMAP's feature extractor stores them from
+    /// the photos' EXIF) when no initial pose is given: EPSG:CODE (a UTM
+    /// zone or another transverse Mercator grid on WGS84/GRS80, e.g.
+    /// EPSG:32633), utm:ZONE (e.g. utm:33n) or enu:LAT,LON,HEIGHT (a local
+    /// east-north-up frame). Altitudes are taken as the map's heights.
+    #[arg(long, visible_alias = "map_crs", value_name = "CRS")]
+    pub map_crs: Option<String>,
+    /// With --map-crs: the CRS coordinates of the map's (0, 0, 0), when its
+    /// coordinates are shifted (map = CRS - origin; default 0,0,0).
+    #[arg(
+        long,
+        visible_alias = "map_origin",
+        value_name = "X,Y,Z",
+        allow_hyphen_values = true
+    )]
+    pub map_origin: Option<String>,
     /// TOML options file; command-line values win.
     #[arg(long, value_name = "FILE")]
     pub options: Option<PathBuf>,
@@ -289,6 +351,8 @@ struct OptionsFile {
     output_type: Option<String>,
     no_lidar_constraints: Option<bool>,
     input_units: Option<String>,
+    map_crs: Option<String>,
+    map_origin: Option<String>,
     mapper: MapperOptions,
 }
 
@@ -312,6 +376,8 @@ pub struct MapConfig {
     pub format: ModelFormat,
     /// The map's length unit (`--input-units`).
     pub input_units: InputUnits,
+    /// The map's CRS (`--map-crs`, `--map-origin`).
+    pub map_crs: Option<MapCrs>,
     pub options: MapperOptions,
 }
 
@@ -371,6 +437,20 @@ impl MapArgs {
             Some(text) => parse_input_units(&text)?,
             None => InputUnits::Auto,
         };
+        let origin = match self.map_origin.clone().or(file.map_origin) {
+            Some(text) => Some(parse_origin(&text)?),
+            None => None,
+        };
+        let map_crs = match self.map_crs.clone().or(file.map_crs) {
+            Some(text) => Some(
+                MapCrs::parse(&text, origin.unwrap_or([0.0; 3]))
+                    .map_err(|e| anyhow::anyhow!("--map-crs {e}"))?,
+            ),
+            None if origin.is_some() => {
+                bail!("--map-origin needs --map-crs (the CRS whose coordinates it gives)")
+            }
+            None => None,
+        };
         let mut options = file.mapper;
         if let Some(seed) = self.seed {
             options.seed = seed;
@@ -412,8 +492,22 @@ impl MapArgs {
             fix_existing_images,
             format,
             input_units,
+            map_crs,
             options,
         })
+    }
+}
+
+/// `--map-origin X,Y,Z`.
+fn parse_origin(text: &str) -> Result<[f64; 3]> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|s| s.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| anyhow::anyhow!("--map-origin expects X,Y,Z (metres), got `{text}`"))?;
+    match v.as_slice() {
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([*x, *y, *z]),
+        _ => bail!("--map-origin expects three finite numbers X,Y,Z (metres), got `{text}`"),
     }
 }
 
@@ -508,6 +602,24 @@ enum RunStart {
     /// One initial image per group of images, at its pose.
     InitialPoses(Vec<GroupStart>),
     Model(ExistingModel),
+    /// No initial pose: the model placed from the images' GPS positions.
+    Positions(ImageId),
+}
+
+/// The initial image when the run starts from the images' GPS positions:
+/// no --init-pose, at most one --init-image and no known pose of it, and
+/// some positions.
+fn positions_start(
+    db: &DatabaseSnapshot,
+    config: &MapConfig,
+    known: &BTreeMap<ImageId, KnownPose>,
+    gps: &BTreeMap<ImageId, nalgebra::Vector3<f64>>,
+) -> Result<Option<ImageId>> {
+    if gps.is_empty() || !config.init_poses.is_empty() || config.init_images.len() > 1 {
+        return Ok(None);
+    }
+    let image = resolve_init_image(db, config.init_images.first().map(String::as_str))?;
+    Ok((!known.get(&image).is_some_and(|p| p.has_rotation)).then_some(image))
 }
 
 /// The initial images at their poses: given ones, else their known poses
@@ -540,9 +652,16 @@ fn group_starts(
             None => match known.get(&image).filter(|p| p.has_rotation) {
                 Some(p) => p.cam_from_world,
                 None => bail!(
-                    "no initial pose for image `{}`: pass --init-pose x,y,z,roll,pitch,yaw (map frame, metres, degrees){}",
+                    "no initial pose for image `{}`: pass --init-pose x,y,z,roll,pitch,yaw (map frame, metres, degrees){}{}",
                     db.images[&image].name,
-                    if k > 0 { ", one per --init-image" } else { "" }
+                    if k > 0 { ", one per --init-image" } else { "" },
+                    match db.pose_priors.values().filter(|p| p.is_gps()).count() {
+                        0 => String::new(),
+                        n if config.map_crs.is_none() => format!(
+                            "; {n} images have a GPS position: with the map's CRS (--map-crs) they place the model"
+                        ),
+                        _ => String::new(),
+                    }
                 ),
             },
         };
@@ -647,6 +766,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
     // What may explain a failed run, from the inputs: given with its error.
     let mut hints = init_pose_hints(&config.init_poses);
     let known_poses = known_poses(&db, config.pose_priors.as_deref(), &mut hints)?;
+    let gps = gps_positions(&db, config.map_crs.as_ref());
     // Where the run starts: the model to extend, or the initial image(s) at
     // their poses.
     let start = match &config.input_model {
@@ -669,7 +789,10 @@ pub fn run(args: &MapArgs) -> Result<()> {
             );
             RunStart::Model(existing)
         }
-        None => RunStart::InitialPoses(group_starts(&db, &config, &known_poses)?),
+        None => match positions_start(&db, &config, &known_poses, &gps)? {
+            Some(image) => RunStart::Positions(image),
+            None => RunStart::InitialPoses(group_starts(&db, &config, &known_poses)?),
+        },
     };
     let (cloud, load) = load_map_reporting(&config.lidar, config.input_units)?;
     let total = db.images.len();
@@ -697,6 +820,20 @@ pub fn run(args: &MapArgs) -> Result<()> {
             &mut progress,
         ),
         RunStart::Model(existing) => extend_model(inputs, existing, &config.options, &mut progress),
+        RunStart::Positions(image) => run_mapper_from_positions(
+            inputs,
+            *image,
+            &gps,
+            config.init_search.as_ref(),
+            &config.options,
+            &mut progress,
+        )
+        .map(|mut out| {
+            if let Some(record) = &mut out.report.positions {
+                record.crs = config.map_crs.as_ref().map(|c| c.name.clone());
+            }
+            out
+        }),
     };
     let mut out = out
         .with_context(|| {

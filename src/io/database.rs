@@ -84,13 +84,32 @@ pub struct DbImage {
 /// newer `pose_priors` table). Each part is present only if stored and finite.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DbPosePrior {
-    /// Prior position; COLMAP stores `prior_t*` as the translation of
-    /// `cam_from_world` in 3.8 and as a position in `pose_priors`.
+    /// Prior position: in 3.8 the `prior_t*` of a row without a rotation
+    /// (the feature extractor's EXIF GPS: latitude, longitude, altitude; a
+    /// row with one is a `cam_from_world`), or `pose_priors`' position (in
+    /// its `coordinate_system`).
     pub position: Option<[f64; 3]>,
     /// Prior `cam_from_world` (3.8 only; newer versions store no rotation).
     pub cam_from_world: Option<Rigid3>,
     /// COLMAP's coordinate system code (-1 undefined, 0 WGS84, 1 Cartesian), if stored.
     pub coordinate_system: Option<i64>,
+}
+
+/// COLMAP's coordinate system code of a GPS position (latitude and
+/// longitude in degrees, altitude in metres).
+pub const COORDINATE_SYSTEM_WGS84: i64 = 0;
+
+impl DbPosePrior {
+    /// A GPS position (latitude, longitude, altitude), not one in the map's frame.
+    pub fn is_gps(&self) -> bool {
+        self.coordinate_system == Some(COORDINATE_SYSTEM_WGS84)
+    }
+}
+
+/// Latitude and longitude within their ranges (a 3.8 translation-only prior
+/// is EXIF GPS).
+fn is_geodetic(t: &[f64]) -> bool {
+    t[0].abs() <= 90.0 && t[1].abs() <= 180.0
 }
 
 /// The verified geometry of an image pair (`two_view_geometries` row).
@@ -512,6 +531,18 @@ impl Reader<'_> {
                     };
                     if prior.cam_from_world.is_some() {
                         priors.insert(image_id, prior);
+                    } else if !q_ok && t_ok && !all_zero_t && is_geodetic(&v[4..]) {
+                        // COLMAP 3.8's feature extractor stores an image's
+                        // EXIF GPS here: latitude, longitude (degrees) and
+                        // altitude (metres), no rotation.
+                        priors.insert(
+                            image_id,
+                            DbPosePrior {
+                                position: Some([v[4], v[5], v[6]]),
+                                cam_from_world: None,
+                                coordinate_system: Some(COORDINATE_SYSTEM_WGS84),
+                            },
+                        );
                     }
                 }
             }

@@ -674,7 +674,7 @@ fn triangulate_pair(
 /// median over its points of the map's depth at their features seen from
 /// the rough pose over their triangulated depth (the map's median depth over
 /// the points' median depth where too few features see the map), which the
-/// search's scale range then corrects.
+/// search's scale range then corrects; `given_scale` instead when given.
 #[allow(clippy::too_many_arguments)]
 pub fn initialize_from_pair(
     state: &mut MapState,
@@ -685,6 +685,7 @@ pub fn initialize_from_pair(
     grid: &FrustumGrid,
     options: &InitOptions,
     triangulate: &TriangulateOptions,
+    given_scale: Option<f64>,
 ) -> Result<InitSummary, InitError> {
     let name = state.images[&image].name.clone();
     let keypoints = state.images[&image].keypoints.clone();
@@ -763,7 +764,9 @@ pub fn initialize_from_pair(
         .filter_map(|(k1, _, p)| depth_at[*k1 as usize].map(|d| d / p.z))
         .collect();
     let num_supported = ratios.len();
-    let scale = if ratios.len() >= MIN_SCALE_HITS {
+    let scale = if let Some(given) = given_scale {
+        Some(given)
+    } else if ratios.len() >= MIN_SCALE_HITS {
         median(ratios)
     } else if num_hits >= MIN_SCALE_HITS {
         let map_depth = median(depth_at.iter().flatten().copied().collect());

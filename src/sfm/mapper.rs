@@ -73,6 +73,8 @@ pub enum MapperError {
     UnknownImage(ImageId),
     #[error("no initial image given")]
     NoInitialImage,
+    #[error("placing the model from the images' GPS positions: {0}")]
+    Positions(String),
     #[error("the initial images {first} and {second} are in one group of images (verified matches link them): give one initial image per group")]
     SameGroup { first: String, second: String },
     #[error("mapping the group of {images} images of the initial image {image}: {error}")]
@@ -1061,6 +1063,11 @@ pub(super) enum Start<'a> {
         /// bent to it), only its distance from the initial image, by a soft
         /// prior on its centre.
         rough: bool,
+        /// With `rough`: the initial pair's metres per unit of its
+        /// baseline, when the map seen from the rough pose cannot give it
+        /// (a placement from GPS positions, [`super::positions`], fits the
+        /// scale afterwards).
+        pair_scale: Option<f64>,
     },
     /// An earlier model in the map's frame.
     Model(&'a ExistingModel),
@@ -1493,7 +1500,12 @@ fn map_staged(
     // the first registrations (and a model's images with `hold`). Without
     // them the first two images (or the model's) stay fixed for good.
     let lidar_gauge = options.association.kind != AssociationKind::None;
-    let rough = matches!(start, Start::InitialPose { rough: true, .. });
+    let (rough, given_pair_scale) = match start {
+        Start::InitialPose {
+            rough, pair_scale, ..
+        } => (*rough, *pair_scale),
+        Start::Model(_) => (false, None),
+    };
     // The initial image, its given pose and the second image.
     let initial: Option<(ImageId, Rigid3, ImageId)> = match start {
         Start::InitialPose {
@@ -1529,6 +1541,7 @@ fn map_staged(
                     &grid,
                     &options.init,
                     &options.triangulate,
+                    given_pair_scale,
                 )?
             } else {
                 initialize(

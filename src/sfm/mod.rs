@@ -14,6 +14,7 @@
 //!   point-to-plane terms from a pluggable associator;
 //! * [`align`]: the whole model moved onto the map (similarity, shape held);
 //! * [`localise`]: a model placed on the map from a rough initial pose;
+//! * [`positions`]: the rough pose from the images' GPS positions;
 //! * [`existing`]: an earlier model to extend, matched to the database;
 //! * [`groups`]: one run per group of images no match links, one model;
 //! * [`filter`]: outlier filters; [`report`]: `report.json`.
@@ -29,6 +30,7 @@ pub mod initialize;
 pub mod localise;
 pub mod mapper;
 pub mod options;
+pub mod positions;
 pub mod register;
 pub mod report;
 pub mod runs;

@@ -320,6 +320,9 @@ pub struct MapReport {
     /// With `--init-search`: where the search put the initial image, from
     /// the rough pose (the run's `init` starts there).
     pub init_search: Option<super::localise::SearchRecord>,
+    /// With no initial pose: how the images' GPS positions placed the
+    /// model (the search then started there, `init_search`).
+    pub positions: Option<super::positions::PositionsRecord>,
     /// The model the run extended (`--input-model`), instead of `init`.
     pub input_model: Option<InputModelRecord>,
     /// The initial image and its given pose (not written): each solve

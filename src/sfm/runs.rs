@@ -31,6 +31,7 @@ use super::mapper::{
 };
 use super::options::{AssociationKind, MapperOptions};
 use super::report::{EarlyLookRecord, PoseChangeRecord, RestartRecord, RetryRecord};
+use crate::estimators::similarity::Sim3;
 use crate::io::database::DatabaseSnapshot;
 use crate::map::index::MapIndex;
 use crate::map::PointCloud;
@@ -152,6 +153,7 @@ impl PoseRuns<'_> {
             image: self.init_image,
             cam_from_world,
             rough: false,
+            pair_scale: None,
         }
     }
 
@@ -777,75 +779,165 @@ pub fn run_mapper_searching(
     options: &MapperOptions,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
-    let cloud = inputs.cloud;
     let started = Instant::now();
-    let mut plain_options = options.clone();
-    plain_options.association.kind = AssociationKind::None;
-    let start = Start::InitialPose {
-        image: init_image,
-        cam_from_world: *rough_cam_from_world,
-        rough: true,
-    };
     log::info!(
         "searching within {} m (vertically {} m) and {} deg of the rough initial pose: mapping without the map's planes first",
         region.radius_m,
         region.vertical_m,
         region.yaw_deg
     );
-    // Without the map's planes and without the pose priors: the search
-    // places the model by the map alone.
+    let plain = plain_run(
+        inputs,
+        init_image,
+        rough_cam_from_world,
+        None,
+        options,
+        &mut *progress,
+    )?;
+    let plain = PlainModel::new(
+        &plain,
+        init_image,
+        rough_cam_from_world,
+        &Sim3::identity(),
+        started.elapsed().as_secs_f64(),
+    );
+    search_and_map(
+        inputs,
+        init_image,
+        &plain,
+        region,
+        &SearchOptions::default(),
+        options,
+        progress,
+    )
+}
+
+/// The database mapped without the map's planes and without the pose
+/// priors (the search places the model by the map alone), the initial
+/// image held at `rough_cam_from_world` and the pair's scale `pair_scale`
+/// (else the map's depths seen from there).
+pub(super) fn plain_run(
+    inputs: MapperInputs<'_>,
+    init_image: ImageId,
+    rough_cam_from_world: &Rigid3,
+    pair_scale: Option<f64>,
+    options: &MapperOptions,
+    progress: Progress<'_>,
+) -> Result<MapperOutput, MapperError> {
+    let mut plain_options = options.clone();
+    plain_options.association.kind = AssociationKind::None;
+    let start = Start::InitialPose {
+        image: init_image,
+        cam_from_world: *rough_cam_from_world,
+        rough: true,
+        pair_scale,
+    };
     let no_priors = BTreeMap::new();
     let plain_inputs = MapperInputs {
         known_poses: &no_priors,
         ..inputs
     };
-    let plain = map_once(plain_inputs, &start, &plain_options, &mut *progress)
-        .map_err(|e| MapperError::PlainRun(Box::new(e)))?;
-    let plain_run_s = started.elapsed().as_secs_f64();
+    map_once(plain_inputs, &start, &plain_options, progress)
+        .map_err(|e| MapperError::PlainRun(Box::new(e)))
+}
+
+/// What the search needs of a model mapped without the map's planes, moved
+/// into the map's frame by a similarity.
+pub(super) struct PlainModel {
+    /// Its 3D points.
+    points: Vec<nalgebra::Vector3<f64>>,
+    /// The initial image's pose in it.
+    rough: Rigid3,
+    /// The cameras' right-hand axes.
+    right_axes: Vec<nalgebra::Vector3<f64>>,
+    /// The run's initial pair: the second image, the pair's scale and
+    /// its baseline in the model.
+    second_image: u32,
+    pair_scale: Option<f64>,
+    pair_baseline: Option<f64>,
+    /// Wall time of the run, seconds.
+    run_s: f64,
+}
+
+impl PlainModel {
+    /// The initial camera's centre in the map's frame, as moved.
+    pub(super) fn rough_centre(&self) -> nalgebra::Vector3<f64> {
+        self.rough.camera_center()
+    }
+
+    /// `plain` moved by `map_from_plain`; `rough` is the initial image's
+    /// pose when the run did not register it.
+    pub(super) fn new(
+        plain: &MapperOutput,
+        init_image: ImageId,
+        rough: &Rigid3,
+        map_from_plain: &Sim3,
+        run_s: f64,
+    ) -> Self {
+        let rec = &plain.reconstruction;
+        let centre = |id: u32| rec.pose(ImageId(id)).map(|p| p.camera_center());
+        let init = plain.report.init.as_ref();
+        Self {
+            points: rec
+                .points3d
+                .values()
+                .map(|p| map_from_plain.transform_point(&p.xyz))
+                .collect(),
+            // Without the map's planes the initial image stays at the rough pose.
+            rough: rec
+                .pose(init_image)
+                .map_or(*rough, |p| map_from_plain.transform_pose(&p)),
+            right_axes: rec
+                .registered_images()
+                .filter_map(|img| img.cam_from_world)
+                .map(|pose| {
+                    map_from_plain.rotation * (pose.rotation.inverse() * nalgebra::Vector3::x())
+                })
+                .collect(),
+            second_image: init.map_or(0, |i| i.second_image),
+            pair_scale: init.and_then(|i| i.pair_scale),
+            pair_baseline: init.and_then(|i| {
+                centre(i.initial_image)
+                    .zip(centre(i.second_image))
+                    .map(|(a, b)| map_from_plain.scale * (a - b).norm())
+            }),
+            run_s,
+        }
+    }
+}
+
+/// [`run_mapper_searching`] after its plain run: `plain` placed on the map
+/// within `region` of its initial camera, and mapped from each close
+/// placement.
+pub(super) fn search_and_map(
+    inputs: MapperInputs<'_>,
+    init_image: ImageId,
+    plain: &PlainModel,
+    region: &SearchRegion,
+    search: &SearchOptions,
+    options: &MapperOptions,
+    progress: Progress<'_>,
+) -> Result<MapperOutput, MapperError> {
+    let cloud = inputs.cloud;
     let searched = Instant::now();
     let index = MapIndex::build(cloud)?;
     let nearest = NearestNeighbourAssociator::new(cloud, &index, options.association.clone());
-    let points: Vec<nalgebra::Vector3<f64>> = plain
-        .reconstruction
-        .points3d
-        .values()
-        .map(|p| p.xyz)
-        .collect();
-    // Without the map's planes the initial image stays at the rough pose.
-    let rough = plain
-        .reconstruction
-        .pose(init_image)
-        .unwrap_or(*rough_cam_from_world);
-    // The cameras' right-hand axes, in the plain model's frame.
-    let right_axes: Vec<nalgebra::Vector3<f64>> = plain
-        .reconstruction
-        .registered_images()
-        .filter_map(|img| img.cam_from_world)
-        .map(|pose| pose.rotation.inverse() * nalgebra::Vector3::x())
-        .collect();
+    let rough = plain.rough;
     let Search {
         contenders,
         mut record,
     } = search_placement(
-        &points,
-        &right_axes,
+        &plain.points,
+        &plain.right_axes,
         &rough.camera_center(),
         &nearest,
         region,
-        &SearchOptions::default(),
+        search,
     )?;
-    record.plain_run_s = plain_run_s;
-    if let Some(init) = &plain.report.init {
-        record.plain_second_image = init.second_image;
-        record.plain_pair_scale = init.pair_scale;
-        let centre = |id: u32| {
-            let pose = plain.reconstruction.pose(ImageId(id));
-            pose.map(|p| p.camera_center())
-        };
-        record.plain_pair_baseline = centre(init.initial_image)
-            .zip(centre(init.second_image))
-            .map(|(a, b)| (a - b).norm());
-    }
+    record.plain_run_s = plain.run_s;
+    record.plain_second_image = plain.second_image;
+    record.plain_pair_scale = plain.pair_scale;
+    record.plain_pair_baseline = plain.pair_baseline;
     record.search_s = searched.elapsed().as_secs_f64();
     log::info!(
         "the search placed the initial image {:.2} m and {:.1} deg from the rough pose (the plain model's scale {:.3}; {} of {} points on the map, the next placement {}; {} placements, {:.1} s + {:.1} s){}",

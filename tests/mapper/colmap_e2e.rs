@@ -822,6 +822,7 @@ fn yard_with_colmap_database() {
     check_partial_map(&scene, dir.path());
     check_groups(&scene, dir.path(), &a);
     check_init_search(&scene, dir.path(), &a);
+    check_gps(&scene, dir.path(), &a);
     // `evaluate` compares the errors with the model's own sigmas.
     let eval_json = dir.path().join("evaluation.json");
     colmap_lidar::commands::evaluate::run(&colmap_lidar::commands::evaluate::EvaluateArgs {
@@ -1303,6 +1304,129 @@ fn check_init_search(scene: &Path, work: &Path, exact_run: &Run) {
         "the pair's baseline {found:.4} m in the search's placement, {baseline:.4} m in truth"
     );
     check_as_from_the_exact_pose(&run, exact_run);
+}
+
+/// A copy of the scene's database in `work` whose images carry GPS
+/// positions as COLMAP 3.8's feature extractor stores them from EXIF
+/// (`prior_t*` = latitude, longitude, altitude, no rotation): the true
+/// centres in UTM 33N, the map's (0, 0, 0) at `origin`, with Gaussian
+/// noise of `sigma_h` / `sigma_v` metres and, with `wrong`, one image's
+/// position 40 m off.
+fn database_with_gps(
+    scene: &Path,
+    work: &Path,
+    name: &str,
+    origin: [f64; 3],
+    (sigma_h, sigma_v): (f64, f64),
+    wrong: Option<&str>,
+) -> PathBuf {
+    use colmap_lidar::geo::TransverseMercator;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+    let db = work.join(name);
+    std::fs::copy(scene.join("database.db"), &db).unwrap();
+    let gt = load_poses(&scene.join("gt")).unwrap();
+    let utm = TransverseMercator::utm(33, true);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+    let (h, v) = (
+        Normal::new(0.0, sigma_h).unwrap(),
+        Normal::new(0.0, sigma_v).unwrap(),
+    );
+    let conn = rusqlite::Connection::open(&db).unwrap();
+    for (image, pose) in &gt {
+        let c = pose.camera_center();
+        let mut e = [
+            c.x + origin[0] + h.sample(&mut rng),
+            c.y + origin[1] + h.sample(&mut rng),
+            c.z + origin[2] + v.sample(&mut rng),
+        ];
+        if wrong == Some(image.as_str()) {
+            e[0] += 40.0;
+        }
+        let (lat, lon) = utm.inverse(e[0], e[1]);
+        let changed = conn
+            .execute(
+                "UPDATE images SET prior_qw = NULL, prior_qx = NULL, prior_qy = NULL, prior_qz = NULL, \
+                 prior_tx = ?1, prior_ty = ?2, prior_tz = ?3 WHERE name = ?4",
+                rusqlite::params![lat, lon, e[2], image],
+            )
+            .unwrap();
+        assert_eq!(changed, 1, "{image}");
+    }
+    db
+}
+
+/// No initial pose: the images' GPS positions (0.3 m horizontally, 1 m
+/// vertically, one 40 m off; the map shifted from UTM 33N) place the model
+/// as the exact pose does; positions that scatter more than the photos
+/// spread, or no --map-crs, are errors that say so.
+fn check_gps(scene: &Path, work: &Path, exact_run: &Run) {
+    let origin = [500_000.0, 4_400_000.0, 200.0];
+    let wrong = image_name(5);
+    let db = database_with_gps(scene, work, "gps.db", origin, (0.3, 1.0), Some(&wrong));
+    let out = work.join("gps");
+    let gps_args = |db: &Path, out: &Path, crs: bool| MapArgs {
+        database: Some(db.to_path_buf()),
+        lidar: Some(scene.join("lidar.ply")),
+        output: Some(out.to_path_buf()),
+        map_crs: crs.then(|| "EPSG:32633".to_owned()),
+        map_origin: crs.then(|| "500000,4400000,200".to_owned()),
+        ..Default::default()
+    };
+    let t = std::time::Instant::now();
+    run_map(&gps_args(&db, &out, true)).expect("map from the GPS positions");
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let model = load_poses(&out).unwrap();
+    let gt = load_poses(&scene.join("gt")).unwrap();
+    let run = Run {
+        none: evaluate(&model, &gt, Alignment::None).unwrap(),
+        report,
+        seconds: t.elapsed().as_secs_f64(),
+    };
+    print_run(
+        "yard from its GPS positions (0.3 m / 1 m, one 40 m off)",
+        &run,
+    );
+    let positions = &run.report["positions"];
+    eprintln!("positions: {positions}");
+    assert_eq!(positions["crs"], "EPSG:32633");
+    assert_eq!(positions["num_images"].as_u64(), Some(gt.len() as u64));
+    // The wrong position is left out of the fit, the others kept.
+    assert_eq!(positions["num_inliers"].as_u64(), Some(gt.len() as u64 - 1));
+    let sigma = positions["horizontal_sigma_m"].as_f64().unwrap();
+    assert!((0.15..0.8).contains(&sigma), "{positions}");
+    // The search looked where the fit said, a few degrees about its heading.
+    let region = &positions["region"];
+    assert_eq!(&run.report["init_search"]["region"], region);
+    assert!(region["yaw_deg"].as_f64().unwrap() < 45.0, "{region}");
+    // The finished model against the positions: their noise, and the
+    // wrong one 40 m off.
+    let median = positions["final_horizontal_median_m"].as_f64().unwrap();
+    let max = positions["final_horizontal_max_m"].as_f64().unwrap();
+    assert!(median < 0.6 && (max - 40.0).abs() < 2.0, "{positions}");
+    check_as_from_the_exact_pose(&run, exact_run);
+
+    // The same positions without the map's CRS: the error says what to give.
+    let err = run_map(&gps_args(&db, &work.join("gps_no_crs"), false))
+        .expect_err("no initial pose")
+        .to_string();
+    assert!(
+        err.contains("--map-crs")
+            && err.contains(&format!("{} images have a GPS position", gt.len())),
+        "{err}"
+    );
+    // Positions scattered by 3 m over photos 2-3 m apart fix no heading.
+    let loose = database_with_gps(scene, work, "gps3.db", origin, (3.0, 3.0), None);
+    let err = format!(
+        "{:#}",
+        run_map(&gps_args(&loose, &work.join("gps_loose"), true)).expect_err("too loose")
+    );
+    assert!(
+        err.contains("do not fix its heading") && err.contains("--init-search"),
+        "{err}"
+    );
+    assert!(!work.join("gps_loose").exists() && !work.join("gps_no_crs").exists());
 }
 
 /// A run from a rough pose meets the bar of the run from the exact one: the

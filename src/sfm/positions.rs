@@ -1,0 +1,501 @@
+//! The model placed on the map from its images' GPS positions, with no
+//! initial pose given.
+//!
+//! Photos from phones and drones carry their GPS position (COLMAP's
+//! feature extractor stores it in the database), good to a few metres;
+//! the map needs the initial pose to about 0.5 m and 5 deg. So the
+//! positions only say where to search:
+//!
+//! 1. the database is mapped without the map's planes, the initial image
+//!    held level (roll and pitch 0, as photos held by hand or from a
+//!    vehicle are, within about 10 deg) at an arbitrary heading and scale;
+//! 2. the heading, scale and shift that take that model's camera centres
+//!    onto their GPS positions are fitted (horizontally a similarity of
+//!    the plane, robust to wrong positions by least median of squares;
+//!    vertically a shift), with the positions' scatter about the fit;
+//! 3. the model, moved by that fit, is searched for on the map as
+//!    `--init-search` does ([`super::runs::search_and_map`]), within a
+//!    region that follows the scatter: a few metres and degrees for GPS
+//!    over a walk of tens of metres, any heading when the photos were all
+//!    taken within the scatter of one another.
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+use nalgebra::{UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+
+use super::localise::{SearchOptions, SearchRegion, MAX_RADIUS_M};
+use super::mapper::{MapperError, MapperInputs, MapperOutput, Progress};
+use super::options::MapperOptions;
+use super::runs::{plain_run, search_and_map, PlainModel};
+use crate::estimators::similarity::Sim3;
+use crate::scene::{BodyPose, ImageId};
+
+/// Images with a position the fit needs, registered in the plain model.
+pub const MIN_POSITIONS: usize = 3;
+
+/// All pairs of positions are tried up to this many images; beyond, this
+/// many pairs drawn at random (seeded).
+const MAX_EXHAUSTIVE: usize = 200;
+
+/// Pairs of positions tried when there are more than [`MAX_EXHAUSTIVE`].
+const SAMPLED_PAIRS: usize = 20_000;
+
+/// The least scatter assumed, metres (RTK positions, or a synthetic scene's
+/// exact ones).
+const MIN_SIGMA_M: f64 = 0.02;
+
+/// Independent positions counted at most in the fit's uncertainty: a
+/// photo's GPS error is shared by its neighbours in time.
+const MAX_INDEPENDENT: f64 = 4.0;
+
+/// The similarity (heading about the map's z, scale, shift) that takes a
+/// model's camera centres onto their positions.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PositionFit {
+    pub map_from_model: Sim3,
+    /// Of the pairs given: those within the fit's scatter.
+    pub inliers: Vec<bool>,
+    /// Robust scatter of the positions about the fit, horizontally and
+    /// vertically, metres.
+    pub horizontal_sigma_m: f64,
+    pub vertical_sigma_m: f64,
+    /// RMS horizontal distance of the inliers' centres from their mean
+    /// (map metres): what the heading is fitted over.
+    pub spread_m: f64,
+    /// The inliers' mean position (map frame, horizontal).
+    pub centroid_m: nalgebra::Vector2<f64>,
+}
+
+/// Fits [`PositionFit`] to `(model centre, position)` pairs: in the plane,
+/// by least median of squares over the similarities two pairs give, then
+/// least squares over the pairs within 2.5 sigma; vertically the median
+/// shift. `None` with fewer than [`MIN_POSITIONS`] pairs or when all
+/// centres coincide.
+pub fn fit_positions(pairs: &[(Vector3<f64>, Vector3<f64>)], seed: u64) -> Option<PositionFit> {
+    let n = pairs.len();
+    if n < MIN_POSITIONS {
+        return None;
+    }
+    type C = nalgebra::Complex<f64>;
+    let c: Vec<C> = pairs.iter().map(|(m, _)| C::new(m.x, m.y)).collect();
+    let g: Vec<C> = pairs.iter().map(|(_, p)| C::new(p.x, p.y)).collect();
+    let extent = c.iter().map(|z| (z - c[0]).norm()).fold(0.0, f64::max);
+    if !(extent > 0.0) {
+        return None;
+    }
+    let candidate = |i: usize, j: usize| -> Option<(C, C)> {
+        let dc = c[i] - c[j];
+        (dc.norm() > 1e-6 * extent).then(|| {
+            let a = (g[i] - g[j]) / dc;
+            (a, g[i] - a * c[i])
+        })
+    };
+    let median_sq = |a: C, b: C, buf: &mut Vec<f64>| -> f64 {
+        buf.clear();
+        buf.extend((0..n).map(|k| (g[k] - (a * c[k] + b)).norm_sqr()));
+        let mid = buf.len() / 2;
+        *buf.select_nth_unstable_by(mid, f64::total_cmp).1
+    };
+    let mut buf = Vec::with_capacity(n);
+    let mut best: Option<(f64, C, C)> = None;
+    let mut consider = |i: usize, j: usize, buf: &mut Vec<f64>| {
+        if let Some((a, b)) = candidate(i, j) {
+            let m = median_sq(a, b, buf);
+            if m.is_finite() && best.is_none_or(|(bm, _, _)| m < bm) {
+                best = Some((m, a, b));
+            }
+        }
+    };
+    if n <= MAX_EXHAUSTIVE {
+        for i in 0..n {
+            for j in i + 1..n {
+                consider(i, j, &mut buf);
+            }
+        }
+    } else {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        for _ in 0..SAMPLED_PAIRS {
+            let i = rng.gen_range(0..n);
+            let j = rng.gen_range(0..n);
+            if i != j {
+                consider(i, j, &mut buf);
+            }
+        }
+    }
+    let (med, a, b) = best?;
+    let sigma = (1.4826 * (1.0 + 5.0 / (n as f64 - 2.0).max(1.0)) * med.sqrt()).max(MIN_SIGMA_M);
+    let inliers: Vec<bool> = (0..n)
+        .map(|k| (g[k] - (a * c[k] + b)).norm() <= 2.5 * sigma)
+        .collect();
+    let idx: Vec<usize> = (0..n).filter(|&k| inliers[k]).collect();
+    if idx.len() < 2 {
+        return None;
+    }
+    // Least squares over the inliers, about their centroids.
+    let m = idx.len() as f64;
+    let c_mean = idx.iter().map(|&k| c[k]).sum::<C>() / m;
+    let g_mean = idx.iter().map(|&k| g[k]).sum::<C>() / m;
+    let num: C = idx
+        .iter()
+        .map(|&k| (c[k] - c_mean).conj() * (g[k] - g_mean))
+        .sum();
+    let den: f64 = idx.iter().map(|&k| (c[k] - c_mean).norm_sqr()).sum();
+    if !(den > 0.0) {
+        return None;
+    }
+    let a = num / den;
+    let b = g_mean - a * c_mean;
+    let scale = a.norm();
+    if !(scale.is_finite() && scale > 0.0) {
+        return None;
+    }
+    let residuals: Vec<f64> = idx
+        .iter()
+        .map(|&k| (g[k] - (a * c[k] + b)).norm())
+        .collect();
+    let horizontal_sigma_m = (1.4826 * median(residuals.clone())).max(MIN_SIGMA_M);
+    let rms_h = (residuals.iter().map(|r| r * r).sum::<f64>() / m).sqrt();
+    let horizontal_sigma_m = horizontal_sigma_m.max(rms_h.min(2.0 * horizontal_sigma_m));
+    let shifts: Vec<f64> = idx
+        .iter()
+        .map(|&k| pairs[k].1.z - scale * pairs[k].0.z)
+        .collect();
+    let shift_z = median(shifts.clone());
+    let vertical_sigma_m =
+        (1.4826 * median(shifts.iter().map(|s| (s - shift_z).abs()).collect())).max(MIN_SIGMA_M);
+    let spread_m =
+        scale * (idx.iter().map(|&k| (c[k] - c_mean).norm_sqr()).sum::<f64>() / m).sqrt();
+    Some(PositionFit {
+        map_from_model: Sim3 {
+            scale,
+            rotation: UnitQuaternion::from_axis_angle(&Vector3::z_axis(), a.arg()),
+            translation: Vector3::new(b.re, b.im, shift_z),
+        },
+        inliers,
+        horizontal_sigma_m,
+        vertical_sigma_m,
+        spread_m,
+        centroid_m: nalgebra::Vector2::new(g_mean.re, g_mean.im),
+    })
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    let mid = v.len() / 2;
+    *v.select_nth_unstable_by(mid, f64::total_cmp).1
+}
+
+/// The spread of the photos over their positions' scatter from which the
+/// fit's heading and scale are searched about (below, the search would
+/// have to try every heading and scale over a region of the scatter's size).
+pub const MIN_SPREAD_SIGMAS: f64 = 3.0;
+
+impl PositionFit {
+    /// Whether the photos spread far enough, for their positions' scatter,
+    /// to give the heading and the scale ([`MIN_SPREAD_SIGMAS`]).
+    pub fn fixes_heading(&self) -> bool {
+        self.spread_m >= MIN_SPREAD_SIGMAS * self.horizontal_sigma_m
+    }
+
+    /// The search's scale range about the fit's: three times the scatter
+    /// over the spread (over two independent positions), and 5 %.
+    pub fn max_scale(&self) -> f64 {
+        let relative = self.horizontal_sigma_m / (self.spread_m * MAX_INDEPENDENT.sqrt());
+        (1.05 + 3.0 * relative).min(SearchOptions::default().max_scale)
+    }
+
+    /// Where to search for the initial camera (at `init_centre`, map
+    /// frame, as this fit puts it): the heading within three times its
+    /// uncertainty (the scatter over the spread) and 5 deg, any when the
+    /// photos lie within the scatter of one another; the position within
+    /// twice the scatter, what that heading moves it by and 0.5 m; each
+    /// within [`MAX_RADIUS_M`].
+    pub fn region(&self, init_centre: &Vector3<f64>) -> SearchRegion {
+        let used = self.inliers.iter().filter(|&&i| i).count() as f64;
+        let independent = used.min(MAX_INDEPENDENT).sqrt();
+        let yaw_deg = if !self.fixes_heading() {
+            180.0
+        } else {
+            (3.0 * (self.horizontal_sigma_m / (self.spread_m * independent))
+                .atan()
+                .to_degrees()
+                + 5.0)
+                .clamp(10.0, 180.0)
+        };
+        let lever = (init_centre.xy() - self.centroid_m).norm();
+        let radius_m = 2.0 * self.horizontal_sigma_m / independent
+            + lever * yaw_deg.min(90.0).to_radians().sin()
+            + 0.5;
+        let vertical_m = 2.0 * self.vertical_sigma_m / independent + 0.5;
+        SearchRegion {
+            radius_m: radius_m.clamp(1.0, MAX_RADIUS_M),
+            yaw_deg,
+            vertical_m: vertical_m.clamp(1.0, MAX_RADIUS_M),
+        }
+    }
+}
+
+/// What the placement from the images' positions found (`report.json` →
+/// `positions`).
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct PositionsRecord {
+    /// The map's coordinate reference system, as given.
+    pub crs: Option<String>,
+    /// Images with a position, those registered in the model mapped without
+    /// the map's planes, and those within 2.5 sigma of the fit.
+    pub num_images: usize,
+    pub num_fitted: usize,
+    pub num_inliers: usize,
+    /// The positions' scatter about the fit (robust sigma, metres) and the
+    /// spread of the fitted centres (RMS distance from their mean).
+    pub horizontal_sigma_m: f64,
+    pub vertical_sigma_m: f64,
+    pub spread_m: f64,
+    /// Metres per unit of the model mapped without the map's planes (its
+    /// initial pair's baseline is one unit).
+    pub scale: f64,
+    /// Where the search looked, about the initial camera as the fit put it.
+    pub region: SearchRegion,
+    /// The positions against the finished model's camera centres (metres):
+    /// the median horizontal and vertical distance, and the largest
+    /// horizontal one, over the registered images with a position.
+    pub final_horizontal_median_m: Option<f64>,
+    pub final_horizontal_max_m: Option<f64>,
+    pub final_vertical_median_m: Option<f64>,
+    /// Wall time of the fit (after the run without the map's planes).
+    pub fit_s: f64,
+}
+
+/// Maps the database with no initial pose, from `positions` (map frame) of
+/// some of its images: see the module's description. `region`: where to
+/// search instead of the region the fit's scatter gives. The report's
+/// `positions` says what the fit found and `init_search` what the search
+/// did.
+pub fn run_mapper_from_positions(
+    inputs: MapperInputs<'_>,
+    init_image: ImageId,
+    positions: &BTreeMap<ImageId, Vector3<f64>>,
+    region: Option<&SearchRegion>,
+    options: &MapperOptions,
+    progress: Progress<'_>,
+) -> Result<MapperOutput, MapperError> {
+    let started = Instant::now();
+    if positions.len() < MIN_POSITIONS {
+        return Err(MapperError::Positions(format!(
+            "{} images have a GPS position, at least {MIN_POSITIONS} are needed to place the model without an initial pose",
+            positions.len()
+        )));
+    }
+    let n = positions.len() as f64;
+    let at = positions
+        .get(&init_image)
+        .copied()
+        .unwrap_or_else(|| positions.values().sum::<Vector3<f64>>() / n);
+    // Level, heading east, at the image's position: the fit below replaces
+    // all but the tilt.
+    let start = BodyPose {
+        position_m: at,
+        roll_rad: 0.0,
+        pitch_rad: 0.0,
+        yaw_rad: 0.0,
+    }
+    .to_cam_from_world();
+    log::info!(
+        "no initial pose: placing the model from the GPS positions of {} images, mapping without the map's planes first",
+        positions.len()
+    );
+    let plain = plain_run(
+        inputs,
+        init_image,
+        &start,
+        Some(1.0),
+        options,
+        &mut *progress,
+    )?;
+    let run_s = started.elapsed().as_secs_f64();
+    let fitted = Instant::now();
+    let pairs: Vec<(Vector3<f64>, Vector3<f64>)> = positions
+        .iter()
+        .filter_map(|(&id, p)| {
+            let pose = plain.reconstruction.pose(id)?;
+            Some((pose.camera_center(), *p))
+        })
+        .collect();
+    let fit = fit_positions(&pairs, options.seed).ok_or_else(|| {
+        MapperError::Positions(format!(
+            "of the {} images with a GPS position, {} were registered without the map's planes, at least {MIN_POSITIONS} at different places are needed to fit the model to them",
+            positions.len(),
+            pairs.len()
+        ))
+    })?;
+    let model = PlainModel::new(&plain, init_image, &start, &fit.map_from_model, run_s);
+    // `--init-search` given: its region instead.
+    let region = match region {
+        Some(r) => *r,
+        None if !fit.fixes_heading() => {
+            return Err(MapperError::Positions(format!(
+                "the photos were taken within {:.1} m of one another (RMS about their mean) and their GPS positions scatter by {:.1} m about the model: they do not fix its heading or scale (a spread of at least {MIN_SPREAD_SIGMAS} times the scatter is needed); give a rough initial pose (--init-pose with --init-search)",
+                fit.spread_m, fit.horizontal_sigma_m
+            )))
+        }
+        None => fit.region(&model.rough_centre()),
+    };
+    let num_inliers = fit.inliers.iter().filter(|&&i| i).count();
+    log::info!(
+        "the GPS positions fit the model with a scatter of {:.2} m horizontally and {:.2} m vertically ({num_inliers} of {} images within 2.5 sigma; the photos spread over {:.1} m): searching within {:.1} m (vertically {:.1} m) and {:.0} deg",
+        fit.horizontal_sigma_m,
+        fit.vertical_sigma_m,
+        pairs.len(),
+        fit.spread_m,
+        region.radius_m,
+        region.vertical_m,
+        region.yaw_deg
+    );
+    if 2.0 * fit.horizontal_sigma_m / (num_inliers.clamp(1, 4) as f64).sqrt() + 0.5 > MAX_RADIUS_M {
+        log::warn!(
+            "the GPS positions scatter by {:.1} m about the fit: the search covers only {MAX_RADIUS_M} m about where they put the initial image",
+            fit.horizontal_sigma_m
+        );
+    }
+    let mut record = PositionsRecord {
+        crs: None,
+        num_images: positions.len(),
+        num_fitted: pairs.len(),
+        num_inliers,
+        horizontal_sigma_m: fit.horizontal_sigma_m,
+        vertical_sigma_m: fit.vertical_sigma_m,
+        spread_m: fit.spread_m,
+        scale: fit.map_from_model.scale,
+        region,
+        final_horizontal_median_m: None,
+        final_horizontal_max_m: None,
+        final_vertical_median_m: None,
+        fit_s: fitted.elapsed().as_secs_f64(),
+    };
+    let search = SearchOptions {
+        max_scale: fit.max_scale(),
+        ..SearchOptions::default()
+    };
+    let mut out = search_and_map(
+        inputs, init_image, &model, &region, &search, options, progress,
+    )?;
+    let offsets: Vec<Vector3<f64>> = positions
+        .iter()
+        .filter_map(|(&id, p)| Some(p - out.reconstruction.pose(id)?.camera_center()))
+        .collect();
+    if !offsets.is_empty() {
+        let horizontal: Vec<f64> = offsets.iter().map(|d| d.xy().norm()).collect();
+        record.final_horizontal_max_m = horizontal.iter().copied().reduce(f64::max);
+        record.final_horizontal_median_m = Some(median(horizontal));
+        record.final_vertical_median_m = Some(median(offsets.iter().map(|d| d.z.abs()).collect()));
+    }
+    out.report.positions = Some(record);
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Centres of a model (arbitrary frame and scale) and their positions
+    /// in the map: turned by `yaw`, scaled, shifted, with `noise` added.
+    fn walk(yaw: f64, scale: f64, noise: &[[f64; 3]]) -> Vec<(Vector3<f64>, Vector3<f64>)> {
+        let sim = Sim3 {
+            scale,
+            rotation: UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
+            translation: Vector3::new(500_100.0, 4_400_200.0, 210.0),
+        };
+        noise
+            .iter()
+            .enumerate()
+            .map(|(k, e)| {
+                let t = k as f64;
+                let model = Vector3::new(t * 0.5, (t * 0.7).sin(), 0.02 * t);
+                (model, sim.transform_point(&model) + Vector3::from(*e))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn exact_positions_give_the_similarity() {
+        let pairs = walk(2.0, 3.0, &[[0.0; 3]; 12]);
+        let fit = fit_positions(&pairs, 0).expect("fits");
+        assert!((fit.map_from_model.scale - 3.0).abs() < 1e-9);
+        assert!((fit.map_from_model.rotation.angle() - 2.0).abs() < 1e-9);
+        for (m, p) in &pairs {
+            assert!((fit.map_from_model.transform_point(m) - p).norm() < 1e-6);
+        }
+        assert!(fit.inliers.iter().all(|&i| i));
+        assert_eq!(fit.horizontal_sigma_m, MIN_SIGMA_M);
+        // 12 images 1.5 m apart: a narrow heading range, within 1 m.
+        let region = fit.region(&pairs[0].1);
+        assert_eq!(region.yaw_deg, 10.0);
+        assert!(region.radius_m < 9.0, "{region:?}");
+        assert!(fit.fixes_heading() && fit.max_scale() < 1.06);
+    }
+
+    #[test]
+    fn a_wrong_position_is_left_out() {
+        // Two metres of scatter and one position 60 m off.
+        let mut noise: Vec<[f64; 3]> = (0..20)
+            .map(|k| {
+                let a = k as f64 * 2.4;
+                [
+                    2.0 * a.cos(),
+                    2.0 * a.sin(),
+                    3.0 * (k as f64 * 1.7 + 0.4).sin(),
+                ]
+            })
+            .collect();
+        noise[7] = [60.0, -20.0, 0.0];
+        let pairs = walk(-1.0, 10.0, &noise);
+        let fit = fit_positions(&pairs, 0).expect("fits");
+        assert!(!fit.inliers[7]);
+        assert_eq!(fit.inliers.iter().filter(|&&i| i).count(), 19);
+        assert!((fit.map_from_model.scale / 10.0 - 1.0).abs() < 0.02);
+        let yaw = fit.map_from_model.rotation.angle()
+            * fit
+                .map_from_model
+                .rotation
+                .axis()
+                .map_or(1.0, |a| a.z.signum());
+        assert!((yaw + 1.0).abs() < 0.02, "{yaw}");
+        // Every position 2 m off: 1.48 times that.
+        assert!(
+            fit.horizontal_sigma_m > 2.5 && fit.horizontal_sigma_m < 3.5,
+            "{fit:?}"
+        );
+        assert!(
+            fit.vertical_sigma_m > 1.0 && fit.vertical_sigma_m < 4.0,
+            "{fit:?}"
+        );
+        // A 50 m walk: the heading to within a few degrees.
+        let region = fit.region(&pairs[0].1);
+        assert!(region.yaw_deg < 20.0, "{region:?}");
+        assert!(
+            fit.fixes_heading() && fit.max_scale() < 1.2,
+            "{}",
+            fit.max_scale()
+        );
+        assert!(
+            region.radius_m > 2.0 && region.radius_m <= MAX_RADIUS_M,
+            "{region:?}"
+        );
+    }
+
+    #[test]
+    fn photos_within_the_scatter_do_not_fix_the_heading() {
+        let noise: Vec<[f64; 3]> = (0..6)
+            .map(|k| [3.0 * (k as f64).cos(), 3.0 * (k as f64).sin(), 0.0])
+            .collect();
+        // A 2.5 m walk scaled to 0.5 m: the positions scatter more than it.
+        let pairs = walk(0.3, 0.2, &noise);
+        let fit = fit_positions(&pairs, 0).expect("fits");
+        assert!(!fit.fixes_heading(), "{fit:?}");
+        assert_eq!(fit.region(&pairs[0].1).yaw_deg, 180.0);
+        // Too few, or all at one place: no fit.
+        assert!(fit_positions(&pairs[..2], 0).is_none());
+        let same = vec![(Vector3::zeros(), Vector3::new(1.0, 2.0, 3.0)); 5];
+        assert!(fit_positions(&same, 0).is_none());
+    }
+}
