@@ -296,6 +296,17 @@ fn from_proj4(proj4: &str) -> Result<TransverseMercator, String> {
                 .map_err(|_| format!("its {key} `{v}` is not a number"))
         })
     };
+    // Axes other than east-north (South Africa's Lo grids are west-south),
+    // another prime meridian or a unit given by its size: not read.
+    if let Some(axis) = value("axis").filter(|a| *a != "enu") {
+        return Err(format!("its axes are `{axis}`, not east-north-up"));
+    }
+    if value("pm").is_some_and(|p| p != "greenwich" && p != "0") {
+        return Err("its prime meridian is not Greenwich".to_owned());
+    }
+    if value("to_meter").is_some_and(|v| v.parse::<f64>() != Ok(1.0)) {
+        return Err("its unit is not the metre (+to_meter)".to_owned());
+    }
     match value("units") {
         None | Some("m") => {}
         Some(u) => {
@@ -418,6 +429,13 @@ mod tests {
         // Gauss-Krüger zone 3 is on the Bessel ellipsoid: a datum shift.
         let err = MapCrs::parse("EPSG:31467", [0.0; 3]).unwrap_err();
         assert!(err.contains("datum") || err.contains("ellipsoid"), "{err}");
+        // West-south axes (Lo 19), a unit by its size: refused.
+        let axes = from_proj4(
+            "+proj=tmerc +lat_0=0 +lon_0=19 +k=1 +x_0=0 +y_0=0 +axis=wsu +ellps=WGS84 +units=m",
+        );
+        assert!(axes.unwrap_err().contains("wsu"));
+        let feet = from_proj4("+proj=tmerc +lon_0=19 +ellps=WGS84 +to_meter=0.3048");
+        assert!(feet.unwrap_err().contains("to_meter"));
         // Geographic, Lambert, feet: refused with the reason.
         assert!(MapCrs::parse("EPSG:4326", [0.0; 3]).is_err());
         let lcc = MapCrs::parse("EPSG:2154", [0.0; 3]).unwrap_err();

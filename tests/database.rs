@@ -532,6 +532,12 @@ fn newer_schemas_are_read_and_reported() {
         params![f64_blob(&[500000.25, 4400000.5, 200.125])],
     )
     .unwrap();
+    // A WGS84 position (coordinate system 0) is GPS.
+    conn.execute(
+        "INSERT INTO pose_priors VALUES (1, ?1, 0, NULL)",
+        params![f64_blob(&[47.5, 8.25, 400.0])],
+    )
+    .unwrap();
     drop(conn);
     let db = read_database(&path).unwrap();
     assert_eq!(db.schema.user_version, 3900);
@@ -540,6 +546,12 @@ fn newer_schemas_are_read_and_reported() {
         Some([500000.25, 4400000.5, 200.125])
     );
     assert_eq!(db.pose_priors[&ImageId(3)].coordinate_system, Some(1));
+    assert!(!db.pose_priors[&ImageId(3)].is_gps());
+    assert!(db.pose_priors[&ImageId(1)].is_gps());
+    assert_eq!(
+        db.pose_priors[&ImageId(1)].position,
+        Some([47.5, 8.25, 400.0])
+    );
     assert_eq!(db.schema.unknown_tables, vec!["my_extra".to_owned()]);
     let notes = db.schema.notes.join("\n");
     assert!(

@@ -46,10 +46,6 @@ fn known_poses(
 ) -> Result<BTreeMap<ImageId, KnownPose>> {
     let mut known = BTreeMap::new();
     for (&id, prior) in &db.pose_priors {
-        if prior.is_gps() {
-            // Latitude and longitude: see [`gps_positions`].
-            continue;
-        }
         if let Some(pose) = prior.cam_from_world {
             known.insert(
                 id,
@@ -58,6 +54,9 @@ fn known_poses(
                     has_rotation: true,
                 },
             );
+        } else if prior.is_gps() {
+            // Latitude and longitude: see [`gps_positions`].
+            continue;
         } else if let Some(p) = prior.position {
             // Position only: the centre of an identity-rotation pose.
             let centre = nalgebra::Vector3::from(p);
@@ -119,9 +118,20 @@ fn gps_positions(
                     db.path.display()
                 );
             }
-            gps.into_iter()
-                .map(|(id, [lat, lon, alt])| (id, crs.to_map(lat, lon, alt)))
-                .collect()
+            let positions: BTreeMap<ImageId, nalgebra::Vector3<f64>> = gps
+                .iter()
+                .map(|&(id, [lat, lon, alt])| (id, crs.to_map(lat, lon, alt)))
+                .filter(|(_, p)| p.iter().all(|v| v.is_finite()))
+                .collect();
+            if positions.len() < gps.len() {
+                log::warn!(
+                    "{} GPS positions of {} lie where --map-crs {} does not reach (left out)",
+                    gps.len() - positions.len(),
+                    db.path.display(),
+                    crs.name
+                );
+            }
+            positions
         }
         None => {
             if !gps.is_empty() {
@@ -134,6 +144,52 @@ fn gps_positions(
             BTreeMap::new()
         }
     }
+}
+
+/// GPS positions farther than this from the map's bounding box, metres,
+/// are taken for a wrong CRS or origin.
+const MAX_GPS_BEYOND_MAP_M: f64 = 1000.0;
+
+/// An error when the images' GPS positions (map frame) lie far from the
+/// map: a wrong `--map-crs` or `--map-origin`, or positions that are no
+/// latitudes and longitudes.
+fn check_positions_near_map(
+    gps: &BTreeMap<ImageId, nalgebra::Vector3<f64>>,
+    cloud: &PointCloud,
+    config: &MapConfig,
+) -> Result<()> {
+    let (Some((lo, hi)), Some(crs)) = (cloud.bounds(), config.map_crs.as_ref()) else {
+        return Ok(());
+    };
+    if gps.is_empty() {
+        return Ok(());
+    }
+    // The median on each axis: a few wrong positions do not move it.
+    let mut values: Vec<f64> = Vec::with_capacity(gps.len());
+    let mut median = |k: usize| {
+        values.clear();
+        values.extend(gps.values().map(|p| p[k]));
+        values.sort_by(f64::total_cmp);
+        values[values.len() / 2]
+    };
+    let (x, y) = (median(0), median(1));
+    let beyond = |v: f64, k: usize| (lo[k] - v).max(v - hi[k]).max(0.0);
+    let distance = beyond(x, 0).hypot(beyond(y, 1));
+    if distance > MAX_GPS_BEYOND_MAP_M {
+        bail!(
+            "the images' GPS positions, taken by --map-crs {} with the map's origin at ({}, {}, {}), lie {distance:.0} m from the LiDAR map {} (their median at ({x:.1}, {y:.1}); the map spans ({:.1}, {:.1}) to ({:.1}, {:.1})): is the CRS the map's, are its coordinates shifted (--map-origin, the CRS coordinates of the map's (0, 0, 0)), and are the database's positions the photos' GPS (COLMAP 3.8 stores a prior translation without a rotation as latitude, longitude and altitude)?",
+            crs.name,
+            crs.origin[0],
+            crs.origin[1],
+            crs.origin[2],
+            config.lidar.display(),
+            lo.x,
+            lo.y,
+            hi.x,
+            hi.y
+        );
+    }
+    Ok(())
 }
 
 /// Hints on the initial poses as given: roll, pitch and yaw all within
@@ -280,7 +336,7 @@ pub struct MapArgs {
     /// the photos' EXIF) when no initial pose is given: EPSG:CODE (a UTM
     /// zone or another transverse Mercator grid on WGS84/GRS80, e.g.
     /// EPSG:32633), utm:ZONE (e.g. utm:33n) or enu:LAT,LON,HEIGHT (a local
-    /// east-north-up frame). Altitudes are taken as the map's heights.
+    /// east-north-up frame). Only differences of altitude are used.
     #[arg(long, visible_alias = "map_crs", value_name = "CRS")]
     pub map_crs: Option<String>,
     /// With --map-crs: the CRS coordinates of the map's (0, 0, 0), when its
@@ -795,6 +851,9 @@ pub fn run(args: &MapArgs) -> Result<()> {
         },
     };
     let (cloud, load) = load_map_reporting(&config.lidar, config.input_units)?;
+    if matches!(start, RunStart::Positions(_)) {
+        check_positions_near_map(&gps, &cloud, &config)?;
+    }
     let total = db.images.len();
     let bar = super::image_progress_bar(total, "images registered");
     let mut progress = |done: usize, _total: usize| {

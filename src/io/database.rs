@@ -106,10 +106,11 @@ impl DbPosePrior {
     }
 }
 
-/// Latitude and longitude within their ranges (a 3.8 translation-only prior
-/// is EXIF GPS).
+/// Latitude and longitude within their ranges and an altitude between the
+/// Dead Sea's shore and a high flight (a 3.8 translation-only prior is
+/// EXIF GPS; `map` checks that the positions are near the map).
 fn is_geodetic(t: &[f64]) -> bool {
-    t[0].abs() <= 90.0 && t[1].abs() <= 180.0
+    t[0].abs() <= 90.0 && t[1].abs() <= 180.0 && (-1000.0..=20_000.0).contains(&t[2])
 }
 
 /// The verified geometry of an image pair (`two_view_geometries` row).

@@ -34,6 +34,14 @@ use crate::scene::{BodyPose, ImageId};
 /// Images with a position the fit needs, registered in the plain model.
 pub const MIN_POSITIONS: usize = 3;
 
+/// Positions from which wrong ones are told from the rest (with fewer, a
+/// pair's own two fit exactly and the median says nothing).
+const MIN_ROBUST: usize = 7;
+
+/// Positions farther than this many sigmas from the fit are left out (a 2D
+/// distance beyond 3.5 sigma: 0.2 % of Gaussian errors).
+const OUTLIER_SIGMAS: f64 = 3.5;
+
 /// All pairs of positions are tried up to this many images; beyond, this
 /// many pairs drawn at random (seeded).
 const MAX_EXHAUSTIVE: usize = 200;
@@ -54,10 +62,11 @@ const MAX_INDEPENDENT: f64 = 4.0;
 #[derive(Clone, Debug, PartialEq)]
 pub struct PositionFit {
     pub map_from_model: Sim3,
-    /// Of the pairs given: those within the fit's scatter.
+    /// Of the pairs given: those within [`OUTLIER_SIGMAS`] of the fit
+    /// (all of them below [`MIN_ROBUST`] pairs).
     pub inliers: Vec<bool>,
-    /// Robust scatter of the positions about the fit, horizontally and
-    /// vertically, metres.
+    /// The inliers' scatter about the fit (sigma of each horizontal axis,
+    /// and vertically), metres.
     pub horizontal_sigma_m: f64,
     pub vertical_sigma_m: f64,
     /// RMS horizontal distance of the inliers' centres from their mean
@@ -69,8 +78,8 @@ pub struct PositionFit {
 
 /// Fits [`PositionFit`] to `(model centre, position)` pairs: in the plane,
 /// by least median of squares over the similarities two pairs give, then
-/// least squares over the pairs within 2.5 sigma; vertically the median
-/// shift. `None` with fewer than [`MIN_POSITIONS`] pairs or when all
+/// least squares over the pairs within 3.5 sigma of it, twice; vertically
+/// the median shift. `None` with fewer than [`MIN_POSITIONS`] pairs or when all
 /// centres coincide.
 pub fn fit_positions(pairs: &[(Vector3<f64>, Vector3<f64>)], seed: u64) -> Option<PositionFit> {
     let n = pairs.len();
@@ -124,46 +133,67 @@ pub fn fit_positions(pairs: &[(Vector3<f64>, Vector3<f64>)], seed: u64) -> Optio
         }
     }
     let (med, a, b) = best?;
-    let sigma = (1.4826 * (1.0 + 5.0 / (n as f64 - 2.0).max(1.0)) * med.sqrt()).max(MIN_SIGMA_M);
-    let inliers: Vec<bool> = (0..n)
-        .map(|k| (g[k] - (a * c[k] + b)).norm() <= 2.5 * sigma)
-        .collect();
+    // Least squares over the pairs in `inliers`, about their centroids:
+    // the similarity, the centroids and each axis' sigma (four parameters
+    // fitted to 2m coordinates).
+    let least_squares = |inliers: &[bool]| -> Option<(C, C, C, C, f64)> {
+        let idx: Vec<usize> = (0..n).filter(|&k| inliers[k]).collect();
+        if idx.len() < 2 {
+            return None;
+        }
+        let m = idx.len() as f64;
+        let c_mean = idx.iter().map(|&k| c[k]).sum::<C>() / m;
+        let g_mean = idx.iter().map(|&k| g[k]).sum::<C>() / m;
+        let num: C = idx
+            .iter()
+            .map(|&k| (c[k] - c_mean).conj() * (g[k] - g_mean))
+            .sum();
+        let den: f64 = idx.iter().map(|&k| (c[k] - c_mean).norm_sqr()).sum();
+        if !(den > 0.0) {
+            return None;
+        }
+        let a = num / den;
+        let b = g_mean - a * c_mean;
+        let sum_sq: f64 = idx
+            .iter()
+            .map(|&k| (g[k] - (a * c[k] + b)).norm_sqr())
+            .sum();
+        let sigma = (sum_sq / (2.0 * m - 4.0).max(1.0)).sqrt().max(MIN_SIGMA_M);
+        Some((a, b, c_mean, g_mean, sigma))
+    };
+    let within = |a: C, b: C, sigma: f64| -> Vec<bool> {
+        (0..n)
+            .map(|k| (g[k] - (a * c[k] + b)).norm() <= OUTLIER_SIGMAS * sigma)
+            .collect()
+    };
+    // With enough positions, those far from the best pair's fit are left
+    // out (a 2D distance's median is 1.18 sigma of each axis; the factor
+    // for small samples as in Rousseeuw's LMedS), then those far from the
+    // least-squares fit of the rest; with fewer (two of them fit each pair
+    // exactly, the median says nothing) all are kept.
+    let mut inliers = vec![true; n];
+    if n >= MIN_ROBUST {
+        let sigma = (med.sqrt() / 1.1774 * (1.0 + 5.0 / (n as f64 - 4.0))).max(MIN_SIGMA_M);
+        inliers = within(a, b, sigma);
+        let (a, b, _, _, sigma) = least_squares(&inliers)?;
+        inliers = within(a, b, sigma);
+    }
+    let (a, b, c_mean, g_mean, horizontal_sigma_m) = least_squares(&inliers)?;
     let idx: Vec<usize> = (0..n).filter(|&k| inliers[k]).collect();
-    if idx.len() < 2 {
-        return None;
-    }
-    // Least squares over the inliers, about their centroids.
     let m = idx.len() as f64;
-    let c_mean = idx.iter().map(|&k| c[k]).sum::<C>() / m;
-    let g_mean = idx.iter().map(|&k| g[k]).sum::<C>() / m;
-    let num: C = idx
-        .iter()
-        .map(|&k| (c[k] - c_mean).conj() * (g[k] - g_mean))
-        .sum();
-    let den: f64 = idx.iter().map(|&k| (c[k] - c_mean).norm_sqr()).sum();
-    if !(den > 0.0) {
-        return None;
-    }
-    let a = num / den;
-    let b = g_mean - a * c_mean;
     let scale = a.norm();
     if !(scale.is_finite() && scale > 0.0) {
         return None;
     }
-    let residuals: Vec<f64> = idx
-        .iter()
-        .map(|&k| (g[k] - (a * c[k] + b)).norm())
-        .collect();
-    let horizontal_sigma_m = (1.4826 * median(residuals.clone())).max(MIN_SIGMA_M);
-    let rms_h = (residuals.iter().map(|r| r * r).sum::<f64>() / m).sqrt();
-    let horizontal_sigma_m = horizontal_sigma_m.max(rms_h.min(2.0 * horizontal_sigma_m));
     let shifts: Vec<f64> = idx
         .iter()
         .map(|&k| pairs[k].1.z - scale * pairs[k].0.z)
         .collect();
     let shift_z = median(shifts.clone());
-    let vertical_sigma_m =
-        (1.4826 * median(shifts.iter().map(|s| (s - shift_z).abs()).collect())).max(MIN_SIGMA_M);
+    let vertical_sigma_m = (shifts.iter().map(|s| (s - shift_z).powi(2)).sum::<f64>()
+        / (m - 1.0).max(1.0))
+    .sqrt()
+    .max(MIN_SIGMA_M);
     let spread_m =
         scale * (idx.iter().map(|&k| (c[k] - c_mean).norm_sqr()).sum::<f64>() / m).sqrt();
     Some(PositionFit {
@@ -242,7 +272,7 @@ pub struct PositionsRecord {
     /// The map's coordinate reference system, as given.
     pub crs: Option<String>,
     /// Images with a position, those registered in the model mapped without
-    /// the map's planes, and those within 2.5 sigma of the fit.
+    /// the map's planes, and those within 3.5 sigma of the fit.
     pub num_images: usize,
     pub num_fitted: usize,
     pub num_inliers: usize,
@@ -342,7 +372,7 @@ pub fn run_mapper_from_positions(
     };
     let num_inliers = fit.inliers.iter().filter(|&&i| i).count();
     log::info!(
-        "the GPS positions fit the model with a scatter of {:.2} m horizontally and {:.2} m vertically ({num_inliers} of {} images within 2.5 sigma; the photos spread over {:.1} m): searching within {:.1} m (vertically {:.1} m) and {:.0} deg",
+        "the GPS positions fit the model with a scatter of {:.2} m horizontally and {:.2} m vertically ({num_inliers} of {} images within 3.5 sigma; the photos spread over {:.1} m): searching within {:.1} m (vertically {:.1} m) and {:.0} deg",
         fit.horizontal_sigma_m,
         fit.vertical_sigma_m,
         pairs.len(),
@@ -460,11 +490,8 @@ mod tests {
                 .axis()
                 .map_or(1.0, |a| a.z.signum());
         assert!((yaw + 1.0).abs() < 0.02, "{yaw}");
-        // Every position 2 m off: 1.48 times that.
-        assert!(
-            fit.horizontal_sigma_m > 2.5 && fit.horizontal_sigma_m < 3.5,
-            "{fit:?}"
-        );
+        // Every position 2 m off: 1.5 m on each axis.
+        assert!((fit.horizontal_sigma_m - 1.5).abs() < 0.1, "{fit:?}");
         assert!(
             fit.vertical_sigma_m > 1.0 && fit.vertical_sigma_m < 4.0,
             "{fit:?}"
@@ -481,6 +508,20 @@ mod tests {
             region.radius_m > 2.0 && region.radius_m <= MAX_RADIUS_M,
             "{region:?}"
         );
+    }
+
+    #[test]
+    fn few_positions_are_all_kept() {
+        // Three positions 1 m off: none is told from the others, and the
+        // scatter is what they leave (the best pair fits its own exactly).
+        let pairs = walk(
+            0.5,
+            4.0,
+            &[[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0]],
+        );
+        let fit = fit_positions(&pairs, 0).expect("fits");
+        assert!(fit.inliers.iter().all(|&i| i));
+        assert!(fit.horizontal_sigma_m > 0.3, "{fit:?}");
     }
 
     #[test]

@@ -1416,6 +1416,15 @@ fn check_gps(scene: &Path, work: &Path, exact_run: &Run) {
             && err.contains(&format!("{} images have a GPS position", gt.len())),
         "{err}"
     );
+    // The map's shift forgotten: the positions are 4400 km off, an error
+    // before any mapping.
+    let mut unshifted = gps_args(&db, &work.join("gps_unshifted"), true);
+    unshifted.map_origin = None;
+    let err = format!("{:#}", run_map(&unshifted).expect_err("far from the map"));
+    assert!(
+        err.contains("lie 4") && err.contains("--map-origin"),
+        "{err}"
+    );
     // Positions scattered by 3 m over photos 2-3 m apart fix no heading.
     let loose = database_with_gps(scene, work, "gps3.db", origin, (3.0, 3.0), None);
     let err = format!(
@@ -1426,7 +1435,9 @@ fn check_gps(scene: &Path, work: &Path, exact_run: &Run) {
         err.contains("do not fix its heading") && err.contains("--init-search"),
         "{err}"
     );
-    assert!(!work.join("gps_loose").exists() && !work.join("gps_no_crs").exists());
+    for out in ["gps_loose", "gps_no_crs", "gps_unshifted"] {
+        assert!(!work.join(out).exists(), "{out}");
+    }
 }
 
 /// A run from a rough pose meets the bar of the run from the exact one: the
