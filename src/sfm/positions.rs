@@ -66,7 +66,7 @@ pub struct PositionFit {
     /// (all of them below [`MIN_ROBUST`] pairs).
     pub inliers: Vec<bool>,
     /// The inliers' scatter about the fit (sigma of each horizontal axis,
-    /// and vertically), metres.
+    /// and vertically, robustly from 7 positions on), metres.
     pub horizontal_sigma_m: f64,
     pub vertical_sigma_m: f64,
     /// RMS horizontal distance of the inliers' centres from their mean
@@ -190,9 +190,15 @@ pub fn fit_positions(pairs: &[(Vector3<f64>, Vector3<f64>)], seed: u64) -> Optio
         .map(|&k| pairs[k].1.z - scale * pairs[k].0.z)
         .collect();
     let shift_z = median(shifts.clone());
-    let vertical_sigma_m = (shifts.iter().map(|s| (s - shift_z).powi(2)).sum::<f64>()
-        / (m - 1.0).max(1.0))
-    .sqrt()
+    // Heights are only as good as GPS makes them (and barometers shift
+    // them): robustly, 1.48 median absolute deviations, from enough
+    // positions; else their RMS about the median.
+    let deviations: Vec<f64> = shifts.iter().map(|s| (s - shift_z).abs()).collect();
+    let vertical_sigma_m = if idx.len() >= MIN_ROBUST {
+        1.4826 * median(deviations)
+    } else {
+        (deviations.iter().map(|d| d * d).sum::<f64>() / (m - 1.0).max(1.0)).sqrt()
+    }
     .max(MIN_SIGMA_M);
     let spread_m =
         scale * (idx.iter().map(|&k| (c[k] - c_mean).norm_sqr()).sum::<f64>() / m).sqrt();
@@ -238,8 +244,9 @@ impl PositionFit {
     /// frame, as this fit puts it): the heading within three times its
     /// uncertainty (the scatter over the spread) and 5 deg, any when the
     /// photos lie within the scatter of one another; the position within
-    /// twice the scatter, what that heading moves it by and 0.5 m; each
-    /// within [`MAX_RADIUS_M`].
+    /// twice the scatter over the square root of the independent positions
+    /// (at most [`MAX_INDEPENDENT`]), what that heading moves it by and
+    /// 0.5 m; the height likewise; each within [`MAX_RADIUS_M`].
     pub fn region(&self, init_centre: &Vector3<f64>) -> SearchRegion {
         let used = self.inliers.iter().filter(|&&i| i).count() as f64;
         let independent = used.min(MAX_INDEPENDENT).sqrt();
@@ -276,7 +283,8 @@ pub struct PositionsRecord {
     pub num_images: usize,
     pub num_fitted: usize,
     pub num_inliers: usize,
-    /// The positions' scatter about the fit (robust sigma, metres) and the
+    /// The kept positions' scatter about the fit (sigma of each horizontal
+    /// axis; vertically 1.48 median absolute deviations; metres) and the
     /// spread of the fitted centres (RMS distance from their mean).
     pub horizontal_sigma_m: f64,
     pub vertical_sigma_m: f64,
@@ -508,6 +516,19 @@ mod tests {
             region.radius_m > 2.0 && region.radius_m <= MAX_RADIUS_M,
             "{region:?}"
         );
+    }
+
+    #[test]
+    fn a_wrong_height_does_not_widen_the_search() {
+        // 0.5 m of height noise and one barometer 80 m off.
+        let mut noise: Vec<[f64; 3]> = (0..12)
+            .map(|k| [0.0, 0.0, 0.5 * (k as f64 * 1.9 + 0.3).sin()])
+            .collect();
+        noise[4][2] = 80.0;
+        let pairs = walk(0.2, 2.0, &noise);
+        let fit = fit_positions(&pairs, 0).expect("fits");
+        assert!(fit.vertical_sigma_m < 0.8, "{fit:?}");
+        assert!(fit.region(&pairs[0].1).vertical_m < 2.0);
     }
 
     #[test]
