@@ -31,6 +31,7 @@ use crate::map::io::{read_point_cloud_with, InputUnits, LoadReport, ReadOptions}
 use crate::map::prepare::{estimate_normals, widen_normal_radius, NormalOptions};
 use crate::map::PointCloud;
 use crate::scene::{BodyPose, ImageId, Rigid3};
+use crate::sfm::associate::median_in_place;
 use crate::sfm::existing::{match_to_database, ExistingModel};
 use crate::sfm::localise::SearchRegion;
 use crate::sfm::options::{AssociationKind, IntrinsicsRefinement};
@@ -165,12 +166,9 @@ fn check_positions_near_map(
         return Ok(());
     }
     // The median on each axis: a few wrong positions do not move it.
-    let mut values: Vec<f64> = Vec::with_capacity(gps.len());
-    let mut median = |k: usize| {
-        values.clear();
-        values.extend(gps.values().map(|p| p[k]));
-        values.sort_by(f64::total_cmp);
-        values[values.len() / 2]
+    let median = |k: usize| {
+        let mut values: Vec<f64> = gps.values().map(|p| p[k]).collect();
+        median_in_place(&mut values)
     };
     let (x, y) = (median(0), median(1));
     let beyond = |v: f64, k: usize| (lo[k] - v).max(v - hi[k]).max(0.0);
@@ -556,15 +554,12 @@ impl MapArgs {
 
 /// `--map-origin X,Y,Z`.
 fn parse_origin(text: &str) -> Result<[f64; 3]> {
-    let v: Vec<f64> = text
-        .split(',')
-        .map(|s| s.trim().parse::<f64>())
-        .collect::<Result<_, _>>()
-        .map_err(|_| anyhow::anyhow!("--map-origin expects X,Y,Z (metres), got `{text}`"))?;
-    match v.as_slice() {
-        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([*x, *y, *z]),
-        _ => bail!("--map-origin expects three finite numbers X,Y,Z (metres), got `{text}`"),
-    }
+    super::parse_xyz(text)
+        .ok()
+        .filter(|v| v.iter().all(|c| c.is_finite()))
+        .with_context(|| {
+            format!("--map-origin expects three finite numbers X,Y,Z (metres), got `{text}`")
+        })
 }
 
 /// `init_image` of the options file: a name or an id, or an array of them.

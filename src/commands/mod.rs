@@ -16,6 +16,17 @@ use std::path::Path;
 
 use crate::scene::{Camera, Image, Reconstruction};
 
+/// Three comma-separated numbers `X,Y,Z` (`synth --offset`, `map
+/// --map-origin`).
+pub(crate) fn parse_xyz(s: &str) -> Result<[f64; 3], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>().map_err(|e| format!("{p:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    v.try_into()
+        .map_err(|_| format!("expected X,Y,Z, got {s:?}"))
+}
+
 /// A progress bar over `len` images, `what` after the count (e.g. "images
 /// registered"); `None` when stderr is not a terminal (logs and pipes get
 /// no bar).

@@ -31,7 +31,7 @@ pub struct SynthArgs {
     #[arg(long, default_value_t = 480)]
     pub height: u32,
     /// World offset added to every coordinate, "X,Y,Z" in metres (e.g. 500000,4400000,200).
-    #[arg(long, value_parser = parse_offset, allow_hyphen_values = true)]
+    #[arg(long, value_parser = super::parse_xyz, allow_hyphen_values = true)]
     pub offset: Option<[f64; 3]>,
     /// COLMAP camera model of the true camera: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL,
     /// OPENCV, SIMPLE_RADIAL_FISHEYE, OPENCV_FISHEYE.
@@ -63,15 +63,6 @@ pub struct SynthArgs {
     /// not in the images, and up to N new boxes in the images but not in the map.
     #[arg(long, default_value_t = 0)]
     pub changes: usize,
-}
-
-fn parse_offset(s: &str) -> Result<[f64; 3], String> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|p| p.trim().parse::<f64>().map_err(|e| format!("{p:?}: {e}")))
-        .collect::<Result<_, _>>()?;
-    v.try_into()
-        .map_err(|_| format!("expected X,Y,Z, got {s:?}"))
 }
 
 impl SynthArgs {

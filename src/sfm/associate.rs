@@ -153,7 +153,7 @@ const CLIPPED_SIGMA: f64 = 0.986_58;
 
 /// The median of `values` (the upper one of an even count), which it sorts;
 /// `values` must not be empty.
-fn median_in_place(values: &mut [f64]) -> f64 {
+pub(crate) fn median_in_place(values: &mut [f64]) -> f64 {
     values.sort_by(f64::total_cmp);
     values[values.len() / 2]
 }

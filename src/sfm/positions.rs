@@ -24,6 +24,7 @@ use std::time::Instant;
 use nalgebra::{UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 
+use super::associate::median_in_place;
 use super::localise::{SearchOptions, SearchRegion, MAX_RADIUS_M};
 use super::mapper::{MapperError, MapperInputs, MapperOutput, Progress};
 use super::options::MapperOptions;
@@ -103,8 +104,7 @@ pub fn fit_positions(pairs: &[(Vector3<f64>, Vector3<f64>)], seed: u64) -> Optio
     let median_sq = |a: C, b: C, buf: &mut Vec<f64>| -> f64 {
         buf.clear();
         buf.extend((0..n).map(|k| (g[k] - (a * c[k] + b)).norm_sqr()));
-        let mid = buf.len() / 2;
-        *buf.select_nth_unstable_by(mid, f64::total_cmp).1
+        median_in_place(buf)
     };
     let mut buf = Vec::with_capacity(n);
     let mut best: Option<(f64, C, C)> = None;
@@ -189,13 +189,13 @@ pub fn fit_positions(pairs: &[(Vector3<f64>, Vector3<f64>)], seed: u64) -> Optio
         .iter()
         .map(|&k| pairs[k].1.z - scale * pairs[k].0.z)
         .collect();
-    let shift_z = median(shifts.clone());
+    let shift_z = median_in_place(&mut shifts.clone());
     // Heights are only as good as GPS makes them (and barometers shift
     // them): robustly, 1.48 median absolute deviations, from enough
     // positions; else their RMS about the median.
-    let deviations: Vec<f64> = shifts.iter().map(|s| (s - shift_z).abs()).collect();
+    let mut deviations: Vec<f64> = shifts.iter().map(|s| (s - shift_z).abs()).collect();
     let vertical_sigma_m = if idx.len() >= MIN_ROBUST {
-        1.4826 * median(deviations)
+        1.4826 * median_in_place(&mut deviations)
     } else {
         (deviations.iter().map(|d| d * d).sum::<f64>() / (m - 1.0).max(1.0)).sqrt()
     }
@@ -214,11 +214,6 @@ pub fn fit_positions(pairs: &[(Vector3<f64>, Vector3<f64>)], seed: u64) -> Optio
         spread_m,
         centroid_m: nalgebra::Vector2::new(g_mean.re, g_mean.im),
     })
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    let mid = v.len() / 2;
-    *v.select_nth_unstable_by(mid, f64::total_cmp).1
 }
 
 /// The spread of the photos over their positions' scatter from which the
@@ -422,10 +417,11 @@ pub fn run_mapper_from_positions(
         .filter_map(|(&id, p)| Some(p - out.reconstruction.pose(id)?.camera_center()))
         .collect();
     if !offsets.is_empty() {
-        let horizontal: Vec<f64> = offsets.iter().map(|d| d.xy().norm()).collect();
+        let mut horizontal: Vec<f64> = offsets.iter().map(|d| d.xy().norm()).collect();
+        let mut vertical: Vec<f64> = offsets.iter().map(|d| d.z.abs()).collect();
         record.final_horizontal_max_m = horizontal.iter().copied().reduce(f64::max);
-        record.final_horizontal_median_m = Some(median(horizontal));
-        record.final_vertical_median_m = Some(median(offsets.iter().map(|d| d.z.abs()).collect()));
+        record.final_horizontal_median_m = Some(median_in_place(&mut horizontal));
+        record.final_vertical_median_m = Some(median_in_place(&mut vertical));
     }
     out.report.positions = Some(record);
     Ok(out)
