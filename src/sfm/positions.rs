@@ -29,7 +29,7 @@ use super::localise::{SearchOptions, SearchRegion, MAX_RADIUS_M};
 use super::mapper::{MapperError, MapperInputs, MapperOutput, Progress};
 use super::options::MapperOptions;
 use super::runs::{plain_run, search_and_map, PlainModel};
-use crate::estimators::similarity::Sim3;
+use crate::estimators::similarity::{umeyama, Sim3};
 use crate::scene::{BodyPose, ImageId};
 
 /// Images with a position the fit needs, registered in the plain model.
@@ -216,6 +216,218 @@ pub fn fit_positions(pairs: &[(Vector3<f64>, Vector3<f64>)], seed: u64) -> Optio
     })
 }
 
+/// How the cameras were held, as their positions tell
+/// ([`fit_tilt`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CameraTilt {
+    /// Level (by hand, from a vehicle): the model mapped with its initial
+    /// image level is taken as it is.
+    Level,
+    /// Looking straight down (a drone's survey): the cameras' mean optical
+    /// axis is the model's down.
+    Nadir,
+    /// Neither (oblique photos): the model's up is the positions'.
+    Fitted,
+}
+
+/// The turn that levels a model mapped with its initial image held level,
+/// from its camera centres' positions ([`fit_tilt`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TiltFit {
+    pub kind: CameraTilt,
+    /// Applied to the model (its frame) before the heading fit: the
+    /// identity for [`CameraTilt::Level`].
+    pub levelling: UnitQuaternion<f64>,
+    /// How far the positions put the model's up from its z axis, and the
+    /// uncertainty of that (degrees; `None` when the positions do not fix
+    /// it: fewer than 3 at distinct places, or along a line).
+    pub tilt_deg: Option<f64>,
+    pub sigma_deg: Option<f64>,
+}
+
+/// Cameras whose up the positions put at least this far from the level
+/// start's (and three times its uncertainty) were not held level: beyond
+/// the tilt of photos taken by hand or from a vehicle and beyond what the
+/// search levels ([`super::localise::MAX_LEVELLING_DEG`]).
+pub const MIN_TILT_DEG: f64 = 30.0;
+
+/// Cameras whose optical axes all lie within this of their mean look one
+/// way (a drone's nadir survey, a gimbal within a few degrees).
+const MAX_NADIR_SPREAD_DEG: f64 = 10.0;
+
+/// The mean optical axis is taken as down when it lies within this of the
+/// positions' down (or three of its uncertainties).
+const MAX_NADIR_OFFSET_DEG: f64 = 20.0;
+
+/// Triples of positions tried at most (all of them up to this many).
+const MAX_TRIPLES: usize = 20_000;
+
+/// How the cameras of a model mapped with its initial image held level
+/// were held, from `pairs` of (model centre, position in the map) and the
+/// cameras' optical axes (`axes`, model frame): the similarity of all
+/// three axes that takes the centres onto the positions (least median of
+/// squares over triples, then least squares over those within 3.5 sigma)
+/// gives the model's up. Within [`MIN_TILT_DEG`] of the model's z, or
+/// within three times that up's uncertainty (the heights' scatter over the
+/// positions' spread across their main direction, over at most
+/// [`MAX_INDEPENDENT`] independent positions), the model stays as it is
+/// ([`CameraTilt::Level`]). Else, when the cameras all look one way and that
+/// way is near the positions' down, it is the down
+/// ([`CameraTilt::Nadir`]: more exact than the heights); else the
+/// positions' up ([`CameraTilt::Fitted`]).
+pub fn fit_tilt(
+    pairs: &[(Vector3<f64>, Vector3<f64>)],
+    axes: &[Vector3<f64>],
+    seed: u64,
+) -> TiltFit {
+    let level = |tilt_deg, sigma_deg| TiltFit {
+        kind: CameraTilt::Level,
+        levelling: UnitQuaternion::identity(),
+        tilt_deg,
+        sigma_deg,
+    };
+    let n = pairs.len();
+    if n < MIN_POSITIONS {
+        return level(None, None);
+    }
+    let residual_sq =
+        |sim: &Sim3, k: usize| (pairs[k].1 - sim.transform_point(&pairs[k].0)).norm_squared();
+    let mut buf = Vec::with_capacity(n);
+    let mut best: Option<(f64, Sim3)> = None;
+    let mut consider = |i: usize, j: usize, k: usize| {
+        let Some(sim) = umeyama(&[pairs[i], pairs[j], pairs[k]], true) else {
+            return;
+        };
+        buf.clear();
+        buf.extend((0..n).map(|m| residual_sq(&sim, m)));
+        let med = median_in_place(&mut buf);
+        if med.is_finite() && best.as_ref().is_none_or(|(b, _)| med < *b) {
+            best = Some((med, sim));
+        }
+    };
+    if n * (n - 1) * (n - 2) / 6 <= MAX_TRIPLES {
+        for i in 0..n {
+            for j in i + 1..n {
+                for k in j + 1..n {
+                    consider(i, j, k);
+                }
+            }
+        }
+    } else {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x7111);
+        for _ in 0..MAX_TRIPLES {
+            let (i, j, k) = (
+                rng.gen_range(0..n),
+                rng.gen_range(0..n),
+                rng.gen_range(0..n),
+            );
+            if i != j && j != k && i != k {
+                consider(i, j, k);
+            }
+        }
+    }
+    let Some((_, sim)) = best else {
+        return level(None, None);
+    };
+    // Each axis' scatter about `sim` over the pairs in `keep`: robustly
+    // (a 2D distance's median is 1.18 sigma of each axis, an absolute
+    // value's 0.67, and Rousseeuw's factor for small samples and seven
+    // parameters), or as the
+    // RMS over the pairs less the parameters the fit takes.
+    let scatter = |sim: &Sim3, keep: &[usize], robust: bool| -> (f64, f64) {
+        let r: Vec<Vector3<f64>> = keep
+            .iter()
+            .map(|&k| pairs[k].1 - sim.transform_point(&pairs[k].0))
+            .collect();
+        let m = keep.len() as f64;
+        let (h, v) = if robust {
+            let small = 1.0 + 5.0 / (m - 7.0).max(1.0);
+            let mut h: Vec<f64> = r.iter().map(|e| e.xy().norm_squared()).collect();
+            let mut v: Vec<f64> = r.iter().map(|e| e.z.abs()).collect();
+            (
+                median_in_place(&mut h).sqrt() / 1.1774 * small,
+                1.4826 * median_in_place(&mut v) * small,
+            )
+        } else {
+            // Horizontally four of the seven parameters, vertically three.
+            let h: f64 = r.iter().map(|e| e.xy().norm_squared()).sum();
+            let v: f64 = r.iter().map(|e| e.z * e.z).sum();
+            (
+                (h / (2.0 * m - 4.0).max(1.0)).sqrt(),
+                (v / (m - 3.0).max(1.0)).sqrt(),
+            )
+        };
+        (h.max(MIN_SIGMA_M), v.max(MIN_SIGMA_M))
+    };
+    // Those far from the fit, by each axis' scatter, are left out: from
+    // the best triple's fit, then from the least squares fit of the rest;
+    // with too few to tell, all are kept.
+    let all: Vec<usize> = (0..n).collect();
+    let within = |sim: &Sim3, (h, v): (f64, f64)| -> Vec<usize> {
+        (0..n)
+            .filter(|&k| {
+                let e = pairs[k].1 - sim.transform_point(&pairs[k].0);
+                (e.xy().norm() / h).powi(2) + (e.z / v).powi(2) <= OUTLIER_SIGMAS.powi(2)
+            })
+            .collect()
+    };
+    let mut kept = all.clone();
+    if n >= MIN_ROBUST {
+        kept = within(&sim, scatter(&sim, &all, true));
+        let subset: Vec<_> = kept.iter().map(|&k| pairs[k]).collect();
+        let Some(refit) = umeyama(&subset, true) else {
+            return level(None, None);
+        };
+        kept = within(&refit, scatter(&refit, &kept, false));
+    }
+    let subset: Vec<_> = kept.iter().map(|&k| pairs[k]).collect();
+    let Some(sim) = umeyama(&subset, true) else {
+        return level(None, None);
+    };
+    let (_, vertical_sigma) = scatter(&sim, &kept, false);
+    // The up's uncertainty: the heights' scatter about the fit over the
+    // positions' spread across their main direction.
+    let m = kept.len() as f64;
+    let mean = subset
+        .iter()
+        .map(|(_, p)| p.xy())
+        .sum::<nalgebra::Vector2<f64>>()
+        / m;
+    let cov: nalgebra::Matrix2<f64> = subset
+        .iter()
+        .map(|(_, p)| (p.xy() - mean) * (p.xy() - mean).transpose())
+        .sum::<nalgebra::Matrix2<f64>>()
+        / m;
+    let across = cov.symmetric_eigenvalues().min().max(0.0).sqrt();
+    let up = sim.rotation.inverse() * Vector3::z();
+    let tilt_deg = up.z.clamp(-1.0, 1.0).acos().to_degrees();
+    let sigma_deg = (vertical_sigma / (across * m.min(MAX_INDEPENDENT).sqrt()))
+        .atan()
+        .to_degrees();
+    if !(tilt_deg >= MIN_TILT_DEG && tilt_deg >= 3.0 * sigma_deg) {
+        return level(Some(tilt_deg), Some(sigma_deg));
+    }
+    let angle = |a: &Vector3<f64>, b: &Vector3<f64>| a.angle(b).to_degrees();
+    let mean_axis = axes.iter().sum::<Vector3<f64>>().try_normalize(1e-9);
+    let nadir = mean_axis.filter(|mean| {
+        axes.iter().all(|a| angle(a, mean) <= MAX_NADIR_SPREAD_DEG)
+            && angle(&-mean, &up) <= MAX_NADIR_OFFSET_DEG.max(3.0 * sigma_deg)
+    });
+    let (kind, up) = match nadir {
+        Some(mean) => (CameraTilt::Nadir, -mean),
+        None => (CameraTilt::Fitted, up),
+    };
+    TiltFit {
+        kind,
+        levelling: UnitQuaternion::rotation_between(&up, &Vector3::z()).unwrap_or_else(|| {
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
+        }),
+        tilt_deg: Some(tilt_deg),
+        sigma_deg: Some(sigma_deg),
+    }
+}
+
 /// The spread of the photos over their positions' scatter from which the
 /// fit's heading and scale are searched about (below, the search would
 /// have to try every heading and scale over a region of the scatter's size).
@@ -284,6 +496,11 @@ pub struct PositionsRecord {
     pub horizontal_sigma_m: f64,
     pub vertical_sigma_m: f64,
     pub spread_m: f64,
+    /// How the cameras were held, as the positions tell, and how far (and
+    /// how surely, degrees) they put the model's up from a level camera's.
+    pub camera_tilt: CameraTilt,
+    pub tilt_deg: Option<f64>,
+    pub tilt_sigma_deg: Option<f64>,
     /// Metres per unit of the model mapped without the map's planes (its
     /// initial pair's baseline is one unit).
     pub scale: f64,
@@ -354,14 +571,45 @@ pub fn run_mapper_from_positions(
             Some((pose.camera_center(), *p))
         })
         .collect();
-    let fit = fit_positions(&pairs, options.seed).ok_or_else(|| {
+    // Drone photos looking down are not level: the positions say so, and
+    // the model is turned upright before the heading is fitted.
+    let axes: Vec<Vector3<f64>> = plain
+        .reconstruction
+        .registered_images()
+        .filter_map(|img| img.cam_from_world)
+        .map(|pose| pose.rotation.inverse() * Vector3::z())
+        .collect();
+    let tilt = fit_tilt(&pairs, &axes, options.seed);
+    if tilt.kind != CameraTilt::Level {
+        log::info!(
+            "the GPS positions put the model's up {:.0} deg (+-{:.0} deg) from a level camera's: the photos look {}",
+            tilt.tilt_deg.unwrap_or(f64::NAN),
+            tilt.sigma_deg.unwrap_or(f64::NAN),
+            if tilt.kind == CameraTilt::Nadir {
+                "straight down (their mean optical axis taken as down)"
+            } else {
+                "obliquely (the positions' up taken)"
+            }
+        );
+    }
+    let upright = Sim3 {
+        scale: 1.0,
+        rotation: tilt.levelling,
+        translation: Vector3::zeros(),
+    };
+    let levelled: Vec<(Vector3<f64>, Vector3<f64>)> = pairs
+        .iter()
+        .map(|(c, p)| (upright.transform_point(c), *p))
+        .collect();
+    let fit = fit_positions(&levelled, options.seed).ok_or_else(|| {
         MapperError::Positions(format!(
             "of the {} images with a GPS position, {} were registered without the map's planes, at least {MIN_POSITIONS} at different places are needed to fit the model to them",
             positions.len(),
             pairs.len()
         ))
     })?;
-    let model = PlainModel::new(&plain, init_image, &start, &fit.map_from_model, run_s);
+    let map_from_model = fit.map_from_model.compose(&upright);
+    let model = PlainModel::new(&plain, init_image, &start, &map_from_model, run_s);
     // `--init-search` given: its region instead.
     let region = match region {
         Some(r) => *r,
@@ -398,6 +646,9 @@ pub fn run_mapper_from_positions(
         horizontal_sigma_m: fit.horizontal_sigma_m,
         vertical_sigma_m: fit.vertical_sigma_m,
         spread_m: fit.spread_m,
+        camera_tilt: tilt.kind,
+        tilt_deg: tilt.tilt_deg,
+        tilt_sigma_deg: tilt.sigma_deg,
         scale: fit.map_from_model.scale,
         region,
         final_horizontal_median_m: None,
@@ -448,6 +699,124 @@ mod tests {
                 (model, sim.transform_point(&model) + Vector3::from(*e))
             })
             .collect()
+    }
+
+    type Pairs = Vec<(Vector3<f64>, Vector3<f64>)>;
+
+    /// A drone's survey seen by a model mapped with its initial image held
+    /// level: `strips` strips of 8 positions 2.5 m apart, 5 m between
+    /// strips, at 24 m; the model is the map turned by `map_from_model`'s
+    /// inverse (the cameras looking `pitch_deg` down from the horizon,
+    /// headings alternating with the strips), with `noise` (horizontal,
+    /// vertical sigma-like amplitudes) on the positions. Returns the
+    /// pairs, the cameras' optical axes in the model and the true turn.
+    fn survey(
+        strips: usize,
+        pitch_deg: f64,
+        noise: (f64, f64),
+    ) -> (Pairs, Vec<Vector3<f64>>, Sim3) {
+        // The level model's camera looks along x; the true camera looks
+        // pitch_deg below the horizon: the model is the map turned up by it.
+        let map_from_model = Sim3 {
+            scale: 2.5,
+            rotation: UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.7)
+                * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), pitch_deg.to_radians()),
+            translation: Vector3::new(500_100.0, 4_400_200.0, 230.0),
+        };
+        let model_from_map = map_from_model.inverse();
+        let mut pairs = Vec::new();
+        let mut axes = Vec::new();
+        for s in 0..strips {
+            for i in 0..8 {
+                let k = (s * 8 + i) as f64;
+                let truth = map_from_model.translation
+                    + Vector3::new(2.5 * i as f64, 5.0 * s as f64, 0.02 * (k * 0.9).sin());
+                let e = Vector3::new(
+                    noise.0 * (k * 2.1).sin(),
+                    noise.0 * (k * 1.3 + 1.0).cos(),
+                    noise.1 * (k * 1.7 + 0.4).sin(),
+                );
+                pairs.push((model_from_map.transform_point(&truth), truth + e));
+                // Headings alternate with the strips, a degree of jitter.
+                let heading = if s % 2 == 0 {
+                    0.0
+                } else {
+                    std::f64::consts::PI
+                };
+                let (p, h) = (
+                    (pitch_deg + (k * 0.7).sin()).to_radians(),
+                    heading + (k * 1.1).cos().to_radians(),
+                );
+                let axis = Vector3::new(p.cos() * h.cos(), p.cos() * h.sin(), -p.sin());
+                let axis = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.7) * axis;
+                axes.push(model_from_map.rotation * axis);
+            }
+        }
+        (pairs, axes, map_from_model)
+    }
+
+    /// The angle between the levelled model's up and the map's up, degrees.
+    fn up_error_deg(tilt: &TiltFit, map_from_model: &Sim3) -> f64 {
+        let true_up = map_from_model.rotation.inverse() * Vector3::z();
+        (tilt.levelling * true_up).angle(&Vector3::z()).to_degrees()
+    }
+
+    #[test]
+    fn nadir_photos_are_turned_upright() {
+        // 0.3 m / 1 m of GPS noise and one position 40 m off.
+        let (mut pairs, axes, truth) = survey(3, 90.0, (0.3, 1.0));
+        pairs[9].1.x += 40.0;
+        let tilt = fit_tilt(&pairs, &axes, 0);
+        assert_eq!(tilt.kind, CameraTilt::Nadir, "{tilt:?}");
+        let (deg, sigma) = (tilt.tilt_deg.unwrap(), tilt.sigma_deg.unwrap());
+        assert!((deg - 90.0).abs() < 3.0 * sigma && sigma < 15.0, "{tilt:?}");
+        // The cameras' axes are the down, to within their jitter.
+        assert!(up_error_deg(&tilt, &truth) < 1.0, "{tilt:?}");
+        // Upright, the heading and scale fit as for level photos.
+        let upright = Sim3 {
+            scale: 1.0,
+            rotation: tilt.levelling,
+            translation: Vector3::zeros(),
+        };
+        let levelled: Vec<_> = pairs
+            .iter()
+            .map(|(c, p)| (upright.transform_point(c), *p))
+            .collect();
+        let fit = fit_positions(&levelled, 0).expect("fits");
+        assert!(!fit.inliers[9] && fit.inliers.iter().filter(|&&i| i).count() == 23);
+        let map_from_model = fit.map_from_model.compose(&upright);
+        assert!((map_from_model.scale / 2.5 - 1.0).abs() < 0.03);
+        let turn = (map_from_model.rotation * truth.rotation.inverse()).angle();
+        assert!(turn.to_degrees() < 3.0, "{}", turn.to_degrees());
+    }
+
+    #[test]
+    fn oblique_photos_take_the_positions_up() {
+        // A gimbal 45 deg down, headings alternating: the axes do not
+        // look one way, the positions give the up.
+        let (pairs, axes, truth) = survey(3, 45.0, (0.3, 0.5));
+        let tilt = fit_tilt(&pairs, &axes, 0);
+        assert_eq!(tilt.kind, CameraTilt::Fitted, "{tilt:?}");
+        let sigma = tilt.sigma_deg.unwrap();
+        assert!(up_error_deg(&tilt, &truth) < 2.0 * sigma, "{tilt:?}");
+        assert!((tilt.tilt_deg.unwrap() - 45.0).abs() < 3.0 * sigma);
+    }
+
+    #[test]
+    fn level_photos_stay_level() {
+        // Held level (a level model): whatever the heights' noise says,
+        // the model is not turned.
+        let (pairs, axes, _) = survey(3, 0.0, (0.3, 3.0));
+        let tilt = fit_tilt(&pairs, &axes, 0);
+        assert_eq!(tilt.kind, CameraTilt::Level, "{tilt:?}");
+        assert_eq!(tilt.levelling, UnitQuaternion::identity());
+        // One strip of a nadir survey does not fix the tilt about it.
+        let (pairs, axes, _) = survey(1, 90.0, (0.3, 1.0));
+        let tilt = fit_tilt(&pairs, &axes, 0);
+        assert_eq!(tilt.kind, CameraTilt::Level, "{tilt:?}");
+        assert!(tilt.sigma_deg.is_none_or(|s| s > 30.0), "{tilt:?}");
+        // Too few positions: nothing to say.
+        assert_eq!(fit_tilt(&pairs[..2], &axes, 0).tilt_deg, None);
     }
 
     #[test]

@@ -29,6 +29,8 @@ pub enum SceneKind {
     Yard,
     Room,
     Corridor,
+    /// The yard seen from a drone: nadir photos along a lawnmower survey.
+    Aerial,
 }
 
 impl SceneKind {
@@ -37,6 +39,7 @@ impl SceneKind {
             SceneKind::Yard => "yard",
             SceneKind::Room => "room",
             SceneKind::Corridor => "corridor",
+            SceneKind::Aerial => "aerial",
         }
     }
 }
@@ -79,7 +82,7 @@ struct Edit {
 impl Edit {
     fn apply(&mut self, kind: SceneKind, seed: u64) -> Scene {
         match kind {
-            SceneKind::Yard => yard(seed, self),
+            SceneKind::Yard | SceneKind::Aerial => yard(seed, self),
             SceneKind::Room => room(seed, self),
             SceneKind::Corridor => corridor(seed, self),
         }
@@ -116,7 +119,7 @@ impl Edit {
 /// 5 and 3, and no other).
 fn removal_order(kind: SceneKind) -> Box<dyn Iterator<Item = usize>> {
     match kind {
-        SceneKind::Yard => Box::new([5, 3, 1, 6, 2, 4, 0].into_iter()),
+        SceneKind::Yard | SceneKind::Aerial => Box::new([5, 3, 1, 6, 2, 4, 0].into_iter()),
         SceneKind::Room => Box::new([1, 4, 2, 0, 3].into_iter()),
         SceneKind::Corridor => Box::new(0..),
     }
@@ -129,7 +132,7 @@ fn new_objects(kind: SceneKind, seed: u64, n: usize) -> Vec<SolidBox> {
         return Vec::new();
     }
     let candidates: Vec<SolidBox> = match kind {
-        SceneKind::Yard => vec![
+        SceneKind::Yard | SceneKind::Aerial => vec![
             boxed(4.8, -8.6, 1.2, 0.8, 1.2, 20.0),
             boxed(10.0, -3.0, 1.0, 1.4, 1.0, 0.0),
             boxed(9.0, 3.0, 1.0, 1.8, 1.2, -15.0),
@@ -215,6 +218,7 @@ pub fn trajectory(kind: SceneKind, num_images: usize, seed: u64) -> Vec<BodyPose
         SceneKind::Yard => circle_outward(num_images, [0.0, -0.5], 5.0, 0.35, 1.6, -6.0, 80.0),
         SceneKind::Room => circle_outward(num_images, [0.0, 0.0], 1.6, 0.22, 1.5, 0.0, 75.0),
         SceneKind::Corridor => corridor_walk(num_images),
+        SceneKind::Aerial => survey_flight(num_images),
     };
     // Hand-held jitter: +-2 cm, +-0.8 deg.
     for p in &mut poses {
@@ -260,6 +264,43 @@ fn circle_outward(
             }
         })
         .collect()
+}
+
+/// Height of the survey flight over the yard's ground, metres.
+const FLIGHT_HEIGHT_M: f64 = 24.0;
+
+/// A drone's survey of the yard: the camera looking straight down, three
+/// strips 5 m apart (y = -5, 0, 5) flown east, west and east again between
+/// x = -9 and 9 m, the camera's top towards the flight direction; images
+/// evenly along each strip (at 24 images 2.6 m apart, 89 % overlap along
+/// the strip and 80 % across it at 24 m).
+fn survey_flight(n: usize) -> Vec<BodyPose> {
+    let strips = 3.min(n);
+    let mut poses = Vec::with_capacity(n);
+    for s in 0..strips {
+        let count = n / strips + usize::from(s < n % strips);
+        let y = 5.0 * (s as f64 - (strips as f64 - 1.0) / 2.0);
+        let east = s % 2 == 0;
+        for i in 0..count {
+            let t = if count > 1 {
+                i as f64 / (count - 1) as f64
+            } else {
+                0.5
+            };
+            let x = if east {
+                -9.0 + 18.0 * t
+            } else {
+                9.0 - 18.0 * t
+            };
+            poses.push(BodyPose {
+                position_m: Vector3::new(x, y, FLIGHT_HEIGHT_M),
+                roll_rad: 0.0,
+                pitch_rad: PI / 2.0,
+                yaw_rad: if east { 0.0 } else { PI },
+            });
+        }
+    }
+    poses
 }
 
 /// Length of the corridor walk's forward leg at most (the corridor is 40 m
