@@ -232,7 +232,7 @@ fn changed_scenes_move_objects_between_scan_and_photos() {
         match kind {
             SceneKind::Room => assert_eq!((seen(&new), seen(&gone)), (3, 3)),
             SceneKind::Yard => assert_eq!((seen(&new), seen(&gone)), (3, 2)),
-            SceneKind::Corridor | SceneKind::Aerial => {}
+            SceneKind::Corridor | SceneKind::Aerial | SceneKind::Orbit => {}
         }
     }
     // The map is sampled from the scan, the images from the changed scene.
@@ -480,5 +480,49 @@ fn corridor_walk_fits_the_corridor() {
             36.0 / ((n - n / 5) / 2) as f64
         };
         assert!((step - expected).abs() < 0.041, "{n} images: step {step}");
+    }
+}
+
+/// The drone's scenes: the survey looks straight down from 24 m onto the
+/// yard, three strips 5 m apart; the orbit looks 45 deg down towards the
+/// yard's middle from a full circle 14 m about it at 16 m. Every image's
+/// centre pixel sees the yard's ground or a roof, 16-40 m away.
+#[test]
+fn drone_flights_look_at_the_yard() {
+    for (kind, n) in [
+        (SceneKind::Aerial, 24),
+        (SceneKind::Aerial, 7),
+        (SceneKind::Orbit, 24),
+    ] {
+        let scene = build_scene(kind, 0);
+        let poses = trajectory(kind, n, 0);
+        assert_eq!(poses.len(), n);
+        let mut strips = std::collections::BTreeSet::new();
+        for p in &poses {
+            let cam = p.to_cam_from_world();
+            let axis = cam.rotation.inverse() * Vector3::z();
+            let centre = p.position_m;
+            let down_deg = (-axis.z).clamp(-1.0, 1.0).asin().to_degrees();
+            match kind {
+                SceneKind::Aerial => {
+                    assert!(down_deg > 88.0, "{down_deg}");
+                    assert!((centre.z - 24.0).abs() < 0.03);
+                    strips.insert((centre.y / 5.0).round() as i64);
+                }
+                _ => {
+                    assert!((down_deg - 45.0).abs() < 2.0, "{down_deg}");
+                    let inward = Vector3::new(-centre.x, -0.5 - centre.y, 0.0).normalize();
+                    assert!(axis.xy().normalize().dot(&inward.xy()) > 0.999, "{axis:?}");
+                    assert!((centre.xy() - Vector2::new(0.0, -0.5)).norm() - 14.0 < 0.05);
+                }
+            }
+            let hit = scene
+                .cast(&centre, &axis, 0.1, 100.0)
+                .expect("sees the yard");
+            assert!((16.0..40.0).contains(&hit.t), "{kind:?}: {}", hit.t);
+        }
+        if kind == SceneKind::Aerial {
+            assert_eq!(strips.into_iter().collect::<Vec<_>>(), vec![-1, 0, 1]);
+        }
     }
 }

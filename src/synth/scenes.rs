@@ -31,6 +31,9 @@ pub enum SceneKind {
     Corridor,
     /// The yard seen from a drone: nadir photos along a lawnmower survey.
     Aerial,
+    /// The yard seen from a drone circling it, the camera 45 deg down
+    /// towards the middle (oblique photos).
+    Orbit,
 }
 
 impl SceneKind {
@@ -40,6 +43,7 @@ impl SceneKind {
             SceneKind::Room => "room",
             SceneKind::Corridor => "corridor",
             SceneKind::Aerial => "aerial",
+            SceneKind::Orbit => "orbit",
         }
     }
 }
@@ -82,7 +86,7 @@ struct Edit {
 impl Edit {
     fn apply(&mut self, kind: SceneKind, seed: u64) -> Scene {
         match kind {
-            SceneKind::Yard | SceneKind::Aerial => yard(seed, self),
+            SceneKind::Yard | SceneKind::Aerial | SceneKind::Orbit => yard(seed, self),
             SceneKind::Room => room(seed, self),
             SceneKind::Corridor => corridor(seed, self),
         }
@@ -119,7 +123,9 @@ impl Edit {
 /// 5 and 3, and no other).
 fn removal_order(kind: SceneKind) -> Box<dyn Iterator<Item = usize>> {
     match kind {
-        SceneKind::Yard | SceneKind::Aerial => Box::new([5, 3, 1, 6, 2, 4, 0].into_iter()),
+        SceneKind::Yard | SceneKind::Aerial | SceneKind::Orbit => {
+            Box::new([5, 3, 1, 6, 2, 4, 0].into_iter())
+        }
         SceneKind::Room => Box::new([1, 4, 2, 0, 3].into_iter()),
         SceneKind::Corridor => Box::new(0..),
     }
@@ -132,7 +138,7 @@ fn new_objects(kind: SceneKind, seed: u64, n: usize) -> Vec<SolidBox> {
         return Vec::new();
     }
     let candidates: Vec<SolidBox> = match kind {
-        SceneKind::Yard | SceneKind::Aerial => vec![
+        SceneKind::Yard | SceneKind::Aerial | SceneKind::Orbit => vec![
             boxed(4.8, -8.6, 1.2, 0.8, 1.2, 20.0),
             boxed(10.0, -3.0, 1.0, 1.4, 1.0, 0.0),
             boxed(9.0, 3.0, 1.0, 1.8, 1.2, -15.0),
@@ -219,6 +225,19 @@ pub fn trajectory(kind: SceneKind, num_images: usize, seed: u64) -> Vec<BodyPose
         SceneKind::Room => circle_outward(num_images, [0.0, 0.0], 1.6, 0.22, 1.5, 0.0, 75.0),
         SceneKind::Corridor => corridor_walk(num_images),
         SceneKind::Aerial => survey_flight(num_images),
+        // A full circle 14 m about the yard's middle at 16 m, facing in.
+        SceneKind::Orbit => {
+            let step_m = 2.0 * PI * ORBIT_RADIUS_M / num_images as f64;
+            circle_outward(
+                num_images,
+                [0.0, -0.5],
+                ORBIT_RADIUS_M,
+                step_m,
+                16.0,
+                45.0,
+                -90.0,
+            )
+        }
     };
     // Hand-held jitter: +-2 cm, +-0.8 deg.
     for p in &mut poses {
@@ -234,7 +253,7 @@ pub fn trajectory(kind: SceneKind, num_images: usize, seed: u64) -> Vec<BodyPose
 
 /// Walks a circle of `radius_m` counter-clockwise with `step_m` between
 /// images, the camera turned `look_deg` from the walking direction towards the
-/// outside (90 = straight out).
+/// outside (90 = straight out, -90 straight in) and pitched `pitch_deg` down.
 fn circle_outward(
     n: usize,
     centre: [f64; 2],
@@ -265,6 +284,9 @@ fn circle_outward(
         })
         .collect()
 }
+
+/// Radius of the drone's circle over the yard ([`SceneKind::Orbit`]), metres.
+const ORBIT_RADIUS_M: f64 = 14.0;
 
 /// Height of the survey flight over the yard's ground, metres.
 const FLIGHT_HEIGHT_M: f64 = 24.0;
