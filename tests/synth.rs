@@ -513,7 +513,7 @@ fn drone_flights_look_at_the_yard() {
                     assert!((down_deg - 45.0).abs() < 2.0, "{down_deg}");
                     let inward = Vector3::new(-centre.x, -0.5 - centre.y, 0.0).normalize();
                     assert!(axis.xy().normalize().dot(&inward.xy()) > 0.999, "{axis:?}");
-                    assert!((centre.xy() - Vector2::new(0.0, -0.5)).norm() - 14.0 < 0.05);
+                    assert!(((centre.xy() - Vector2::new(0.0, -0.5)).norm() - 14.0).abs() < 0.05);
                 }
             }
             let hit = scene

@@ -9,11 +9,14 @@
 //! 1. the database is mapped without the map's planes, the initial image
 //!    held level (roll and pitch 0, as photos held by hand or from a
 //!    vehicle are, within about 10 deg) at an arbitrary heading and scale;
-//! 2. the heading, scale and shift that take that model's camera centres
+//! 2. drone photos look down or obliquely, so that model may lie on its
+//!    side: the similarity of all three axes onto the positions tells
+//!    ([`fit_tilt`]), and the model is turned upright first;
+//! 3. the heading, scale and shift that take that model's camera centres
 //!    onto their GPS positions are fitted (horizontally a similarity of
 //!    the plane, robust to wrong positions by least median of squares;
 //!    vertically a shift), with the positions' scatter about the fit;
-//! 3. the model, moved by that fit, is searched for on the map as
+//! 4. the model, moved by that fit, is searched for on the map as
 //!    `--init-search` does ([`super::runs::search_and_map`]), within a
 //!    region that follows the scatter: a few metres and degrees for GPS
 //!    over a walk of tens of metres, any heading when the photos were all
@@ -240,17 +243,17 @@ pub struct TiltFit {
     /// identity for [`CameraTilt::Level`].
     pub levelling: UnitQuaternion<f64>,
     /// How far the positions put the model's up from its z axis, and the
-    /// uncertainty of that (degrees; `None` when the positions do not fix
-    /// it: fewer than 3 at distinct places, or along a line).
+    /// uncertainty of that (degrees; `None` with fewer than 3 positions,
+    /// or all on one exact line; nearly along a line, a large sigma). For
+    /// [`CameraTilt::Nadir`] the turn made is the cameras' axes', not this.
     pub tilt_deg: Option<f64>,
     pub sigma_deg: Option<f64>,
 }
 
 /// Cameras whose up the positions put at least this far from the level
 /// start's (and three times its uncertainty) were not held level: beyond
-/// the tilt of photos taken by hand or from a vehicle and beyond what the
-/// search levels ([`super::localise::MAX_LEVELLING_DEG`]).
-pub const MIN_TILT_DEG: f64 = 30.0;
+/// what the search levels ([`super::localise::MAX_LEVELLING_DEG`]).
+pub const MIN_TILT_DEG: f64 = super::localise::MAX_LEVELLING_DEG;
 
 /// Cameras whose optical axes all lie within this of their mean look one
 /// way (a drone's nadir survey, a gimbal within a few degrees).
@@ -260,25 +263,38 @@ const MAX_NADIR_SPREAD_DEG: f64 = 10.0;
 /// positions' down (or three of its uncertainties).
 const MAX_NADIR_OFFSET_DEG: f64 = 20.0;
 
-/// Triples of positions tried at most (all of them up to this many).
+/// Triples of positions tried at most, when there are more than
+/// [`MAX_EXHAUSTIVE_TRIPLES`] positions.
 const MAX_TRIPLES: usize = 20_000;
+
+/// Positions up to which all triples are tried (19600 of them).
+const MAX_EXHAUSTIVE_TRIPLES: usize = 50;
+
+/// Most cameras' x axes (or y axes) lie within this of level once the
+/// model is upright, or it is not turned.
+const MAX_ROLL_DEG: f64 = 20.0;
+
+/// The share of the cameras that look within [`MAX_NADIR_SPREAD_DEG`] of
+/// their mean axis in a nadir survey (a take-off shot or two aside).
+const NADIR_SHARE: f64 = 0.9;
 
 /// How the cameras of a model mapped with its initial image held level
 /// were held, from `pairs` of (model centre, position in the map) and the
-/// cameras' optical axes (`axes`, model frame): the similarity of all
-/// three axes that takes the centres onto the positions (least median of
-/// squares over triples, then least squares over those within 3.5 sigma)
-/// gives the model's up. Within [`MIN_TILT_DEG`] of the model's z, or
-/// within three times that up's uncertainty (the heights' scatter over the
-/// positions' spread across their main direction, over at most
-/// [`MAX_INDEPENDENT`] independent positions), the model stays as it is
-/// ([`CameraTilt::Level`]). Else, when the cameras all look one way and that
-/// way is near the positions' down, it is the down
-/// ([`CameraTilt::Nadir`]: more exact than the heights); else the
-/// positions' up ([`CameraTilt::Fitted`]).
+/// cameras' orientations (`model_from_cam`): the similarity of all three
+/// axes that takes the centres onto the positions (least median of squares
+/// over triples, then least squares over those within 3.5 sigma of each
+/// axis' scatter) gives the model's up. Within [`MIN_TILT_DEG`] of the
+/// model's z, or within three times that up's uncertainty (the positions'
+/// scatter over the centres' spread across their main direction, in
+/// metres, over at most [`MAX_INDEPENDENT`] independent positions), the
+/// model stays as it is ([`CameraTilt::Level`]). Else, when nine in ten
+/// cameras look one way and that way is near the positions' down, it is
+/// the down ([`CameraTilt::Nadir`]: more exact than the heights); else the
+/// positions' up ([`CameraTilt::Fitted`]); but a turn that would tilt
+/// most cameras' x axes and y axes more than [`MAX_ROLL_DEG`] is not made.
 pub fn fit_tilt(
     pairs: &[(Vector3<f64>, Vector3<f64>)],
-    axes: &[Vector3<f64>],
+    cameras: &[UnitQuaternion<f64>],
     seed: u64,
 ) -> TiltFit {
     let level = |tilt_deg, sigma_deg| TiltFit {
@@ -306,7 +322,7 @@ pub fn fit_tilt(
             best = Some((med, sim));
         }
     };
-    if n * (n - 1) * (n - 2) / 6 <= MAX_TRIPLES {
+    if n <= MAX_EXHAUSTIVE_TRIPLES {
         for i in 0..n {
             for j in i + 1..n {
                 for k in j + 1..n {
@@ -385,44 +401,72 @@ pub fn fit_tilt(
     let Some(sim) = umeyama(&subset, true) else {
         return level(None, None);
     };
-    let (_, vertical_sigma) = scatter(&sim, &kept, false);
-    // The up's uncertainty: the heights' scatter about the fit over the
-    // positions' spread across their main direction.
+    // The up's uncertainty: the positions' scatter (the larger axis':
+    // about a line, both turn the up) over the spread of the centres
+    // across their main direction, in metres. The model's centres, not
+    // the positions: along a line the positions' spread across it is
+    // their own scatter, the centres' none.
+    let (horizontal_sigma, vertical_sigma) = scatter(&sim, &kept, false);
     let m = kept.len() as f64;
-    let mean = subset
+    let mean = subset.iter().map(|(c, _)| c).sum::<Vector3<f64>>() / m;
+    let cov: nalgebra::Matrix3<f64> = subset
         .iter()
-        .map(|(_, p)| p.xy())
-        .sum::<nalgebra::Vector2<f64>>()
+        .map(|(c, _)| (c - mean) * (c - mean).transpose())
+        .sum::<nalgebra::Matrix3<f64>>()
         / m;
-    let cov: nalgebra::Matrix2<f64> = subset
-        .iter()
-        .map(|(_, p)| (p.xy() - mean) * (p.xy() - mean).transpose())
-        .sum::<nalgebra::Matrix2<f64>>()
-        / m;
-    let across = cov.symmetric_eigenvalues().min().max(0.0).sqrt();
+    let mut spread = cov.symmetric_eigenvalues();
+    spread.as_mut_slice().sort_by(|a, b| b.total_cmp(a));
+    let across = sim.scale * spread[1].max(0.0).sqrt();
     let up = sim.rotation.inverse() * Vector3::z();
     let tilt_deg = up.z.clamp(-1.0, 1.0).acos().to_degrees();
-    let sigma_deg = (vertical_sigma / (across * m.min(MAX_INDEPENDENT).sqrt()))
-        .atan()
-        .to_degrees();
+    let sigma_deg = (horizontal_sigma.max(vertical_sigma)
+        / (across * m.min(MAX_INDEPENDENT).sqrt()))
+    .atan()
+    .to_degrees();
     if !(tilt_deg >= MIN_TILT_DEG && tilt_deg >= 3.0 * sigma_deg) {
+        if tilt_deg >= MIN_TILT_DEG {
+            log::warn!(
+                "the GPS positions put the model's up {tilt_deg:.0} deg from a level camera's, but only to +-{sigma_deg:.0} deg: the photos are taken as level (photos looking down or obliquely from one line of flight need a rough --init-pose)"
+            );
+        }
         return level(Some(tilt_deg), Some(sigma_deg));
     }
     let angle = |a: &Vector3<f64>, b: &Vector3<f64>| a.angle(b).to_degrees();
+    let axes: Vec<Vector3<f64>> = cameras.iter().map(|q| q * Vector3::z()).collect();
     let mean_axis = axes.iter().sum::<Vector3<f64>>().try_normalize(1e-9);
     let nadir = mean_axis.filter(|mean| {
-        axes.iter().all(|a| angle(a, mean) <= MAX_NADIR_SPREAD_DEG)
+        let within = axes
+            .iter()
+            .filter(|a| angle(a, mean) <= MAX_NADIR_SPREAD_DEG)
+            .count();
+        within as f64 >= NADIR_SHARE * axes.len() as f64
             && angle(&-mean, &up) <= MAX_NADIR_OFFSET_DEG.max(3.0 * sigma_deg)
     });
     let (kind, up) = match nadir {
         Some(mean) => (CameraTilt::Nadir, -mean),
         None => (CameraTilt::Fitted, up),
     };
+    let levelling = UnitQuaternion::rotation_between(&up, &Vector3::z()).unwrap_or_else(|| {
+        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
+    });
+    // A gimbal, like a hand, keeps the camera's x axis level (or its y
+    // axis, in portrait): a turn that tilts most of them is a fit to noise.
+    let mut rolls: Vec<f64> = cameras
+        .iter()
+        .map(|q| {
+            let q = levelling * q;
+            (q * Vector3::x()).z.abs().min((q * Vector3::y()).z.abs())
+        })
+        .collect();
+    if !rolls.is_empty() && median_in_place(&mut rolls) > MAX_ROLL_DEG.to_radians().sin() {
+        log::warn!(
+            "the GPS positions put the model's up {tilt_deg:.0} deg (+-{sigma_deg:.0} deg) from a level camera's, but upright the cameras would be rolled: the photos are taken as level"
+        );
+        return level(Some(tilt_deg), Some(sigma_deg));
+    }
     TiltFit {
         kind,
-        levelling: UnitQuaternion::rotation_between(&up, &Vector3::z()).unwrap_or_else(|| {
-            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
-        }),
+        levelling,
         tilt_deg: Some(tilt_deg),
         sigma_deg: Some(sigma_deg),
     }
@@ -497,7 +541,9 @@ pub struct PositionsRecord {
     pub vertical_sigma_m: f64,
     pub spread_m: f64,
     /// How the cameras were held, as the positions tell, and how far (and
-    /// how surely, degrees) they put the model's up from a level camera's.
+    /// how surely, degrees) the positions put the model's up from a level
+    /// camera's (for `nadir` the model was turned by the cameras' mean
+    /// optical axis instead).
     pub camera_tilt: CameraTilt,
     pub tilt_deg: Option<f64>,
     pub tilt_sigma_deg: Option<f64>,
@@ -573,13 +619,13 @@ pub fn run_mapper_from_positions(
         .collect();
     // Drone photos looking down are not level: the positions say so, and
     // the model is turned upright before the heading is fitted.
-    let axes: Vec<Vector3<f64>> = plain
+    let cameras: Vec<UnitQuaternion<f64>> = plain
         .reconstruction
         .registered_images()
         .filter_map(|img| img.cam_from_world)
-        .map(|pose| pose.rotation.inverse() * Vector3::z())
+        .map(|pose| pose.rotation.inverse())
         .collect();
-    let tilt = fit_tilt(&pairs, &axes, options.seed);
+    let tilt = fit_tilt(&pairs, &cameras, options.seed);
     if tilt.kind != CameraTilt::Level {
         log::info!(
             "the GPS positions put the model's up {:.0} deg (+-{:.0} deg) from a level camera's: the photos look {}",
@@ -707,14 +753,16 @@ mod tests {
     /// level: `strips` strips of 8 positions 2.5 m apart, 5 m between
     /// strips, at 24 m; the model is the map turned by `map_from_model`'s
     /// inverse (the cameras looking `pitch_deg` down from the horizon,
-    /// headings alternating with the strips), with `noise` (horizontal,
+    /// rolled `roll_deg`, headings alternating with the strips), with `noise` (horizontal,
     /// vertical sigma-like amplitudes) on the positions. Returns the
-    /// pairs, the cameras' optical axes in the model and the true turn.
+    /// pairs, the cameras' orientations in the model (`model_from_cam`)
+    /// and the true turn.
     fn survey(
         strips: usize,
         pitch_deg: f64,
+        roll_deg: f64,
         noise: (f64, f64),
-    ) -> (Pairs, Vec<Vector3<f64>>, Sim3) {
+    ) -> (Pairs, Vec<UnitQuaternion<f64>>, Sim3) {
         // The level model's camera looks along x; the true camera looks
         // pitch_deg below the horizon: the model is the map turned up by it.
         let map_from_model = Sim3 {
@@ -725,7 +773,7 @@ mod tests {
         };
         let model_from_map = map_from_model.inverse();
         let mut pairs = Vec::new();
-        let mut axes = Vec::new();
+        let mut cameras = Vec::new();
         for s in 0..strips {
             for i in 0..8 {
                 let k = (s * 8 + i) as f64;
@@ -743,16 +791,17 @@ mod tests {
                 } else {
                     std::f64::consts::PI
                 };
-                let (p, h) = (
-                    (pitch_deg + (k * 0.7).sin()).to_radians(),
-                    heading + (k * 1.1).cos().to_radians(),
-                );
-                let axis = Vector3::new(p.cos() * h.cos(), p.cos() * h.sin(), -p.sin());
-                let axis = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.7) * axis;
-                axes.push(model_from_map.rotation * axis);
+                let camera = BodyPose {
+                    position_m: truth,
+                    roll_rad: (roll_deg + (k * 0.3).cos()).to_radians(),
+                    pitch_rad: (pitch_deg + (k * 0.7).sin()).to_radians(),
+                    yaw_rad: 0.7 + heading + (k * 1.1).cos().to_radians(),
+                }
+                .to_cam_from_world();
+                cameras.push(model_from_map.rotation * camera.rotation.inverse());
             }
         }
-        (pairs, axes, map_from_model)
+        (pairs, cameras, map_from_model)
     }
 
     /// The angle between the levelled model's up and the map's up, degrees.
@@ -764,9 +813,9 @@ mod tests {
     #[test]
     fn nadir_photos_are_turned_upright() {
         // 0.3 m / 1 m of GPS noise and one position 40 m off.
-        let (mut pairs, axes, truth) = survey(3, 90.0, (0.3, 1.0));
+        let (mut pairs, cameras, truth) = survey(3, 90.0, 0.0, (0.3, 1.0));
         pairs[9].1.x += 40.0;
-        let tilt = fit_tilt(&pairs, &axes, 0);
+        let tilt = fit_tilt(&pairs, &cameras, 0);
         assert_eq!(tilt.kind, CameraTilt::Nadir, "{tilt:?}");
         let (deg, sigma) = (tilt.tilt_deg.unwrap(), tilt.sigma_deg.unwrap());
         assert!((deg - 90.0).abs() < 3.0 * sigma && sigma < 15.0, "{tilt:?}");
@@ -794,29 +843,46 @@ mod tests {
     fn oblique_photos_take_the_positions_up() {
         // A gimbal 45 deg down, headings alternating: the axes do not
         // look one way, the positions give the up.
-        let (pairs, axes, truth) = survey(3, 45.0, (0.3, 0.5));
-        let tilt = fit_tilt(&pairs, &axes, 0);
+        let (pairs, cameras, truth) = survey(3, 45.0, 0.0, (0.3, 0.5));
+        let tilt = fit_tilt(&pairs, &cameras, 0);
         assert_eq!(tilt.kind, CameraTilt::Fitted, "{tilt:?}");
         let sigma = tilt.sigma_deg.unwrap();
         assert!(up_error_deg(&tilt, &truth) < 2.0 * sigma, "{tilt:?}");
         assert!((tilt.tilt_deg.unwrap() - 45.0).abs() < 3.0 * sigma);
+        // Portrait photos (rolled 90 deg): their y axes are level.
+        let (pairs, cameras, truth) = survey(3, 45.0, 90.0, (0.3, 0.5));
+        let tilt = fit_tilt(&pairs, &cameras, 0);
+        assert_eq!(tilt.kind, CameraTilt::Fitted, "{tilt:?}");
+        assert!(up_error_deg(&tilt, &truth) < 2.0 * tilt.sigma_deg.unwrap());
+        // Rolled 45 deg: upright, neither axis would be level, so the
+        // positions' up is not believed.
+        let (pairs, cameras, _) = survey(3, 45.0, 45.0, (0.3, 0.5));
+        let tilt = fit_tilt(&pairs, &cameras, 0);
+        assert_eq!(tilt.kind, CameraTilt::Level, "{tilt:?}");
     }
 
     #[test]
     fn level_photos_stay_level() {
         // Held level (a level model): whatever the heights' noise says,
         // the model is not turned.
-        let (pairs, axes, _) = survey(3, 0.0, (0.3, 3.0));
-        let tilt = fit_tilt(&pairs, &axes, 0);
+        let (pairs, cameras, _) = survey(3, 0.0, 0.0, (0.3, 3.0));
+        let tilt = fit_tilt(&pairs, &cameras, 0);
         assert_eq!(tilt.kind, CameraTilt::Level, "{tilt:?}");
         assert_eq!(tilt.levelling, UnitQuaternion::identity());
         // One strip of a nadir survey does not fix the tilt about it.
-        let (pairs, axes, _) = survey(1, 90.0, (0.3, 1.0));
-        let tilt = fit_tilt(&pairs, &axes, 0);
+        let (pairs, cameras, _) = survey(1, 90.0, 0.0, (0.3, 1.0));
+        let tilt = fit_tilt(&pairs, &cameras, 0);
         assert_eq!(tilt.kind, CameraTilt::Level, "{tilt:?}");
         assert!(tilt.sigma_deg.is_none_or(|s| s > 30.0), "{tilt:?}");
+        // Along a line the positions' own scatter across it (3 m here) is
+        // no spread: level photos and a nadir strip stay level.
+        for pitch in [0.0, 90.0] {
+            let (pairs, cameras, _) = survey(1, pitch, 0.0, (3.0, 1.0));
+            let tilt = fit_tilt(&pairs, &cameras, 0);
+            assert_eq!(tilt.kind, CameraTilt::Level, "{pitch}: {tilt:?}");
+        }
         // Too few positions: nothing to say.
-        assert_eq!(fit_tilt(&pairs[..2], &axes, 0).tilt_deg, None);
+        assert_eq!(fit_tilt(&pairs[..2], &cameras, 0).tilt_deg, None);
     }
 
     #[test]

@@ -295,7 +295,7 @@ const FLIGHT_HEIGHT_M: f64 = 24.0;
 /// strips 5 m apart (y = -5, 0, 5) flown east, west and east again between
 /// x = -9 and 9 m, the camera's top towards the flight direction; images
 /// evenly along each strip (at 24 images 2.6 m apart, 89 % overlap along
-/// the strip and 80 % across it at 24 m).
+/// the strip and 83 % across it at 24 m).
 fn survey_flight(n: usize) -> Vec<BodyPose> {
     let strips = 3.min(n);
     let mut poses = Vec::with_capacity(n);
