@@ -255,6 +255,10 @@ pub struct TiltFit {
 /// what the search levels ([`super::localise::MAX_LEVELLING_DEG`]).
 pub const MIN_TILT_DEG: f64 = super::localise::MAX_LEVELLING_DEG;
 
+/// A tilt the positions do not fix is a warning from this far from level
+/// (a nadir strip's), else a note.
+const WARN_TILT_DEG: f64 = 60.0;
+
 /// Cameras whose optical axes all lie within this of their mean look one
 /// way (a drone's nadir survey, a gimbal within a few degrees).
 const MAX_NADIR_SPREAD_DEG: f64 = 10.0;
@@ -425,9 +429,16 @@ pub fn fit_tilt(
     .to_degrees();
     if !(tilt_deg >= MIN_TILT_DEG && tilt_deg >= 3.0 * sigma_deg) {
         if tilt_deg >= MIN_TILT_DEG {
-            log::warn!(
+            let text = format!(
                 "the GPS positions put the model's up {tilt_deg:.0} deg from a level camera's, but only to +-{sigma_deg:.0} deg: the photos are taken as level (photos looking down or obliquely from one line of flight need a rough --init-pose)"
             );
+            // Far from level is worth a warning; a few tens of degrees
+            // within a small walk's scatter is not.
+            if tilt_deg >= WARN_TILT_DEG {
+                log::warn!("{text}");
+            } else {
+                log::info!("{text}");
+            }
         }
         return level(Some(tilt_deg), Some(sigma_deg));
     }
