@@ -312,8 +312,7 @@ pub fn fit_tilt(
     if n < MIN_POSITIONS {
         return level(None, None);
     }
-    let residual_sq =
-        |sim: &Sim3, k: usize| (pairs[k].1 - sim.transform_point(&pairs[k].0)).norm_squared();
+    let residual = |sim: &Sim3, k: usize| pairs[k].1 - sim.transform_point(&pairs[k].0);
     let mut buf = Vec::with_capacity(n);
     let mut best: Option<(f64, Sim3)> = None;
     let mut consider = |i: usize, j: usize, k: usize| {
@@ -321,7 +320,7 @@ pub fn fit_tilt(
             return;
         };
         buf.clear();
-        buf.extend((0..n).map(|m| residual_sq(&sim, m)));
+        buf.extend((0..n).map(|m| residual(&sim, m).norm_squared()));
         let med = median_in_place(&mut buf);
         if med.is_finite() && best.as_ref().is_none_or(|(b, _)| med < *b) {
             best = Some((med, sim));
@@ -357,10 +356,7 @@ pub fn fit_tilt(
     // parameters), or as the RMS over the pairs less the parameters the
     // fit takes.
     let scatter = |sim: &Sim3, keep: &[usize], robust: bool| -> (f64, f64) {
-        let r: Vec<Vector3<f64>> = keep
-            .iter()
-            .map(|&k| pairs[k].1 - sim.transform_point(&pairs[k].0))
-            .collect();
+        let r: Vec<Vector3<f64>> = keep.iter().map(|&k| residual(sim, k)).collect();
         let m = keep.len() as f64;
         let (h, v) = if robust {
             let small = 1.0 + 5.0 / (m - 7.0).max(1.0);
@@ -388,20 +384,21 @@ pub fn fit_tilt(
     let within = |sim: &Sim3, (h, v): (f64, f64)| -> Vec<usize> {
         (0..n)
             .filter(|&k| {
-                let e = pairs[k].1 - sim.transform_point(&pairs[k].0);
+                let e = residual(sim, k);
                 (e.xy().norm() / h).powi(2) + (e.z / v).powi(2) <= OUTLIER_SIGMAS.powi(2)
             })
             .collect()
     };
-    let mut kept = all.clone();
-    if n >= MIN_ROBUST {
-        kept = within(&sim, scatter(&sim, &all, true));
-        let subset: Vec<_> = kept.iter().map(|&k| pairs[k]).collect();
+    let kept = if n >= MIN_ROBUST {
+        let first = within(&sim, scatter(&sim, &all, true));
+        let subset: Vec<_> = first.iter().map(|&k| pairs[k]).collect();
         let Some(refit) = umeyama(&subset, true) else {
             return level(None, None);
         };
-        kept = within(&refit, scatter(&refit, &kept, false));
-    }
+        within(&refit, scatter(&refit, &first, false))
+    } else {
+        all
+    };
     let subset: Vec<_> = kept.iter().map(|&k| pairs[k]).collect();
     let Some(sim) = umeyama(&subset, true) else {
         return level(None, None);

@@ -92,19 +92,26 @@ pub fn map_scene_from(
 ) -> Run {
     let mut args = scene_args(scene, out, init_pose);
     extra(&mut args);
+    run_evaluated(&args, &scene.join("gt")).expect("map")
+}
+
+/// Runs `map` with `args` and evaluates the model it wrote against the
+/// reference model in `gt` (no alignment); `map`'s error if it failed.
+pub fn run_evaluated(args: &MapArgs, gt: &Path) -> anyhow::Result<Run> {
     let t = std::time::Instant::now();
-    run_map(&args).expect("map");
+    run_map(args)?;
     let seconds = t.elapsed().as_secs_f64();
+    let out = args.output.as_deref().expect("an output folder");
     let report: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
     let model = load_poses(out).expect("model poses");
-    let gt = load_poses(&scene.join("gt")).expect("gt poses");
+    let gt = load_poses(gt).expect("gt poses");
     let none = evaluate(&model, &gt, Alignment::None).expect("evaluate");
-    Run {
+    Ok(Run {
         report,
         none,
         seconds,
-    }
+    })
 }
 
 /// A JSON array of numbers.
@@ -829,24 +836,15 @@ fn aerial_survey_from_gps() {
         Some(&wrong),
     );
     let out = dir.path().join("out");
-    let t = std::time::Instant::now();
-    run_map(&MapArgs {
+    let args = MapArgs {
         database: Some(db),
         lidar: Some(scene.join("lidar.ply")),
         output: Some(out.clone()),
         map_crs: Some("utm:33n".to_owned()),
         map_origin: Some("500000,4400000,200".to_owned()),
         ..Default::default()
-    })
-    .expect("map from the GPS positions");
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
-    let gt = load_poses(&scene.join("gt")).unwrap();
-    let run = Run {
-        none: evaluate(&load_poses(&out).unwrap(), &gt, Alignment::None).unwrap(),
-        report,
-        seconds: t.elapsed().as_secs_f64(),
     };
+    let run = run_evaluated(&args, &scene.join("gt")).expect("map from the GPS positions");
     print_run("aerial survey from its GPS positions", &run);
     let positions = &run.report["positions"];
     eprintln!("positions: {positions}");
@@ -1458,17 +1456,9 @@ fn check_gps(scene: &Path, work: &Path, exact_run: &Run) {
         map_origin: crs.then(|| "500000,4400000,200".to_owned()),
         ..Default::default()
     };
-    let t = std::time::Instant::now();
-    run_map(&gps_args(&db, &out, true)).expect("map from the GPS positions");
-    let report: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
-    let model = load_poses(&out).unwrap();
+    let run = run_evaluated(&gps_args(&db, &out, true), &scene.join("gt"))
+        .expect("map from the GPS positions");
     let gt = load_poses(&scene.join("gt")).unwrap();
-    let run = Run {
-        none: evaluate(&model, &gt, Alignment::None).unwrap(),
-        report,
-        seconds: t.elapsed().as_secs_f64(),
-    };
     print_run(
         "yard from its GPS positions (0.3 m / 1 m, one 40 m off)",
         &run,
@@ -1743,7 +1733,6 @@ fn check_extension(scene: &Path, model_dir: &Path, work: &Path) {
     assert_eq!(half.images.len(), 12);
     let half_dir = work.join("half");
     write_model(&half_dir, &half, ModelFormat::Text).unwrap();
-    let gt = load_poses(&scene.join("gt")).unwrap();
     let extend = |out: &str, model: &Path, hold: bool| {
         let args = MapArgs {
             database: Some(scene.join("database.db")),
@@ -1753,20 +1742,7 @@ fn check_extension(scene: &Path, model_dir: &Path, work: &Path) {
             fix_existing_images: hold,
             ..Default::default()
         };
-        let t = std::time::Instant::now();
-        run_map(&args).map(|()| {
-            let report: serde_json::Value = serde_json::from_str(
-                &std::fs::read_to_string(work.join(out).join("report.json")).unwrap(),
-            )
-            .unwrap();
-            let model = load_poses(&work.join(out)).unwrap();
-            let none = evaluate(&model, &gt, Alignment::None).unwrap();
-            Run {
-                report,
-                none,
-                seconds: t.elapsed().as_secs_f64(),
-            }
-        })
+        run_evaluated(&args, &scene.join("gt"))
     };
     for hold in [true, false] {
         let out = if hold {
