@@ -9,7 +9,7 @@ use colmap_lidar::io::database::read_database;
 use colmap_lidar::scene::{CameraModel, Rigid3};
 use colmap_lidar::synth::generate::FISHEYE_FOCAL_FACTOR;
 use colmap_lidar::synth::geometry::{Scene, SolidBox};
-use colmap_lidar::synth::lidar::{sample_lidar, LidarOptions};
+use colmap_lidar::synth::lidar::{sample_lidar, LidarOptions, LidarPlatform, AIRBORNE_WALL_SHARE};
 use colmap_lidar::synth::scenes::{build_changed_scene, build_scene, trajectory};
 use colmap_lidar::synth::{
     generate_scene, lens, read_init_pose, BodyPose, SceneKind, SynthOptions,
@@ -525,4 +525,55 @@ fn drone_flights_look_at_the_yard() {
             assert_eq!(strips.into_iter().collect::<Vec<_>>(), vec![-1, 0, 1]);
         }
     }
+}
+
+/// An airborne scan of the yard (`--lidar-platform airborne`): flat ground
+/// and roofs as dense as from the ground, walls at 0.15 of it, nothing that
+/// faces down; the terrestrial map is sampled as before.
+#[test]
+fn an_airborne_scan_thins_the_walls() {
+    let scene = build_scene(SceneKind::Yard, 0);
+    let options = |platform| LidarOptions {
+        spacing_m: Some(0.1),
+        num_holes: 0,
+        outlier_fraction: 0.0,
+        platform,
+        seed: 5,
+        ..LidarOptions::default()
+    };
+    let terrestrial = sample_lidar(&scene, &options(LidarPlatform::Terrestrial));
+    let default = sample_lidar(
+        &scene,
+        &LidarOptions {
+            platform: LidarPlatform::default(),
+            ..options(LidarPlatform::Terrestrial)
+        },
+    );
+    assert_eq!(terrestrial.points, default.points);
+    let airborne = sample_lidar(&scene, &options(LidarPlatform::Airborne));
+    // Points facing up (z > 0.9), sideways (|z| < 0.1) and down (z < -0.5).
+    let count = |map: &colmap_lidar::synth::lidar::LidarMap| {
+        let mut c = [0usize; 3];
+        for n in &map.normals {
+            if n.z > 0.9 {
+                c[0] += 1;
+            } else if n.z.abs() < 0.1 {
+                c[1] += 1;
+            } else if n.z < -0.5 {
+                c[2] += 1;
+            }
+        }
+        c
+    };
+    let (t, a) = (count(&terrestrial), count(&airborne));
+    eprintln!("terrestrial up/side/down {t:?}, airborne {a:?}");
+    assert!(t[1] > 10_000, "{t:?}");
+    let up = a[0] as f64 / t[0] as f64;
+    assert!((up - 1.0).abs() < 0.01, "{up}");
+    let side = a[1] as f64 / t[1] as f64;
+    assert!((side - AIRBORNE_WALL_SHARE).abs() < 0.01, "{side}");
+    assert_eq!(a[2], 0);
+    // The yard has no surface facing down; a ceiling would get no point.
+    assert_eq!(LidarPlatform::Airborne.density(&-Vector3::z()), 0.0);
+    assert_eq!(LidarPlatform::Terrestrial.density(&-Vector3::z()), 1.0);
 }

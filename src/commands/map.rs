@@ -776,10 +776,11 @@ pub fn load_map_reporting(path: &Path, units: InputUnits) -> Result<(PointCloud,
         let report = estimate_normals(&mut cloud, &options)
             .with_context(|| format!("estimating normals of {}", path.display()))?;
         log::info!(
-            "map normals ({:.3} m radius): {} kept, {} estimated, {} failed",
+            "map normals ({:.3} m radius): {} kept, {} estimated{}, {} failed",
             options.radius_m,
             report.kept,
             report.estimated,
+            report.widened_note(),
             report.failed
         );
     }

@@ -405,13 +405,14 @@ pub fn run(args: &PrepareMapArgs) -> anyhow::Result<()> {
     });
     println!(
         "{}: {} points read ({} dropped as NaN/inf{left_out}), {cropped}{} after voxel grid, \
-         {} normals estimated ({:.3} m radius{noise}), {} kept, {} points written to {}",
+         {} normals estimated ({:.3} m radius{noise}){}, {} kept, {} points written to {}",
         names(&inputs),
         loads.iter().map(|l| l.points_read).sum::<u64>(),
         loads.iter().map(|l| l.dropped_non_finite).sum::<u64>(),
         report.after_voxel,
         report.normals.estimated,
         report.normal_radius_m,
+        report.normals.widened_note(),
         report.normals.kept,
         report.output_points,
         args.output.display()

@@ -6,6 +6,7 @@ use nalgebra::Vector3;
 
 use crate::scene::CameraModel;
 use crate::synth::generate::FISHEYE_FOCAL_FACTOR;
+use crate::synth::lidar::LidarPlatform;
 use crate::synth::{generate_scene, SceneKind, SynthOptions};
 
 /// Render a synthetic scene (images, LiDAR map, true cameras, initial pose).
@@ -59,6 +60,12 @@ pub struct SynthArgs {
     /// Fraction of LiDAR outliers (random points with random normals in the scene's box).
     #[arg(long, default_value_t = 0.001)]
     pub lidar_outliers: f64,
+    /// Where the LiDAR scan was taken from: terrestrial (every surface alike) or
+    /// airborne (flat ground and roofs dense, walls at 0.15 of that, nothing
+    /// facing down; with --lidar-spacing 0.1-0.3 and --lidar-noise 0.03 as a
+    /// drone or aircraft survey gives).
+    #[arg(long, value_enum, default_value_t = LidarPlatform::Terrestrial)]
+    pub lidar_platform: LidarPlatform,
     /// The scene changed since the scan: N of its objects are in the map but
     /// not in the images, and up to N new boxes in the images but not in the map.
     #[arg(long, default_value_t = 0)]
@@ -95,6 +102,7 @@ impl SynthArgs {
         opts.lidar.max_points = self.lidar_max_points;
         opts.lidar.noise_sigma_m = self.lidar_noise;
         opts.lidar.outlier_fraction = self.lidar_outliers;
+        opts.lidar.platform = self.lidar_platform;
         opts.validate()?;
         Ok(opts)
     }

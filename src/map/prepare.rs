@@ -98,7 +98,21 @@ pub struct NormalOptions {
     /// against 11.6 s for the plain fit (41.3 s refitting every point); the
     /// room above 0.78 s against 0.47 s.
     pub robust_iterations: usize,
+    /// Points left without a normal at `radius_m` (fewer than
+    /// `min_neighbours` there) are tried again at twice the radius, this
+    /// many times over, where the map is sparser than its spacing says:
+    /// the walls of an airborne scan, sampled a few times less densely than
+    /// the ground and roofs its spacing follows. At a wider radius a point
+    /// gets a normal only if it lies on its fitted plane within
+    /// [`WIDENED_ON_PLANE_NOISE`] times the map's noise (a stray return
+    /// beside a surface does not). 0: the one radius. Default 2.
+    pub sparse_widenings: usize,
 }
+
+/// At a widened radius ([`NormalOptions::sparse_widenings`]) a point's
+/// distance to its fitted plane may be at most this many times the map's
+/// noise.
+pub const WIDENED_ON_PLANE_NOISE: f64 = 3.0;
 
 /// Only neighbourhoods whose plain fit leaves an RMS distance above this
 /// many times the map's noise are refitted (one flat surface leaves about
@@ -121,6 +135,7 @@ impl Default for NormalOptions {
             orientation: NormalOrientation::UpThenTowardsCentre,
             recompute_all: false,
             robust_iterations: 3,
+            sparse_widenings: 2,
         }
     }
 }
@@ -163,7 +178,7 @@ impl NormalOptions {
 }
 
 /// What [`estimate_normals`] did.
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct NormalReport {
     /// Valid normals from the input that were kept.
     pub kept: usize,
@@ -172,6 +187,25 @@ pub struct NormalReport {
     /// Points left without a normal (too few neighbours, or a degenerate
     /// neighbourhood); their normal is `[0, 0, 0]`, planarity 0.
     pub failed: usize,
+    /// Of `estimated`, those estimated at a widened radius
+    /// ([`NormalOptions::sparse_widenings`]).
+    pub widened: usize,
+    /// The widest radius at which a normal was estimated, metres (0 when
+    /// none was widened).
+    pub widest_radius_m: f64,
+}
+
+impl NormalReport {
+    /// For a log line: how many normals took a widened radius, or nothing.
+    pub fn widened_note(&self) -> String {
+        if self.widened == 0 {
+            return String::new();
+        }
+        format!(
+            ", {} of them at radii up to {:.3} m where the map is sparser",
+            self.widened, self.widest_radius_m
+        )
+    }
 }
 
 /// Options of [`prepare`].
@@ -996,6 +1030,37 @@ pub fn estimate_normals(
     options: &NormalOptions,
 ) -> Result<NormalReport, PrepareError> {
     options.validate()?;
+    let mut report = estimate_at_radius(cloud, options, None)?;
+    let mut wider = NormalOptions {
+        recompute_all: false,
+        ..options.clone()
+    };
+    for _ in 0..options.sparse_widenings {
+        if report.failed == 0 {
+            break;
+        }
+        wider.radius_m *= 2.0;
+        let again = estimate_at_radius(cloud, &wider, Some(WIDENED_ON_PLANE_NOISE))?;
+        if again.estimated > 0 {
+            report.estimated += again.estimated;
+            report.widened += again.estimated;
+            report.widest_radius_m = wider.radius_m;
+        }
+        report.failed = again.failed;
+    }
+    Ok(report)
+}
+
+/// One pass of [`estimate_normals`] at `options.radius_m` (its
+/// `sparse_widenings` not applied). With `on_plane_noise`, a point gets a
+/// normal only if it lies within that many times the map's noise of its
+/// fitted plane. Points with a valid normal are not fitted unless
+/// `recompute_all`.
+fn estimate_at_radius(
+    cloud: &mut PointCloud,
+    options: &NormalOptions,
+    on_plane_noise: Option<f64>,
+) -> Result<NormalReport, PrepareError> {
     let n = cloud.len();
     if n == 0 {
         cloud.normals.get_or_insert_with(Vec::new);
@@ -1059,22 +1124,56 @@ pub fn estimate_normals(
     let gather = |c: usize, candidates: &mut Candidates| {
         gather_candidates(&grid, &sorted_points, options, c, candidates)
     };
-    // The robust refit's scale: from the plain fits of a sample of cells.
-    let robust_c_m = if options.robust_iterations > 0 && options.k_nearest.is_none() {
-        let noise_m = sampled_noise_m(&grid, &sorted_points, options).unwrap_or(0.0);
-        log::debug!("map noise for the robust normal fits: {:.4} m", noise_m);
-        // Floors for noise-free maps: 1 % of the radius.
-        let floor_m = options.radius_m / 100.0;
-        let c_m = (ROBUST_C_PER_NOISE * noise_m).max(floor_m);
-        Some((c_m, (ROBUST_REFIT_ABOVE_NOISE * noise_m).max(floor_m)))
-    } else {
-        None
+    // The points to fit, in grid order: those without a valid normal to keep.
+    let skip: Option<Vec<bool>> = match &cloud.normals {
+        Some(normals) if !options.recompute_all => Some(
+            grid.order
+                .par_iter()
+                .map(|&i| normal_is_set(&normals[i as usize]))
+                .collect(),
+        ),
+        _ => None,
     };
+    let robust = options.robust_iterations > 0 && options.k_nearest.is_none();
+    // The map's noise, from the plain fits of a sample of cells, for the
+    // robust refit's scale and the on-plane test. Floors for noise-free
+    // maps: 1 % of the radius.
+    let noise_m = if robust || on_plane_noise.is_some() {
+        let noise_m = sampled_noise_m(&grid, &sorted_points, options).unwrap_or(0.0);
+        log::debug!(
+            "map noise at the {:.3} m normal radius: {:.4} m",
+            options.radius_m,
+            noise_m
+        );
+        noise_m
+    } else {
+        0.0
+    };
+    let floor_m = options.radius_m / 100.0;
+    let robust_c_m = robust.then(|| {
+        (
+            (ROBUST_C_PER_NOISE * noise_m).max(floor_m),
+            (ROBUST_REFIT_ABOVE_NOISE * noise_m).max(floor_m),
+        )
+    });
+    let on_plane_m = on_plane_noise.map(|k| k * noise_m.max(floor_m));
     slices.into_par_iter().enumerate().for_each_init(
         || (Candidates::default(), Vec::<(f32, u32)>::new()),
         |(candidates, nearest), (c, out)| {
+            let range = grid.cell_range(c);
+            let skipped = |k: usize| skip.as_ref().is_some_and(|s| s[range.start + k]);
+            if (0..range.len()).all(skipped) {
+                return;
+            }
             gather(c, candidates);
-            for (&q, slot) in sorted_points[grid.cell_range(c)].iter().zip(out.iter_mut()) {
+            for (k, (&q, slot)) in sorted_points[range.clone()]
+                .iter()
+                .zip(out.iter_mut())
+                .enumerate()
+            {
+                if skipped(k) {
+                    continue;
+                }
                 let (count, s1, s2) = match options.k_nearest {
                     None => candidates.radius_moments(q, radius_sq),
                     Some(k) => {
@@ -1125,6 +1224,14 @@ pub fn estimate_normals(
                         options.robust_iterations,
                         options.min_neighbours as f64,
                     );
+                }
+                // The fit's mean is an offset from q.
+                let off_plane = (0..3)
+                    .map(|a| fit.normal[a] * fit.mean[a])
+                    .sum::<f64>()
+                    .abs();
+                if on_plane_m.is_some_and(|limit| off_plane > limit) {
+                    continue;
                 }
                 let (mut normal, planarity) = (fit.normal, fit.planarity);
                 let p = [f64::from(q[0]), f64::from(q[1]), f64::from(q[2])];

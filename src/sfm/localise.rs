@@ -139,7 +139,18 @@ pub struct SearchOptions {
     /// The kept placement must put at least this share of the points on the
     /// map (within [`super::align::INLIER_M`]).
     pub min_on_map_share: f64,
+    /// The ICP's radii and the radius at which the refined placements'
+    /// points are counted on the map are at least this, metres: on a sparse
+    /// map [`SPARSE_MAP_RADIUS_PER_SPACING`] times its spacing (a point on a
+    /// surface sampled every 20 cm is often farther than the ICP's finest
+    /// 0.1 m from every sample of it). Default 0 (the ICP's own radii).
+    pub min_radius_m: f64,
 }
+
+/// [`SearchOptions::min_radius_m`] per unit of the map's spacing: a point
+/// on a jittered grid of spacing `s` is within about `0.8 s` of a sample.
+/// A map of 6.6 cm spacing or finer keeps the ICP's radii.
+pub const SPARSE_MAP_RADIUS_PER_SPACING: f64 = 1.5;
 
 impl Default for SearchOptions {
     fn default() -> Self {
@@ -154,6 +165,7 @@ impl Default for SearchOptions {
             max_runner_up_share: 0.9,
             max_contenders: 3,
             min_on_map_share: 0.3,
+            min_radius_m: 0.0,
         }
     }
 }
@@ -465,7 +477,12 @@ pub fn search_placement(
         }
     }
     let checked = every_kth(points, TRIAL_POINTS);
-    let finest = AlignOptions::default().finest_radius_m();
+    let mut align = AlignOptions::default();
+    for r in &mut align.radii_m {
+        *r = r.max(options.min_radius_m);
+    }
+    align.radii_m.dedup();
+    let finest = align.finest_radius_m();
     // A refinement that moves far from its start has collapsed the model
     // onto a plane or a corner (every point on the ground at a scale near
     // 0, measured on the yard): it is no placement (the alignment's bounds,
@@ -474,7 +491,7 @@ pub fn search_placement(
         .par_iter()
         .filter_map(|p| {
             let start = p.sim3(pivot);
-            let sim3 = fit_similarity(&checked, nearest, &AlignOptions::default(), start);
+            let sim3 = fit_similarity(&checked, nearest, &align, start);
             let placed: Vec<Vector3<f64>> =
                 checked.iter().map(|x| sim3.transform_point(x)).collect();
             let started: Vec<Vector3<f64>> =

@@ -532,6 +532,83 @@ impl PositionFit {
     }
 }
 
+/// A model found by the search that the map holds only loosely (see
+/// [`super::runs::loose_searched_model`]) is kept when the fit's kept GPS
+/// positions place it as well: their mean horizontal offset from the
+/// finished model's camera centres within this many standard errors of
+/// their scatter (each position counted as independent, so that a slide
+/// the map leaves free shows; at least [`CONFIRM_MIN_OFFSET_M`])...
+pub const CONFIRM_SIGMAS: f64 = 3.0;
+
+/// ... or within this, metres (a lever arm between antenna and camera).
+pub const CONFIRM_MIN_OFFSET_M: f64 = 0.1;
+
+/// ... and their horizontal scatter about that mean at most this many
+/// times the fit's (a model at a wrong scale or heading scatters more).
+pub const CONFIRM_MAX_SCATTER: f64 = 2.0;
+
+/// The GPS positions `kept` (image, map frame) against a finished model's
+/// camera centres: the mean horizontal offset (position minus centre) and
+/// the RMS of each horizontal axis about it, over the registered images;
+/// `None` below [`MIN_POSITIONS`] of them. Heights are not compared: a GPS
+/// altitude carries an offset of its own.
+fn horizontal_offsets(
+    out: &MapperOutput,
+    kept: &[(ImageId, Vector3<f64>)],
+) -> Option<(nalgebra::Vector2<f64>, f64, usize)> {
+    let offsets: Vec<nalgebra::Vector2<f64>> = kept
+        .iter()
+        .filter_map(|(id, p)| Some((p - out.reconstruction.pose(*id)?.camera_center()).xy()))
+        .collect();
+    if offsets.len() < MIN_POSITIONS {
+        return None;
+    }
+    let n = offsets.len() as f64;
+    let mean = offsets.iter().sum::<nalgebra::Vector2<f64>>() / n;
+    let scatter = (offsets
+        .iter()
+        .map(|d| (d - mean).norm_squared())
+        .sum::<f64>()
+        / (2.0 * n))
+        .sqrt();
+    Some((mean, scatter, offsets.len()))
+}
+
+/// Whether offsets of `n` positions with `mean` and `scatter`
+/// ([`horizontal_offsets`]) agree with a model, and the mean's limit.
+fn agreement(
+    mean: &nalgebra::Vector2<f64>,
+    scatter: f64,
+    n: usize,
+    fit: &PositionFit,
+) -> (bool, f64) {
+    let limit =
+        (CONFIRM_SIGMAS * fit.horizontal_sigma_m / (n as f64).sqrt()).max(CONFIRM_MIN_OFFSET_M);
+    let agrees = mean.norm() <= limit && scatter <= CONFIRM_MAX_SCATTER * fit.horizontal_sigma_m;
+    (agrees, limit)
+}
+
+/// Whether the GPS positions `kept` by `fit` place a finished model by
+/// themselves ([`CONFIRM_SIGMAS`], [`CONFIRM_MIN_OFFSET_M`],
+/// [`CONFIRM_MAX_SCATTER`]).
+fn positions_confirm(
+    out: &MapperOutput,
+    kept: &[(ImageId, Vector3<f64>)],
+    fit: &PositionFit,
+) -> bool {
+    let Some((mean, scatter, n)) = horizontal_offsets(out, kept) else {
+        return false;
+    };
+    let (agrees, limit) = agreement(&mean, scatter, n, fit);
+    log::info!(
+        "the finished model against the GPS positions: {:.2} m apart on average horizontally (at most {limit:.2} m), scattered by {scatter:.2} m (at most {:.2} m): {}",
+        mean.norm(),
+        CONFIRM_MAX_SCATTER * fit.horizontal_sigma_m,
+        if agrees { "they agree" } else { "they do not agree" }
+    );
+    agrees
+}
+
 /// What the placement from the images' positions found (`report.json` →
 /// `positions`).
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
@@ -567,6 +644,14 @@ pub struct PositionsRecord {
     pub final_horizontal_median_m: Option<f64>,
     pub final_horizontal_max_m: Option<f64>,
     pub final_vertical_median_m: Option<f64>,
+    /// The fit's kept positions against the finished model's camera
+    /// centres: their mean horizontal offset (position minus centre, east
+    /// and north, metres) and the RMS of each horizontal axis about it; and
+    /// whether they agree with the model ([`CONFIRM_SIGMAS`]), which keeps a
+    /// searched model the map holds only loosely.
+    pub final_mean_offset_m: Option<[f64; 2]>,
+    pub final_scatter_m: Option<f64>,
+    pub confirms_placement: Option<bool>,
     /// Wall time of the fit (after the run without the map's planes).
     pub fit_s: f64,
 }
@@ -618,13 +703,16 @@ pub fn run_mapper_from_positions(
         &mut *progress,
     )?;
     let run_s = started.elapsed().as_secs_f64();
-    let fitted = Instant::now();
+    let fitted_s = Instant::now();
     let pairs: Vec<(Vector3<f64>, Vector3<f64>)> = positions
         .iter()
-        .filter_map(|(&id, p)| {
-            let pose = plain.reconstruction.pose(id)?;
-            Some((pose.camera_center(), *p))
-        })
+        .filter_map(|(&id, p)| Some((plain.reconstruction.pose(id)?.camera_center(), *p)))
+        .collect();
+    // The images of `pairs`, in their order.
+    let fitted: Vec<(ImageId, Vector3<f64>)> = positions
+        .iter()
+        .filter(|(&id, _)| plain.reconstruction.pose(id).is_some())
+        .map(|(&id, p)| (id, *p))
         .collect();
     // Drone photos looking down are not level: the positions say so, and
     // the model is turned upright before the heading is fitted.
@@ -709,15 +797,36 @@ pub fn run_mapper_from_positions(
         final_horizontal_median_m: None,
         final_horizontal_max_m: None,
         final_vertical_median_m: None,
-        fit_s: fitted.elapsed().as_secs_f64(),
+        final_mean_offset_m: None,
+        final_scatter_m: None,
+        confirms_placement: None,
+        fit_s: fitted_s.elapsed().as_secs_f64(),
     };
     let search = SearchOptions {
         max_scale: fit.max_scale(),
         ..SearchOptions::default()
     };
+    let kept: Vec<(ImageId, Vector3<f64>)> = fitted
+        .into_iter()
+        .zip(&fit.inliers)
+        .filter_map(|(pair, &inlier)| inlier.then_some(pair))
+        .collect();
+    let confirms = |out: &MapperOutput| positions_confirm(out, &kept, &fit);
     let mut out = search_and_map(
-        inputs, init_image, &model, &region, &search, options, progress,
+        inputs,
+        init_image,
+        &model,
+        &region,
+        &search,
+        options,
+        Some(&confirms),
+        progress,
     )?;
+    if let Some((mean, scatter, n)) = horizontal_offsets(&out, &kept) {
+        record.final_mean_offset_m = Some([mean.x, mean.y]);
+        record.final_scatter_m = Some(scatter);
+        record.confirms_placement = Some(agreement(&mean, scatter, n, &fit).0);
+    }
     let offsets: Vec<Vector3<f64>> = positions
         .iter()
         .filter_map(|(&id, p)| Some(p - out.reconstruction.pose(id)?.camera_center()))

@@ -22,9 +22,10 @@ use super::align::{SimilarityConstraint, MIN_SIMILARITY_CONSTRAINT, WEAK_SIMILAR
 use super::associate::NearestNeighbourAssociator;
 use super::localise::{
     search_placement, Search, SearchError, SearchOptions, SearchRegion, SAME_PLACE_M,
+    SPARSE_MAP_RADIUS_PER_SPACING,
 };
 use super::mapper::{
-    beyond, firmly_held, initial_pose_moved_far, map_once, map_until, pose_change,
+    beyond, firmly_held, initial_pose_moved_far, map_once, map_until, options_for_map, pose_change,
     pose_change_beyond, EndLook, LookPlan, MapperError, MapperInputs, MapperOutput, Progress,
     RunEnd, Start, EARLY_LOOK_MIN_CHANGE, EARLY_LOOK_MIN_TURN_DEG, EARLY_LOOK_STEADY,
     GOOD_FIT_SHARE, SEARCH_MIN_CONSTRAINT,
@@ -808,6 +809,7 @@ pub fn run_mapper_searching(
         region,
         &SearchOptions::default(),
         options,
+        None,
         progress,
     )
 }
@@ -909,6 +911,7 @@ impl PlainModel {
 /// [`run_mapper_searching`] after its plain run: `plain` placed on the map
 /// within `region` of its initial camera, and mapped from each close
 /// placement.
+#[allow(clippy::too_many_arguments)]
 pub(super) fn search_and_map(
     inputs: MapperInputs<'_>,
     init_image: ImageId,
@@ -916,13 +919,24 @@ pub(super) fn search_and_map(
     region: &SearchRegion,
     search: &SearchOptions,
     options: &MapperOptions,
+    confirms: Option<&dyn Fn(&MapperOutput) -> bool>,
     progress: Progress<'_>,
 ) -> Result<MapperOutput, MapperError> {
     let cloud = inputs.cloud;
     let searched = Instant::now();
     let index = MapIndex::build(cloud)?;
-    let nearest = NearestNeighbourAssociator::new(cloud, &index, options.association.clone());
+    // The planes as the mapper will see them: plane radii and windows
+    // follow the map's spacing and noise.
+    let adapted = options_for_map(options, cloud, &index);
+    let nearest =
+        NearestNeighbourAssociator::new(cloud, &index, adapted.options.association.clone());
     let rough = plain.rough;
+    let search = &SearchOptions {
+        min_radius_m: search
+            .min_radius_m
+            .max(SPARSE_MAP_RADIUS_PER_SPACING * adapted.spacing_m.unwrap_or(0.0)),
+        ..search.clone()
+    };
     let Search {
         contenders,
         mut record,
@@ -981,9 +995,11 @@ pub(super) fn search_and_map(
             let centre = centre.camera_center();
             (judged_fit(o, o.report.partial_map), centre)
         }));
+        // A model the map holds loosely is still kept when `confirms`
+        // (the photos' GPS positions) places it independently.
         let out = out.and_then(|o| match loose_searched_model(&o, init_image) {
-            Some(e) => Err(e),
-            None => Ok(o),
+            Some(e) if !confirms.is_some_and(|agrees| agrees(&o)) => Err(e),
+            _ => Ok(o),
         });
         if let Err(e) = &out {
             log::info!(
@@ -1074,7 +1090,8 @@ pub(super) fn search_and_map(
 /// [`SEARCH_MIN_CONSTRAINT`]): the search may have put it off along that
 /// direction, and the run from there cannot tell (it starts where the
 /// search put it, so [`check_initial_pose`](super::mapper::check_initial_pose)
-/// sees no move).
+/// sees no move). [`search_and_map`] keeps such a model when the photos'
+/// GPS positions agree with it.
 pub(super) fn loose_searched_model(out: &MapperOutput, init_image: ImageId) -> Option<MapperError> {
     let share = judged_fit(out, out.report.partial_map)?;
     // No ratio: no map terms (`--no-lidar-constraints`), or too few points

@@ -26,7 +26,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use serde::Serialize;
 
-use super::lidar::{sample_lidar, write_ply, LidarOptions};
+use super::lidar::{sample_lidar, write_ply, LidarOptions, LidarPlatform};
 use super::render::{render, RayTable, RenderSettings};
 use super::scenes::{build_changed_scene, build_scene, trajectory, SceneKind};
 use super::{lens, SynthError};
@@ -243,6 +243,7 @@ pub struct SceneSummary {
     pub offset_m: [f64; 3],
     pub num_lidar_points: usize,
     pub lidar_spacing_m: f64,
+    pub lidar_platform: LidarPlatform,
     pub init_pose_exact: [f64; 6],
     pub init_pose_perturbed: [f64; 6],
     /// Objects of the scan not in the images, and new ones in the images only.
@@ -445,6 +446,7 @@ pub fn generate_scene(opts: &SynthOptions, output: &Path) -> Result<SceneSummary
             offset_m: [opts.offset_m.x, opts.offset_m.y, opts.offset_m.z],
             num_lidar_points: map.points.len(),
             lidar_spacing_m: map.spacing_m,
+            lidar_platform: opts.lidar.platform,
             init_pose_exact: exact,
             init_pose_perturbed: perturbed,
             objects_removed,

@@ -25,7 +25,41 @@ pub struct LidarOptions {
     pub num_holes: usize,
     /// Fraction of outliers added uniformly in the scene's bounding box. Default 0.001.
     pub outlier_fraction: f64,
+    /// Where the scanner was. Default [`LidarPlatform::Terrestrial`].
+    pub platform: LidarPlatform,
     pub seed: u64,
+}
+
+/// Where the scan was taken from, which sets how densely each surface is sampled.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LidarPlatform {
+    /// Every surface at the same density (scans from the ground all around, as
+    /// a mobile or tripod scanner gives).
+    #[default]
+    Terrestrial,
+    /// From an aircraft or drone flying over it, the scan lines near nadir:
+    /// a surface is sampled in proportion to how much it faces up, walls at
+    /// [`AIRBORNE_WALL_SHARE`] of the ground's density, surfaces that face down
+    /// not at all.
+    Airborne,
+}
+
+/// The density of a vertical wall relative to flat ground in an airborne scan:
+/// the sine of a typical 10-20 deg scan angle, halved as only the strips on a
+/// wall's side see it.
+pub const AIRBORNE_WALL_SHARE: f64 = 0.15;
+
+impl LidarPlatform {
+    /// The share of a surface's grid samples this platform keeps, by the
+    /// surface's unit normal.
+    pub fn density(self, normal: &Vector3<f64>) -> f64 {
+        match self {
+            Self::Terrestrial => 1.0,
+            Self::Airborne if normal.z < -0.5 => 0.0,
+            Self::Airborne => normal.z.clamp(AIRBORNE_WALL_SHARE, 1.0),
+        }
+    }
 }
 
 impl Default for LidarOptions {
@@ -36,6 +70,7 @@ impl Default for LidarOptions {
             noise_sigma_m: 0.015,
             num_holes: 12,
             outlier_fraction: 0.001,
+            platform: LidarPlatform::Terrestrial,
             seed: 0,
         }
     }
@@ -90,6 +125,7 @@ pub fn sample_lidar(scene: &Scene, opts: &LidarOptions) -> LidarMap {
         let nv = (q.size_v_m / spacing).ceil().max(1.0) as usize;
         let (du, dv) = (q.size_u_m / nu as f64, q.size_v_m / nv as f64);
         let n32 = Vector3::new(q.normal.x as f32, q.normal.y as f32, q.normal.z as f32);
+        let keep = opts.platform.density(&q.normal);
         for j in 0..nv {
             for i in 0..nu {
                 let a = (i as f64 + rng.gen::<f64>()) * du;
@@ -99,7 +135,9 @@ pub fn sample_lidar(scene: &Scene, opts: &LidarOptions) -> LidarMap {
                 });
                 let p = q.point_at(a, b);
                 let n: f64 = noise.sample(&mut rng);
-                if in_hole || scene.solids.iter().any(|s| s.contains(&p, 0.005)) {
+                // Drawn only when thinning, so a terrestrial map is as before.
+                let thinned = keep < 1.0 && rng.gen::<f64>() >= keep;
+                if thinned || in_hole || scene.solids.iter().any(|s| s.contains(&p, 0.005)) {
                     continue;
                 }
                 map.points.push(p + q.normal * n);

@@ -732,7 +732,9 @@ fn prepare_map_crops_to_a_box_in_map_coordinates() {
 
 /// `map` and `prepare-map` estimate the normals of a map that has none
 /// over a radius that follows the map's spacing: on a 20 cm grid the
-/// default 0.15 m radius holds no neighbour at all.
+/// default 0.15 m radius holds no neighbour at all. Given that radius
+/// (`--normal-radius`), the points are tried again at twice and four times
+/// it.
 #[test]
 fn a_sparse_map_without_normals_gets_them() {
     let dir = tempfile::tempdir().unwrap();
@@ -751,26 +753,32 @@ fn a_sparse_map_without_normals_gets_them() {
     let mut cloud = cloud_of(points);
     cloud.origin = Vector3::new(500_000.0, 4_400_000.0, 200.0);
     colmap_lidar::map::io::write_ply(&path, &cloud).unwrap();
+    // Points with a normal, and those checked (on the floor or the wall, away
+    // from their edge), every normal checked within 1 deg.
+    let check = |map: &PointCloud| {
+        let normals = map.normals.as_ref().unwrap();
+        let (mut with_normal, mut checked) = (0, 0);
+        for (i, m) in normals.iter().enumerate() {
+            if m == &[0.0; 3] {
+                continue;
+            }
+            with_normal += 1;
+            let p = map.point_in_map(i) - cloud.origin;
+            let on_floor = p.z.abs() < 1e-3 && p.x < 5.5;
+            let on_wall = (p.x - 6.0).abs() < 1e-3 && p.z > 0.5;
+            let m = [f64::from(m[0]), f64::from(m[1]), f64::from(m[2])];
+            if on_floor {
+                assert!(angle_deg(m, [0.0, 0.0, 1.0], true) < 1.0, "{p:?} {m:?}");
+                checked += 1;
+            } else if on_wall {
+                assert!(angle_deg(m, [1.0, 0.0, 0.0], true) < 1.0, "{p:?} {m:?}");
+                checked += 1;
+            }
+        }
+        (with_normal, checked)
+    };
     let loaded = colmap_lidar::commands::map::load_map(&path).unwrap();
-    let normals = loaded.normals.as_ref().unwrap();
-    let (mut with_normal, mut checked) = (0, 0);
-    for (i, m) in normals.iter().enumerate() {
-        if m == &[0.0; 3] {
-            continue;
-        }
-        with_normal += 1;
-        let p = loaded.point_in_map(i) - cloud.origin;
-        let on_floor = p.z.abs() < 1e-3 && p.x < 5.5;
-        let on_wall = (p.x - 6.0).abs() < 1e-3 && p.z > 0.5;
-        let m = [f64::from(m[0]), f64::from(m[1]), f64::from(m[2])];
-        if on_floor {
-            assert!(angle_deg(m, [0.0, 0.0, 1.0], true) < 1.0, "{p:?} {m:?}");
-            checked += 1;
-        } else if on_wall {
-            assert!(angle_deg(m, [1.0, 0.0, 0.0], true) < 1.0, "{p:?} {m:?}");
-            checked += 1;
-        }
-    }
+    let (with_normal, checked) = check(&loaded);
     assert!(
         with_normal as f64 >= 0.95 * n as f64,
         "{with_normal} of {n}"
@@ -782,13 +790,101 @@ fn a_sparse_map_without_normals_gets_them() {
     let (prepared, report) = prepare(cloud.clone(), &PrepareOptions::default()).unwrap();
     assert!((0.45..0.65).contains(&report.normal_radius_m), "{report:?}");
     assert!(prepared.len() as f64 >= 0.95 * n as f64, "{report:?}");
+    assert_eq!(report.normals.widened, 0, "{report:?}");
     let fixed = PrepareOptions {
         radius_follows_spacing: false,
         ..Default::default()
     };
-    let (prepared, report) = prepare(cloud, &fixed).unwrap();
+    let (prepared, report) = prepare(cloud.clone(), &fixed).unwrap();
     assert_eq!(report.normal_radius_m, 0.15);
+    assert_eq!(
+        report.normals.widened, report.normals.estimated,
+        "{report:?}"
+    );
+    assert_eq!(report.normals.widest_radius_m, 0.6, "{report:?}");
+    let (with_normal, checked) = check(&prepared);
+    assert!(
+        with_normal as f64 >= 0.95 * n as f64,
+        "{with_normal} of {n}"
+    );
+    assert!(checked > 1000, "{checked}");
+    let one_radius = PrepareOptions {
+        radius_follows_spacing: false,
+        normals: NormalOptions {
+            sparse_widenings: 0,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let (prepared, report) = prepare(cloud, &one_radius).unwrap();
     assert_eq!(prepared.len(), 0, "{report:?}");
+}
+
+/// An airborne scan: a dense floor (10 cm) and a wall sampled only every
+/// 32 cm, with 1 cm of noise. The radius follows the floor's spacing, where
+/// a wall point has no neighbour; at the widened radii the wall gets its
+/// normals, while a stray return 0.4 m above the floor, which the widened
+/// fits see on the floor's plane 40 noise sigmas away, stays without one.
+#[test]
+fn an_airborne_scans_sparse_walls_get_normals_and_a_stray_return_none() {
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let noise = Normal::new(0.0, 0.01).unwrap();
+    let mut points = Vec::new();
+    for i in 0..40 {
+        for j in 0..40 {
+            let z = noise.sample(&mut rng) as f32;
+            points.push([i as f32 * 0.1, j as f32 * 0.1, z]);
+        }
+    }
+    let first_wall = points.len();
+    for j in 0..13 {
+        for k in 1..10 {
+            let x = 4.0 + noise.sample(&mut rng) as f32;
+            points.push([x, j as f32 * 0.32, k as f32 * 0.32]);
+        }
+    }
+    let stray = points.len();
+    points.push([2.05, 2.05, 0.4]);
+    let (prepared, report) = prepare(
+        cloud_of(points.clone()),
+        &PrepareOptions {
+            voxel_size_m: 0.0,
+            drop_without_normal: false,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert!(report.normal_radius_m < 0.32, "{report:?}");
+    assert!(report.normals.widened >= 90, "{report:?}");
+    let normals = prepared.normals.as_ref().unwrap();
+    assert_eq!(normals[stray], [0.0; 3], "{report:?}");
+    // The wall above the floor's reach: every point within 5 deg of x.
+    let mut high = 0;
+    for (i, p) in points.iter().enumerate().take(stray).skip(first_wall) {
+        if p[2] > 0.7 {
+            let m = normals[i];
+            let m = [f64::from(m[0]), f64::from(m[1]), f64::from(m[2])];
+            assert!(angle_deg(m, [1.0, 0.0, 0.0], true) < 5.0, "{p:?} {m:?}");
+            high += 1;
+        }
+    }
+    assert_eq!(high, 13 * 7);
+    // One radius: the wall gets none.
+    let (prepared, _) = prepare(
+        cloud_of(points),
+        &PrepareOptions {
+            voxel_size_m: 0.0,
+            drop_without_normal: false,
+            normals: NormalOptions {
+                sparse_widenings: 0,
+                ..Default::default()
+            },
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let normals = prepared.normals.as_ref().unwrap();
+    assert!(normals[first_wall..stray].iter().all(|m| m == &[0.0; 3]));
 }
 
 /// `prepare-map` with the tiles of a survey (a PLY and a LAZ of one
