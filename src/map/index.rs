@@ -889,15 +889,47 @@ impl MapIndex {
     /// ([`SPACING_SAMPLES`] is the count the mapper, `depth` and the normal
     /// estimation use.)
     pub fn surface_spacing_m(&self, cloud: &PointCloud, max_samples: usize) -> Option<f64> {
-        const K: usize = 8;
-        const MAX_RADIUS_M: f64 = 2.0;
         let n = cloud.len();
-        if n == 0 || max_samples == 0 {
+        if max_samples == 0 {
             return None;
         }
         let stride = n.div_ceil(max_samples).max(1);
-        let mut radii: Vec<f64> = (0..n)
-            .step_by(stride)
+        self.spacing_among_m(cloud, (0..n).step_by(stride))
+    }
+
+    /// [`Self::surface_spacing_m`] over the steep points of `cloud` only:
+    /// those whose normal is within 60 deg of horizontal (walls; map z is
+    /// up). An airborne scan samples them a few times more sparsely than
+    /// its ground and roofs. `None` without normals or such points.
+    pub fn steep_spacing_m(&self, cloud: &PointCloud, max_samples: usize) -> Option<f64> {
+        let normals = cloud.normals.as_ref()?;
+        let steep = |n: &&[f32; 3]| {
+            let norm_sq = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
+            norm_sq > 0.0 && n[2] * n[2] < 0.25 * norm_sq
+        };
+        let count = normals.iter().filter(steep).count();
+        if max_samples == 0 {
+            return None;
+        }
+        let stride = count.div_ceil(max_samples).max(1);
+        let sample = normals
+            .iter()
+            .enumerate()
+            .filter(|(_, n)| steep(n))
+            .map(|(i, _)| i)
+            .step_by(stride);
+        self.spacing_among_m(cloud, sample)
+    }
+
+    /// [`Self::surface_spacing_m`] over the points `sample`.
+    fn spacing_among_m(
+        &self,
+        cloud: &PointCloud,
+        sample: impl Iterator<Item = usize>,
+    ) -> Option<f64> {
+        const K: usize = 8;
+        const MAX_RADIUS_M: f64 = 2.0;
+        let mut radii: Vec<f64> = sample
             .filter_map(|i| {
                 // The point itself comes first, at distance 0.
                 let found = self.k_nearest_within(&cloud.point_in_map(i), K + 1, MAX_RADIUS_M);
@@ -1884,6 +1916,35 @@ mod tests {
         let lonely = cloud(vec![[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]]);
         let index = MapIndex::build(&lonely).unwrap();
         assert_eq!(index.surface_spacing_m(&lonely, 100), None);
+    }
+
+    /// A floor every 10 cm and a wall every 30 cm (an airborne scan's
+    /// walls): the whole map reads the floor's spacing, its steep points the
+    /// wall's; without normals there is no steep spacing.
+    #[test]
+    fn steep_spacing_reads_the_walls() {
+        let mut points = Vec::new();
+        let mut normals = Vec::new();
+        for i in 0..100 {
+            for j in 0..100 {
+                points.push([i as f32 * 0.1, j as f32 * 0.1, 0.0]);
+                normals.push([0.0, 0.0, 1.0]);
+            }
+        }
+        for j in 0..34 {
+            for k in 1..20 {
+                points.push([10.0, j as f32 * 0.3, k as f32 * 0.3]);
+                normals.push([-1.0, 0.0, 0.0]);
+            }
+        }
+        let mut c = cloud(points);
+        let index = MapIndex::build(&c).unwrap();
+        assert_eq!(index.steep_spacing_m(&c, 2000), None);
+        c.normals = Some(normals);
+        let whole = index.surface_spacing_m(&c, 2000).unwrap();
+        let walls = index.steep_spacing_m(&c, 2000).unwrap();
+        assert!((0.085..0.115).contains(&whole), "{whole}");
+        assert!((0.255..0.345).contains(&walls), "{walls}");
     }
 
     #[test]

@@ -426,8 +426,9 @@ const NOISE_WINDOW_M: f64 = 0.3;
 /// [`options_for_map`]'s result.
 pub struct MapAdapted {
     pub options: MapperOptions,
-    /// The map's spacing on its surfaces, metres.
+    /// The map's spacing on its surfaces, and on its steep ones (walls), metres.
     pub spacing_m: Option<f64>,
+    pub steep_spacing_m: Option<f64>,
     /// The map's range noise along its normals, metres.
     pub noise_m: Option<f64>,
 }
@@ -443,7 +444,10 @@ pub fn options_for_map(
     index: &MapIndex,
 ) -> MapAdapted {
     let spacing_m = index.surface_spacing_m(cloud, SPACING_SAMPLES);
-    let spaced = options.for_map_spacing(spacing_m.unwrap_or(0.0));
+    let steep_spacing_m = index.steep_spacing_m(cloud, SPACING_SAMPLES);
+    let spaced = options
+        .for_map_spacing(spacing_m.unwrap_or(0.0))
+        .for_steep_spacing(spacing_m.unwrap_or(0.0), steep_spacing_m.unwrap_or(0.0));
     // The noise is read from the local planes only: no wide fits' surfels
     // for this throwaway associator (the mapper's own builds them).
     let probe = AssociationOptions {
@@ -455,6 +459,7 @@ pub fn options_for_map(
     MapAdapted {
         options: spaced.for_map_noise(noise_m.unwrap_or(0.0)),
         spacing_m,
+        steep_spacing_m,
         noise_m,
     }
 }
@@ -1406,18 +1411,21 @@ fn map_staged(
     let MapAdapted {
         options: adapted,
         spacing_m: map_spacing_m,
+        steep_spacing_m: map_steep_spacing_m,
         noise_m: map_noise_m,
     } = options_for_map(options, cloud, &index);
     let options = &adapted;
     log::info!(
-        "map: {} points, spacing about {}, noise about {} (splat half-width {:.3} m, {:.3} m near, plane radius {:.3} m, window {:.3} m)",
+        "map: {} points, spacing about {} (walls {}), noise about {} (splat half-width {:.3} m, {:.3} m near, plane radius {:.3} m, window {:.3} m, smallest association radius {:.3} m)",
         cloud.len(),
         map_spacing_m.map_or("unknown".to_owned(), |s| format!("{s:.3} m")),
+        map_steep_spacing_m.map_or("unknown".to_owned(), |s| format!("{s:.3} m")),
         map_noise_m.map_or("unknown".to_owned(), |s| format!("{:.1} mm", s * 1e3)),
         options.init.splat_half_width_m,
         options.init.splat_near_half_width_m,
         options.association.plane_radius_m,
-        options.association.plane_window_m
+        options.association.plane_window_m,
+        options.association.min_radius_m
     );
     let assoc = &options.association;
     if assoc.plane_fit_max_radius_m > 0.0
@@ -1468,6 +1476,7 @@ fn map_staged(
     *report = MapReport {
         seed: options.seed,
         map_spacing_m,
+        map_steep_spacing_m,
         map_noise_m,
         association: associator.name().to_owned(),
         images: state

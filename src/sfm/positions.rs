@@ -1118,4 +1118,30 @@ mod tests {
         let same = vec![(Vector3::zeros(), Vector3::new(1.0, 2.0, 3.0)); 5];
         assert!(fit_positions(&same, 0).is_none());
     }
+
+    /// The GPS check of a loosely held searched model, by hand: 23 positions
+    /// of 0.3 m scatter allow a mean offset of 3 x 0.3 / sqrt(23) = 0.188 m
+    /// and a scatter of 0.6 m; positions of 2 cm (RTK) still allow 0.1 m
+    /// for a lever arm.
+    #[test]
+    fn gps_positions_confirm_a_model_within_their_standard_error() {
+        let fit = |sigma: f64| PositionFit {
+            map_from_model: Sim3::identity(),
+            inliers: vec![true; 23],
+            horizontal_sigma_m: sigma,
+            vertical_sigma_m: 1.0,
+            spread_m: 7.0,
+            centroid_m: nalgebra::Vector2::zeros(),
+        };
+        let at = |x: f64, y: f64| nalgebra::Vector2::new(x, y);
+        let (agrees, limit) = agreement(&at(0.1, -0.1), 0.3, 23, &fit(0.3));
+        assert!(agrees);
+        assert!((limit - 0.9 / 23f64.sqrt()).abs() < 1e-12, "{limit}");
+        assert!(!agreement(&at(0.15, 0.12), 0.3, 23, &fit(0.3)).0);
+        assert!(!agreement(&at(0.0, 0.0), 0.61, 23, &fit(0.3)).0);
+        assert!(agreement(&at(0.0, 0.0), 0.59, 23, &fit(0.3)).0);
+        let (agrees, limit) = agreement(&at(0.08, 0.0), 0.03, 23, &fit(0.02));
+        assert!(agrees && limit == CONFIRM_MIN_OFFSET_M);
+        assert!(!agreement(&at(0.11, 0.0), 0.03, 23, &fit(0.02)).0);
+    }
 }
