@@ -898,7 +898,7 @@ impl MapIndex {
     }
 
     /// [`Self::surface_spacing_m`] over the steep points of `cloud` only:
-    /// those whose normal is within 60 deg of horizontal (walls; map z is
+    /// those whose normal is within 30 deg of horizontal (walls; map z is
     /// up). An airborne scan samples them a few times more sparsely than
     /// its ground and roofs. `None` without normals or such points.
     pub fn steep_spacing_m(&self, cloud: &PointCloud, max_samples: usize) -> Option<f64> {

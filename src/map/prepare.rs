@@ -98,7 +98,7 @@ pub struct NormalOptions {
     /// against 11.6 s for the plain fit (41.3 s refitting every point); the
     /// room above 0.78 s against 0.47 s.
     pub robust_iterations: usize,
-    /// Points left without a normal at `radius_m` (fewer than
+    /// Points left without a normal at `radius_m` (mostly fewer than
     /// `min_neighbours` there) are tried again at twice the radius, this
     /// many times over, where the map is sparser than its spacing says:
     /// the walls of an airborne scan, sampled a few times less densely than
@@ -111,8 +111,11 @@ pub struct NormalOptions {
 
 /// At a widened radius ([`NormalOptions::sparse_widenings`]) a point's
 /// distance to its fitted plane may be at most this many times the map's
-/// noise.
-pub const WIDENED_ON_PLANE_NOISE: f64 = 3.0;
+/// noise (read at the given radius).
+pub const WIDENED_ON_PLANE_NOISE: f64 = 4.0;
+
+/// Most [`NormalOptions::sparse_widenings`] (a radius 256 times the given).
+pub const MAX_SPARSE_WIDENINGS: usize = 8;
 
 /// Only neighbourhoods whose plain fit leaves an RMS distance above this
 /// many times the map's noise are refitted (one flat surface leaves about
@@ -165,6 +168,12 @@ impl NormalOptions {
             return Err(PrepareError::InvalidOption(
                 "max_neighbours is below min_neighbours".into(),
             ));
+        }
+        if self.sparse_widenings > MAX_SPARSE_WIDENINGS {
+            return Err(PrepareError::InvalidOption(format!(
+                "sparse_widenings is {}, at most {MAX_SPARSE_WIDENINGS} (each doubles the radius)",
+                self.sparse_widenings
+            )));
         }
         if let NormalOrientation::TowardsViewpoint(v) = &self.orientation {
             if !v.iter().all(|c| c.is_finite()) {
@@ -1030,7 +1039,16 @@ pub fn estimate_normals(
     options: &NormalOptions,
 ) -> Result<NormalReport, PrepareError> {
     options.validate()?;
-    let mut report = estimate_at_radius(cloud, options, None)?;
+    let (mut report, noise_m) = estimate_at_radius(cloud, options, None)?;
+    if report.failed == 0 || options.sparse_widenings == 0 {
+        return Ok(report);
+    }
+    // The noise as the given radius reads it: a wider one reads the
+    // surfaces' curvature and edges as well.
+    let noise_m = match noise_m {
+        Some(noise) => noise,
+        None => estimate_noise_m(cloud, options)?.unwrap_or(0.0),
+    };
     let mut wider = NormalOptions {
         recompute_all: false,
         ..options.clone()
@@ -1040,7 +1058,8 @@ pub fn estimate_normals(
             break;
         }
         wider.radius_m *= 2.0;
-        let again = estimate_at_radius(cloud, &wider, Some(WIDENED_ON_PLANE_NOISE))?;
+        let (again, _) =
+            estimate_at_radius(cloud, &wider, Some((WIDENED_ON_PLANE_NOISE, noise_m)))?;
         if again.estimated > 0 {
             report.estimated += again.estimated;
             report.widened += again.estimated;
@@ -1052,20 +1071,21 @@ pub fn estimate_normals(
 }
 
 /// One pass of [`estimate_normals`] at `options.radius_m` (its
-/// `sparse_widenings` not applied). With `on_plane_noise`, a point gets a
-/// normal only if it lies within that many times the map's noise of its
-/// fitted plane. Points with a valid normal are not fitted unless
-/// `recompute_all`.
+/// `sparse_widenings` not applied), and the map's noise it read (for the
+/// robust refits; `None` when it read none). With `on_plane` `(k,
+/// noise_m)`, that noise is used instead of reading it, and a point gets a
+/// normal only if it lies within `k` times it of its fitted plane. Points
+/// with a valid normal are not fitted unless `recompute_all`.
 fn estimate_at_radius(
     cloud: &mut PointCloud,
     options: &NormalOptions,
-    on_plane_noise: Option<f64>,
-) -> Result<NormalReport, PrepareError> {
+    on_plane: Option<(f64, f64)>,
+) -> Result<(NormalReport, Option<f64>), PrepareError> {
     let n = cloud.len();
     if n == 0 {
         cloud.normals.get_or_insert_with(Vec::new);
         cloud.planarity.get_or_insert_with(Vec::new);
-        return Ok(NormalReport::default());
+        return Ok((NormalReport::default(), None));
     }
     let grid = CellGrid::new(cloud, options.radius_m)?;
     // Viewpoint in local (offset) coordinates.
@@ -1138,17 +1158,19 @@ fn estimate_at_radius(
     // The map's noise, from the plain fits of a sample of cells, for the
     // robust refit's scale and the on-plane test. Floors for noise-free
     // maps: 1 % of the radius.
-    let noise_m = if robust || on_plane_noise.is_some() {
-        let noise_m = sampled_noise_m(&grid, &sorted_points, options).unwrap_or(0.0);
-        log::debug!(
-            "map noise at the {:.3} m normal radius: {:.4} m",
-            options.radius_m,
-            noise_m
-        );
-        noise_m
-    } else {
-        0.0
+    let read_noise_m = match on_plane {
+        None if robust => {
+            let noise_m = sampled_noise_m(&grid, &sorted_points, options).unwrap_or(0.0);
+            log::debug!(
+                "map noise at the {:.3} m normal radius: {:.4} m",
+                options.radius_m,
+                noise_m
+            );
+            Some(noise_m)
+        }
+        _ => None,
     };
+    let noise_m = on_plane.map_or(read_noise_m.unwrap_or(0.0), |(_, noise)| noise);
     let floor_m = options.radius_m / 100.0;
     let robust_c_m = robust.then(|| {
         (
@@ -1156,7 +1178,7 @@ fn estimate_at_radius(
             (ROBUST_REFIT_ABOVE_NOISE * noise_m).max(floor_m),
         )
     });
-    let on_plane_m = on_plane_noise.map(|k| k * noise_m.max(floor_m));
+    let on_plane_m = on_plane.map(|(k, _)| k * noise_m.max(floor_m));
     slices.into_par_iter().enumerate().for_each_init(
         || (Candidates::default(), Vec::<(f32, u32)>::new()),
         |(candidates, nearest), (c, out)| {
@@ -1284,7 +1306,7 @@ fn estimate_at_radius(
     }
     cloud.normals = Some(normals);
     cloud.planarity = Some(planarity);
-    Ok(report)
+    Ok((report, read_noise_m))
 }
 
 #[cfg(test)]

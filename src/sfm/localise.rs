@@ -218,6 +218,9 @@ pub struct SearchRecord {
     /// wall time, seconds (its held retry included).
     pub after_failure: Option<String>,
     pub first_run_s: Option<f64>,
+    /// The kept model is one the map holds only loosely (it would have been
+    /// refused) and the photos' GPS positions placed it (GPS placements).
+    pub kept_by_positions: bool,
 }
 
 /// Why the search found no placement.
@@ -583,6 +586,7 @@ pub fn search_placement(
         search_s: 0.0,
         after_failure: None,
         first_run_s: None,
+        kept_by_positions: false,
     };
     Ok(Search { contenders, record })
 }

@@ -1321,7 +1321,10 @@ impl MapperOptions {
     /// of 1.0002 with 0.1 m, 1.6 mm with 0.25 m (the same scan without
     /// noise: 5.2 and 2.2 mm; one with walls as dense as the ground: 2.5
     /// mm); at 20 cm 11.4 mm against 5.2 mm with 0.45 m. A terrestrial
-    /// map's walls are as dense as its floors, and its radius stays.
+    /// map's walls are as dense as its floors, and its radius stays. The
+    /// same radius finds the planes of the fit checks' "near a surface"
+    /// counts and of the behind-the-map filter, which on such a map would
+    /// otherwise miss the walls as well.
     pub fn for_steep_spacing(&self, spacing_m: f64, steep_spacing_m: f64) -> MapperOptions {
         let mut adapted = self.clone();
         if spacing_m > 0.0 && steep_spacing_m > SPARSE_STEEP_PER_SPACING * spacing_m {

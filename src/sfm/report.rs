@@ -305,7 +305,7 @@ pub struct MapReport {
     /// ([`crate::map::index::MapIndex::surface_spacing_m`]); splats and
     /// plane radii grow with it ([`crate::sfm::options::MapperOptions::for_map_spacing`]).
     pub map_spacing_m: Option<f64>,
-    /// The same over the map's steep points (normals within 60 deg of
+    /// The same over the map's steep points (normals within 30 deg of
     /// horizontal: walls); walls sparser than 1.5 times the map's spacing
     /// widen the smallest association radius
     /// ([`crate::sfm::options::MapperOptions::for_steep_spacing`]).

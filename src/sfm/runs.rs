@@ -978,6 +978,9 @@ pub(super) fn search_and_map(
     // Each close placement mapped; the map's fit of the finished models decides.
     let mut runs: Vec<(Rigid3, Result<MapperOutput, MapperError>)> = Vec::new();
     let mut finished: Vec<Option<(Option<f64>, nalgebra::Vector3<f64>)>> = Vec::new();
+    // Of each run refused as loose with `confirms` given, whether the
+    // positions placed it (kept) or not (no place at all).
+    let mut by_positions: Vec<Option<bool>> = Vec::new();
     for (_, map_from_plain) in &contenders {
         let found = map_from_plain.transform_pose(&rough);
         let c = found.camera_center();
@@ -997,10 +1000,19 @@ pub(super) fn search_and_map(
         }));
         // A model the map holds loosely is still kept when `confirms`
         // (the photos' GPS positions) places it independently.
+        let mut placed = None;
         let out = out.and_then(|o| match loose_searched_model(&o, init_image) {
-            Some(e) if !confirms.is_some_and(|agrees| agrees(&o)) => Err(e),
-            _ => Ok(o),
+            Some(e) => {
+                placed = confirms.map(|agrees| agrees(&o));
+                if placed == Some(true) {
+                    Ok(o)
+                } else {
+                    Err(e)
+                }
+            }
+            None => Ok(o),
         });
+        by_positions.push(placed);
         if let Err(e) = &out {
             log::info!(
                 "the run from placement {} of {} failed: {e}",
@@ -1029,10 +1041,12 @@ pub(super) fn search_and_map(
     let centre = |i: usize| finished[i].map_or(runs[i].0.camera_center(), |f| f.1);
     let best_fit = fits[best].unwrap_or(0.0);
     // Another finished model (refused as loose or not) in another place that
-    // fits about as well: the map cannot tell them apart.
+    // fits about as well: the map cannot tell them apart. One that the
+    // positions refused to place is no place.
     if let Some(other) = (0..runs.len()).find(|&i| {
         i != best
             && finished[i].is_some()
+            && by_positions[i] != Some(false)
             && fits[i].unwrap_or(0.0) >= best_fit - SEARCH_SAME_FIT
             && (centre(i) - centre(best)).norm() > SAME_PLACE_M
     }) {
@@ -1067,6 +1081,7 @@ pub(super) fn search_and_map(
                 .join(", ")
         );
     }
+    record.kept_by_positions = by_positions[best] == Some(true);
     let (found, out) = runs.swap_remove(best);
     let mut out = out?;
     let c = found.camera_center();

@@ -39,9 +39,10 @@ pub enum LidarPlatform {
     #[default]
     Terrestrial,
     /// From an aircraft or drone flying over it, the scan lines near nadir:
-    /// a surface is sampled in proportion to how much it faces up, walls at
-    /// [`AIRBORNE_WALL_SHARE`] of the ground's density, surfaces that face down
-    /// not at all.
+    /// a surface is sampled in proportion to how much it faces up, walls
+    /// (and surfaces facing down by less than 30 deg) at
+    /// [`AIRBORNE_WALL_SHARE`] of the ground's density, surfaces facing
+    /// further down not at all.
     Airborne,
 }
 

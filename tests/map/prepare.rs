@@ -824,7 +824,8 @@ fn a_sparse_map_without_normals_gets_them() {
 /// 32 cm, with 1 cm of noise. The radius follows the floor's spacing, where
 /// a wall point has no neighbour; at the widened radii the wall gets its
 /// normals, while a stray return 0.4 m above the floor, which the widened
-/// fits see on the floor's plane 40 noise sigmas away, stays without one.
+/// fits see on the floor's plane 40 noise sigmas away, stays without one
+/// (a wall point is let through within 4 sigmas).
 #[test]
 fn an_airborne_scans_sparse_walls_get_normals_and_a_stray_return_none() {
     let mut rng = ChaCha8Rng::seed_from_u64(21);

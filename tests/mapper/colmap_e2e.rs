@@ -896,7 +896,7 @@ fn aerial_survey_from_gps() {
     let raw = dir.path().join("airborne_raw.ply");
     let mut file = std::io::BufWriter::new(std::fs::File::create(&raw).unwrap());
     write_synth_ply(&mut file, &scan, &nalgebra::Vector3::zeros(), false).unwrap();
-    drop(file);
+    file.into_inner().unwrap();
     let prepared = dir.path().join("airborne.ply");
     let made = std::process::Command::new(crate::common::bin())
         .args(["prepare-map", "--input"])
@@ -924,9 +924,19 @@ fn aerial_survey_from_gps() {
         run.report["similarity_constraint"]
     );
     // The map loosely holds the model across the strips (a similarity
-    // ratio of 5.6e-3 measured, under the 7e-3 a searched model needs): the
-    // positions confirm it.
+    // ratio of 5.6e-3 measured, fit 0.86): a searched model below 7e-3
+    // (`SEARCH_MIN_CONSTRAINT`) and a 90 % fit is kept only because the
+    // positions place it.
     assert_eq!(positions["confirms_placement"], true, "{positions}");
+    let ratio = run.report["similarity_constraint"]["ratio"]
+        .as_f64()
+        .unwrap();
+    let fit = run.report["fit_share"].as_f64().unwrap();
+    assert_eq!(
+        run.report["init_search"]["kept_by_positions"].as_bool(),
+        Some(ratio < 7e-3 && fit < 0.9),
+        "ratio {ratio}, fit {fit}"
+    );
     // The walls read about 2.3 times the map's spacing, and the smallest
     // association radius follows them.
     let spacing = run.report["map_spacing_m"].as_f64().unwrap();
