@@ -1183,17 +1183,17 @@ fn estimate_at_radius(
         || (Candidates::default(), Vec::<(f32, u32)>::new()),
         |(candidates, nearest), (c, out)| {
             let range = grid.cell_range(c);
-            let skipped = |k: usize| skip.as_ref().is_some_and(|s| s[range.start + k]);
+            let skipped = |at: usize| skip.as_ref().is_some_and(|s| s[range.start + at]);
             if (0..range.len()).all(skipped) {
                 return;
             }
             gather(c, candidates);
-            for (k, (&q, slot)) in sorted_points[range.clone()]
+            for (at, (&q, slot)) in sorted_points[range.clone()]
                 .iter()
                 .zip(out.iter_mut())
                 .enumerate()
             {
-                if skipped(k) {
+                if skipped(at) {
                     continue;
                 }
                 let (count, s1, s2) = match options.k_nearest {

@@ -1378,8 +1378,6 @@ impl MapperOptions {
 mod tests {
     use super::*;
 
-    /// 50 mm of noise: a window of 0.15 m; 33 mm and less, no noise or a
-    /// NaN change nothing; a map of 10 m noise stays within the bound.
     /// Walls sparser than 1.5 times the map's spacing raise the smallest
     /// association radius to their spacing; walls as dense as the map, or
     /// no spacing known, change nothing.
@@ -1401,6 +1399,8 @@ mod tests {
         very_sparse.validate().unwrap();
     }
 
+    /// 50 mm of noise: a window of 0.15 m; 33 mm and less, no noise or a
+    /// NaN change nothing; a map of 10 m noise stays within the bound.
     #[test]
     fn the_plane_window_follows_the_noise() {
         let o = MapperOptions::default();
