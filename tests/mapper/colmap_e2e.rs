@@ -772,18 +772,9 @@ fn a_noisy_scan_is_prepared_and_mapped() {
     generate_scene(&options, &scene).expect("scene generation");
     make_database(&scene, &HarnessOptions::default()).expect("colmap database");
     let prepared = dir.path().join("prepared.ply");
-    let out = std::process::Command::new(crate::common::bin())
-        .args(["prepare-map", "--input"])
-        .arg(scene.join("lidar_raw.ply"))
-        .arg("--output")
-        .arg(&prepared)
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{text}");
+    let text = run_prepare_map(&scene.join("lidar_raw.ply"), &prepared);
     let radius = number_before(&text, " m radius");
     let noise = number_before(&text, " mm)");
-    eprintln!("prepare-map: {text}");
     assert!((0.35..0.45).contains(&radius), "{text}");
     assert!((45.0..58.0).contains(&noise), "{text}");
     let run = map_scene(&scene, &dir.path().join("out"), |args| {
@@ -898,19 +889,8 @@ fn aerial_survey_from_gps() {
     write_synth_ply(&mut file, &scan, &nalgebra::Vector3::zeros(), false).unwrap();
     file.into_inner().unwrap();
     let prepared = dir.path().join("airborne.ply");
-    let made = std::process::Command::new(crate::common::bin())
-        .args(["prepare-map", "--input"])
-        .arg(&raw)
-        .arg("--output")
-        .arg(&prepared)
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&made.stdout);
-    eprintln!("prepare-map: {text}");
-    assert!(
-        made.status.success() && text.contains("where the map is sparser"),
-        "{text}"
-    );
+    let text = run_prepare_map(&raw, &prepared);
+    assert!(text.contains("where the map is sparser"), "{text}");
     let args = MapArgs {
         lidar: Some(prepared),
         output: Some(dir.path().join("airborne_out")),
@@ -1385,6 +1365,27 @@ fn yard_with_colmap_database() {
         let y = std::fs::read(out.join(f)).unwrap();
         assert!(x == y, "{f}: the binary and the library disagree");
     }
+}
+
+/// `prepare-map --input raw --output prepared` run as a user would (the
+/// binary, default options); its standard output, printed. Fails the test
+/// when it fails.
+fn run_prepare_map(raw: &Path, prepared: &Path) -> String {
+    let out = std::process::Command::new(crate::common::bin())
+        .args(["prepare-map", "--input"])
+        .arg(raw)
+        .arg("--output")
+        .arg(prepared)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    eprintln!("prepare-map: {text}");
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    text
 }
 
 /// The number before `after` in `text` (`after` names what follows it).
