@@ -14,7 +14,9 @@
 #        "--offset 500000,4400000,200" or "--width 1024 --height 768"),
 #        TAG (default "default": each run's folder is TAG-POSE), ORACLE (1: run
 #        colmap mapper once per database, 0: skip), COLMAP_LIDAR (default:
-#        colmap-lidar on PATH, else target/release/colmap-lidar)
+#        colmap-lidar on PATH, else target/release/colmap-lidar), IMAGE_PATH
+#        (default 1: map is given the scene's images, so it colours the points
+#        and refines the keypoints on the map's planes; 0: not)
 # writes: OUT_DIR/SCENE-SEED/{database.db,TAG-POSE/,oracle/}, OUT_DIR/TAG.tsv
 # prints: per run the camera-centre median and p90 (mm), rotation median (deg),
 #         registered share, and our median over the oracle's
@@ -70,9 +72,11 @@ for scene in $scenes; do
       mkdir -p "$run"
       start=$(date +%s.%N)
       # shellcheck disable=SC2086
+      images=()
+      [ "${IMAGE_PATH:-1}" = 1 ] && images=(--image-path "$dir/images")
       if "$tool" map --database "$dir/database.db" --lidar "$dir/lidar.ply" \
           --init-image frame_0000.jpg --init-pose "$init" --output "$run/model" \
-          ${MAP_ARGS:-} >"$run/map.log" 2>&1; then
+          "${images[@]}" ${MAP_ARGS:-} >"$run/map.log" 2>&1; then
         secs=$(awk -v a="$start" -v b="$(date +%s.%N)" 'BEGIN { print b - a }')
         "$tool" evaluate --model "$run/model" --reference "$dir/gt" --align none \
           --json "$run/eval.json" >/dev/null

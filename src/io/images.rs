@@ -16,7 +16,7 @@
 //! them either.
 use std::path::{Path, PathBuf};
 
-use image::RgbImage;
+use image::{GrayImage, RgbImage};
 use rayon::prelude::*;
 
 use crate::scene::{Camera, Point3DId, Reconstruction};
@@ -147,6 +147,16 @@ pub fn read_rgb(dir: &Path, expected: &ExpectedImage) -> Result<RgbImage, ImageF
     let rgb = read_image(&path, |r| r.decode())?.into_rgb8();
     check_size(&path, rgb.dimensions(), expected)?;
     Ok(rgb)
+}
+
+/// Reads image `expected` from `dir` as 8-bit grey values (the image
+/// crate's luma weights), checked against its camera's size; errors name
+/// the file.
+pub fn read_gray(dir: &Path, expected: &ExpectedImage) -> Result<GrayImage, ImageFolderError> {
+    let path = resolve(dir, expected.name)?;
+    let gray = read_image(&path, |r| r.decode())?.into_luma8();
+    check_size(&path, gray.dimensions(), expected)?;
+    Ok(gray)
 }
 
 /// The colour at keypoint `(x, y)` (pixel centres at +0.5), bilinear between

@@ -23,7 +23,7 @@ use super::align::{
     WEAK_SIMILARITY_CONSTRAINT,
 };
 use super::associate::{
-    AssociationQuery, NearestNeighbourAssociator, NoAssociation, PlaneAssociator,
+    median_in_place, AssociationQuery, NearestNeighbourAssociator, NoAssociation, PlaneAssociator,
     ProjectionAssociator, SolveKind,
 };
 use super::bundle::{
@@ -39,6 +39,7 @@ use super::initialize::{
     focal_from_map, initialize, initialize_from_pair, swept_cameras, InitError,
     InitialPairFocalSweep, MapFocalEstimate,
 };
+use super::keypoints::{refine_keypoints, GrayImages};
 use super::localise::{SearchError, SearchRegion};
 use super::options::{
     AssociationKind, AssociationOptions, BundleOptions, IntrinsicsRefinement, MapperOptions,
@@ -849,6 +850,9 @@ pub struct MapperInputs<'a> {
     pub known_poses: &'a BTreeMap<ImageId, KnownPose>,
     pub held_cameras: &'a BTreeSet<CameraId>,
     pub run_log: Option<&'a RunLog>,
+    /// The images' grey values (`map --image-path`), for the keypoints'
+    /// refinement ([`crate::sfm::keypoints`]); `None` without images.
+    pub images: Option<&'a GrayImages>,
 }
 
 /// A run from the early look must leave the initial image within this of
@@ -1308,6 +1312,7 @@ fn map_staged(
         known_poses,
         held_cameras,
         run_log: _,
+        images,
     } = inputs;
     options.validate()?;
     match start {
@@ -2220,6 +2225,39 @@ fn map_staged(
         }
     }
     stages.done("final bundle adjustment");
+    // The keypoints refined on the map's planes, then the rounds again.
+    if let Some(images) = images.filter(|_| {
+        lidar_gauge && options.keypoints.refine && !moving.is_empty() && existing.is_none()
+    }) {
+        let (refined, mut record) = refine_keypoints(&state, images, &options.keypoints);
+        log::info!(
+            "keypoints refined on the map's planes: {} of {} observations of {} tracks (median shift {:.3} px; {} correlated too little, {} moved too far), {:.1} s",
+            record.refined,
+            record.observations,
+            record.tracks,
+            record.median_shift_px,
+            record.low_correlation,
+            record.too_far,
+            record.seconds
+        );
+        if !refined.is_empty() {
+            for (image, idx, q) in &refined {
+                if let Some(img) = state.images.get_mut(image) {
+                    img.keypoints[*idx as usize] = *q;
+                }
+            }
+            let before = camera_centres(&state, &moving);
+            final_rounds(&mut state, report, &refine.last, 3)?;
+            let mut moves: Vec<f64> = camera_centres(&state, &moving)
+                .iter()
+                .zip(&before)
+                .map(|(a, b)| (a - b).norm())
+                .collect();
+            record.median_camera_move_m = Some(median_in_place(&mut moves));
+        }
+        report.keypoint_refinement = Some(record);
+        stages.done("keypoint refinement");
+    }
 
     if lidar_gauge && !state.points.is_empty() {
         let points: Vec<_> = state.points.values().map(|p| p.xyz).collect();
@@ -2315,6 +2353,16 @@ fn map_staged(
         report.num_points,
         report.mean_reprojection_error_px
     );
+    // The model's 2D points are the database's keypoints, refined or not:
+    // the refined positions serve the solves, and a model must match its
+    // database's features (`--input-model`, COLMAP's own tools).
+    if report.keypoint_refinement.is_some() {
+        for (id, img) in state.images.iter_mut() {
+            if let Some(keypoints) = db.keypoints.get(id) {
+                img.keypoints.clone_from(keypoints);
+            }
+        }
+    }
     Ok(RunEnd::Finished(Box::new(MapperOutput {
         reconstruction: state.to_reconstruction(),
         report: std::mem::take(report),

@@ -27,6 +27,7 @@ pub mod focal;
 pub mod geometry;
 pub mod groups;
 pub mod initialize;
+pub mod keypoints;
 pub mod localise;
 pub mod mapper;
 pub mod options;

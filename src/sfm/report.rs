@@ -396,6 +396,10 @@ pub struct MapReport {
     /// Points deleted before the final rounds because they lie behind the
     /// surface the map shows at their features (with LiDAR constraints).
     pub points_behind_map_removed: Option<usize>,
+    /// The tracked keypoints' photometric refinement on the map's planes
+    /// after the final rounds (with the images and LiDAR constraints), after
+    /// which the rounds ran again.
+    pub keypoint_refinement: Option<crate::sfm::keypoints::RefinementRecord>,
     /// Pose uncertainties after the final solve (with LiDAR constraints, up
     /// to `bundle.uncertainty_max_images` images).
     pub pose_uncertainty: Option<UncertaintySummary>,

@@ -1285,6 +1285,7 @@ fn toy_room_image_with_too_few_matches_is_placed_at_its_known_pose() {
         known_poses: &known,
         held_cameras: &BTreeSet::new(),
         run_log: None,
+        images: None,
     };
     let out = run_mapper_with_priors(inputs, ImageId(1), &init, &options, &mut |_, _| {}).unwrap();
     let rec = out
@@ -1663,6 +1664,7 @@ fn toy_room_partly_mapped_model_is_extended() {
         known_poses: &BTreeMap::new(),
         held_cameras: &BTreeSet::new(),
         run_log: None,
+        images: None,
     };
     for hold in [true, false] {
         let model = match_to_database(&half, &scene.db, hold).unwrap();
@@ -1901,6 +1903,7 @@ fn toy_room_groups_mapped_in_one_run() {
         known_poses: &known,
         held_cameras: &BTreeSet::new(),
         run_log: None,
+        images: None,
     };
     let options = MapperOptions::default();
     let mut seen = Vec::new();

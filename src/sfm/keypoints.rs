@@ -1,0 +1,419 @@
+//! Photometric refinement of the tracked keypoints on the map's planes.
+//!
+//! SIFT places a feature a little differently in each view of it, and the
+//! errors a track's views share (and neighbouring tracks alike) move the few
+//! surfaces that hold a direction of the model, which the map's planes then
+//! pass on to the whole model (`docs/results.md`, session 77). Here each
+//! track on a plane keeps its most head-on view's keypoint as the reference;
+//! a square patch of that image around it is carried through the plane to
+//! every other view of the track (each patch pixel's ray cut with the plane,
+//! projected into the other view with its pose and camera), and the other
+//! view's keypoint becomes where that patch fits best: the translation that
+//! minimises the difference of the two zero-mean, unit-norm patches
+//! (Gauss-Newton from the SIFT keypoint). So a track's keypoints agree on
+//! the image content, not on where SIFT put each. A position is kept only
+//! where the patches correlate by [`KeypointOptions::min_ncc`] and it moved
+//! at most [`KeypointOptions::max_shift_px`].
+use std::collections::BTreeMap;
+
+use image::GrayImage;
+use nalgebra::{Matrix2, Vector2, Vector3};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::scene::{Camera, ImageId, Point3DId, Rigid3};
+use crate::sfm::options::KeypointOptions;
+use crate::sfm::state::{MapState, PointPlane};
+
+/// The images' grey values, 8 bits, by image id.
+#[derive(Default)]
+pub struct GrayImages {
+    images: BTreeMap<ImageId, GrayImage>,
+}
+
+impl GrayImages {
+    pub fn new(images: BTreeMap<ImageId, GrayImage>) -> Self {
+        Self { images }
+    }
+
+    pub fn get(&self, id: ImageId) -> Option<&GrayImage> {
+        self.images.get(&id)
+    }
+
+    pub fn len(&self) -> usize {
+        self.images.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.images.is_empty()
+    }
+}
+
+/// What the refinement did (`report.json` → `keypoint_refinement`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct RefinementRecord {
+    /// Tracks on a plane with at least two views in loaded images.
+    pub tracks: usize,
+    /// Their observations other than the reference views.
+    pub observations: usize,
+    /// Observations given a refined position.
+    pub refined: usize,
+    /// Left at SIFT's position: the patches correlated less than `min_ncc`
+    /// (or the patch left the image, or the alignment did not converge).
+    pub low_correlation: usize,
+    /// Left at SIFT's position: the fit lay farther than `max_shift_px`.
+    pub too_far: usize,
+    /// Median distance of a refined position from SIFT's, pixels.
+    pub median_shift_px: f64,
+    /// The final rounds' camera-centre median move after the refinement,
+    /// metres (filled in by the mapper).
+    pub median_camera_move_m: Option<f64>,
+    pub seconds: f64,
+}
+
+/// Grey value at `(x, y)` (COLMAP pixel convention: centres at +0.5),
+/// bilinear; `None` unless the four pixels around it are in the image.
+fn sample(image: &GrayImage, x: f64, y: f64) -> Option<f64> {
+    let (u, v) = (x - 0.5, y - 0.5);
+    let (w, h) = image.dimensions();
+    if !(u >= 0.0 && v >= 0.0 && u < f64::from(w) - 1.0 && v < f64::from(h) - 1.0) {
+        return None;
+    }
+    let (x0, y0) = (u.floor() as u32, v.floor() as u32);
+    let (fx, fy) = (u - f64::from(x0), v - f64::from(y0));
+    let px = |x: u32, y: u32| f64::from(image.get_pixel(x, y).0[0]);
+    let top = px(x0, y0) * (1.0 - fx) + px(x0 + 1, y0) * fx;
+    let bottom = px(x0, y0 + 1) * (1.0 - fx) + px(x0 + 1, y0 + 1) * fx;
+    Some(top * (1.0 - fy) + bottom * fy)
+}
+
+/// `values` minus their mean, scaled to unit norm; `None` for a flat patch.
+fn normalised(values: &[f64]) -> Option<(Vec<f64>, f64)> {
+    let mean = values.iter().sum::<f64>() / values.len() as f64;
+    let centred: Vec<f64> = values.iter().map(|v| v - mean).collect();
+    let norm = centred.iter().map(|v| v * v).sum::<f64>().sqrt();
+    // Less than about a grey level of contrast over the patch: no texture.
+    (norm > 1.0).then(|| (centred.iter().map(|v| v / norm).collect(), norm))
+}
+
+/// A view of a track: its image, camera, pose and keypoint.
+#[derive(Clone, Copy)]
+pub struct View<'a> {
+    pub image: &'a GrayImage,
+    pub camera: &'a Camera,
+    pub cam_from_world: &'a Rigid3,
+    pub keypoint: Vector2<f64>,
+}
+
+/// The reference patch: each pixel's point on the plane and the patch's
+/// normalised grey values.
+pub struct Patch {
+    world: Vec<Vector3<f64>>,
+    values: Vec<f64>,
+}
+
+/// The `(2 half + 1)^2` pixel patch of `view` around its keypoint, on the
+/// plane; `None` where a ray misses the plane (or meets it behind the
+/// camera), the patch leaves the image or has no texture.
+pub fn reference_patch(view: &View, plane: &PointPlane, half: u32) -> Option<Patch> {
+    let world_from_cam = view.cam_from_world.inverse();
+    let centre = world_from_cam.translation;
+    let h = half as i32;
+    let mut world = Vec::with_capacity(((2 * h + 1) * (2 * h + 1)) as usize);
+    let mut values = Vec::with_capacity(world.capacity());
+    for dy in -h..=h {
+        for dx in -h..=h {
+            let pixel = view.keypoint + Vector2::new(f64::from(dx), f64::from(dy));
+            values.push(sample(view.image, pixel.x, pixel.y)?);
+            let ray = world_from_cam.rotation * view.camera.unproject(&pixel)?;
+            let denom = plane.normal.dot(&ray);
+            let s = (plane.offset_m - plane.normal.dot(&centre)) / denom;
+            if !(s.is_finite() && s > 0.0) {
+                return None;
+            }
+            world.push(centre + ray * s);
+        }
+    }
+    let (values, _) = normalised(&values)?;
+    Some(Patch { world, values })
+}
+
+/// Gauss-Newton steps at most, and the step below which it has converged
+/// (pixels).
+const MAX_STEPS: usize = 12;
+const CONVERGED_PX: f64 = 1e-3;
+
+/// Where `patch` fits best in `view`, from its keypoint: the position of
+/// the patch's centre and the patches' normalised cross-correlation there.
+/// `None` when a patch point falls outside the image or behind the camera,
+/// or the alignment does not converge.
+pub fn align(patch: &Patch, view: &View) -> Option<(Vector2<f64>, f64)> {
+    let projected: Vec<Vector2<f64>> = patch
+        .world
+        .iter()
+        .map(|w| view.camera.project(&view.cam_from_world.transform_point(w)))
+        .collect::<Option<_>>()?;
+    let middle = projected[projected.len() / 2];
+    let mut shift = view.keypoint - middle;
+    let n = projected.len();
+    let mut values = vec![0.0; n];
+    let mut grads = vec![Vector2::zeros(); n];
+    for step in 0..=MAX_STEPS {
+        for (k, q) in projected.iter().enumerate() {
+            let p = q + shift;
+            values[k] = sample(view.image, p.x, p.y)?;
+            grads[k] = Vector2::new(
+                sample(view.image, p.x + 0.5, p.y)? - sample(view.image, p.x - 0.5, p.y)?,
+                sample(view.image, p.x, p.y + 0.5)? - sample(view.image, p.x, p.y - 0.5)?,
+            );
+        }
+        let (z, norm) = normalised(&values)?;
+        if step == MAX_STEPS {
+            return None;
+        }
+        // d z / d shift: the gradients without their mean, without their
+        // part along z, over the norm.
+        let mean = grads.iter().sum::<Vector2<f64>>() / n as f64;
+        let along = z
+            .iter()
+            .zip(&grads)
+            .fold(Vector2::zeros(), |acc: Vector2<f64>, (zk, g)| {
+                acc + (g - mean) * *zk
+            });
+        let mut jtj = Matrix2::zeros();
+        let mut jtr = Vector2::zeros();
+        for k in 0..n {
+            let j = ((grads[k] - mean) - along * z[k]) / norm;
+            jtj += j * j.transpose();
+            jtr += j * (patch.values[k] - z[k]);
+        }
+        let delta = jtj.try_inverse()? * jtr;
+        shift += delta;
+        if delta.norm() < CONVERGED_PX {
+            let p = middle + shift;
+            // The correlation at the converged position.
+            let at: Vec<f64> = projected
+                .iter()
+                .map(|q| sample(view.image, q.x + shift.x, q.y + shift.y))
+                .collect::<Option<_>>()?;
+            let (z, _) = normalised(&at)?;
+            let ncc_end: f64 = z.iter().zip(&patch.values).map(|(a, b)| a * b).sum();
+            return Some((p, ncc_end));
+        }
+    }
+    None
+}
+
+/// One refined keypoint: image, keypoint index, new position.
+pub type RefinedKeypoint = (ImageId, u32, Vector2<f64>);
+
+/// One track's refinement: its observations besides the reference, the
+/// refined ones with their shifts, and how many correlated too little or
+/// moved too far.
+type TrackRefinement = (usize, Vec<(RefinedKeypoint, f64)>, usize, usize);
+
+/// The refined positions of the tracked keypoints of `state`'s points tied
+/// to a plane (the plane of their latest solve), and what was done.
+pub fn refine_keypoints(
+    state: &MapState,
+    images: &GrayImages,
+    options: &KeypointOptions,
+) -> (Vec<RefinedKeypoint>, RefinementRecord) {
+    let start = std::time::Instant::now();
+    let points: Vec<Point3DId> = state
+        .points
+        .iter()
+        .filter(|(_, p)| p.plane.is_some() && p.track.len() >= 2)
+        .map(|(id, _)| *id)
+        .collect();
+    let per_point: Vec<TrackRefinement> = points
+        .par_iter()
+        .filter_map(|id| {
+            let p = &state.points[id];
+            let plane = p.plane.as_ref()?;
+            let views: Vec<(ImageId, u32, View)> = p
+                .track
+                .iter()
+                .filter_map(|e| {
+                    let img = state.images.get(&e.image_id)?;
+                    let pose = img.cam_from_world.as_ref()?;
+                    let camera = &state.cameras[&state.intrinsics_of(img.camera_id)];
+                    Some((
+                        e.image_id,
+                        e.point2d_idx,
+                        View {
+                            image: images.get(e.image_id)?,
+                            camera,
+                            cam_from_world: pose,
+                            keypoint: state.keypoint(*e),
+                        },
+                    ))
+                })
+                .collect();
+            if views.len() < 2 {
+                return None;
+            }
+            // The most head-on view is the reference.
+            let incidence = |v: &View| {
+                let centre = v.cam_from_world.inverse().translation;
+                let ray = centre - p.xyz;
+                plane.normal.dot(&ray).abs() / ray.norm().max(1e-12)
+            };
+            let reference = (0..views.len())
+                .max_by(|&a, &b| incidence(&views[a].2).total_cmp(&incidence(&views[b].2)))?;
+            let patch = reference_patch(&views[reference].2, plane, options.patch_half_px);
+            let mut refined = Vec::new();
+            let (mut low, mut far) = (0, 0);
+            for (k, (image, idx, view)) in views.iter().enumerate() {
+                if k == reference {
+                    continue;
+                }
+                let fit = patch.as_ref().and_then(|patch| align(patch, view));
+                match fit {
+                    Some((q, ncc)) if ncc >= options.min_ncc => {
+                        let shift = (q - view.keypoint).norm();
+                        if shift <= options.max_shift_px {
+                            refined.push(((*image, *idx, q), shift));
+                        } else {
+                            far += 1;
+                        }
+                    }
+                    _ => low += 1,
+                }
+            }
+            Some((views.len() - 1, refined, low, far))
+        })
+        .collect();
+    let mut record = RefinementRecord::default();
+    let mut out = Vec::new();
+    let mut shifts = Vec::new();
+    for (observations, refined, low, far) in per_point {
+        record.tracks += 1;
+        record.observations += observations;
+        record.low_correlation += low;
+        record.too_far += far;
+        for (r, shift) in refined {
+            out.push(r);
+            shifts.push(shift);
+        }
+    }
+    record.refined = out.len();
+    if !shifts.is_empty() {
+        record.median_shift_px = crate::sfm::associate::median_in_place(&mut shifts);
+    }
+    record.seconds = start.elapsed().as_secs_f64();
+    (out, record)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{CameraId, CameraModel};
+    use nalgebra::{Rotation3, UnitQuaternion};
+
+    fn camera() -> Camera {
+        Camera {
+            id: CameraId(1),
+            model: CameraModel::from_name("SIMPLE_RADIAL").expect("known model"),
+            width: 240,
+            height: 200,
+            params: vec![300.0, 120.0, 100.0, -0.03],
+        }
+    }
+
+    /// A texture on the floor z = 0 (grey values 28-228; periods of 6-11
+    /// cm, 10-20 pixels in the views below).
+    fn texture(x: f64, y: f64) -> f64 {
+        128.0 + 60.0 * (70.0 * x).sin() * (55.0 * y).cos() + 40.0 * (90.0 * x + 40.0 * y).sin()
+    }
+
+    /// The floor seen from `centre`, looking down and tilted `tilt_deg`
+    /// about the x axis (pixel centres sampled, no blur).
+    fn view(
+        centre: Vector3<f64>,
+        tilt_deg: f64,
+        texture: impl Fn(f64, f64) -> f64,
+    ) -> (Rigid3, GrayImage) {
+        // Camera z down (toward the floor), tilted about x.
+        let down = Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+        let tilt = Rotation3::from_axis_angle(&Vector3::x_axis(), tilt_deg.to_radians());
+        let world_from_cam = UnitQuaternion::from_rotation_matrix(&(tilt * down));
+        let cam_from_world = Rigid3::new(
+            world_from_cam.inverse(),
+            -(world_from_cam.inverse() * centre),
+        );
+        let cam = camera();
+        let image = GrayImage::from_fn(cam.width, cam.height, |u, v| {
+            let pixel = Vector2::new(f64::from(u) + 0.5, f64::from(v) + 0.5);
+            let ray = world_from_cam * cam.unproject(&pixel).unwrap();
+            let s = -centre.z / ray.z;
+            let p = centre + ray * s;
+            image::Luma([texture(p.x, p.y).round().clamp(0.0, 255.0) as u8])
+        });
+        (cam_from_world, image)
+    }
+
+    #[test]
+    fn a_keypoint_off_by_most_of_a_pixel_comes_back_to_the_image_content() {
+        let cam = camera();
+        let floor = PointPlane {
+            family: crate::solver::PlaneFamily::Ground,
+            normal: Vector3::z(),
+            offset_m: 0.0,
+        };
+        let (pose_a, image_a) = view(Vector3::new(0.0, 0.0, 2.0), 0.0, texture);
+        let (pose_b, image_b) = view(Vector3::new(0.4, -0.9, 1.6), 25.0, texture);
+        let point = Vector3::new(0.1, -0.05, 0.0);
+        let seen = |pose: &Rigid3| cam.project(&pose.transform_point(&point)).unwrap();
+        let (at_a, at_b) = (seen(&pose_a), seen(&pose_b));
+        let reference = View {
+            image: &image_a,
+            camera: &cam,
+            cam_from_world: &pose_a,
+            keypoint: at_a,
+        };
+        let patch = reference_patch(&reference, &floor, 7).expect("textured, on the floor");
+        for start in [
+            Vector2::new(0.6, -0.4),
+            Vector2::new(-0.8, 0.3),
+            Vector2::zeros(),
+        ] {
+            let other = View {
+                image: &image_b,
+                camera: &cam,
+                cam_from_world: &pose_b,
+                keypoint: at_b + start,
+            };
+            let (fit, ncc) = align(&patch, &other).expect("converges");
+            assert!(
+                (fit - at_b).norm() < 0.02,
+                "from {start:?}: {fit:?} for {at_b:?}"
+            );
+            assert!(ncc > 0.97, "{ncc}");
+        }
+        // Another texture there: the patches do not correlate.
+        let (_, elsewhere) = view(Vector3::new(0.4, -0.9, 1.6), 25.0, |x, y| {
+            texture(y + 3.0, x)
+        });
+        let other = View {
+            image: &elsewhere,
+            camera: &cam,
+            cam_from_world: &pose_b,
+            keypoint: at_b,
+        };
+        let ncc = align(&patch, &other).map_or(-1.0, |(_, ncc)| ncc);
+        assert!(ncc < 0.8, "{ncc}");
+        // A flat image gives no reference patch, and one at the border none.
+        let flat = GrayImage::from_pixel(cam.width, cam.height, image::Luma([90]));
+        let flat_view = View {
+            image: &flat,
+            ..reference
+        };
+        assert!(reference_patch(&flat_view, &floor, 7).is_none());
+        let border = View {
+            keypoint: Vector2::new(4.0, 50.0),
+            ..reference
+        };
+        assert!(reference_patch(&border, &floor, 7).is_none());
+    }
+}
