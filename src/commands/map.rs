@@ -24,7 +24,7 @@ use crate::commands::prepare_map::parse_input_units;
 use crate::geo::MapCrs;
 use crate::io::atomic::output_replaces_input;
 use crate::io::database::{read_database, DatabaseSnapshot};
-use crate::io::images::{check_image_folder, colour_points, read_gray, ExpectedImage};
+use crate::io::images::{check_image_folder, colour_points, ExpectedImage};
 use crate::io::model::{read_model, write_model, ModelFormat};
 use crate::io::pose_ply::{format_model_pose_ply, read_pose_ply};
 use crate::map::io::{read_point_cloud_with, InputUnits, LoadReport, ReadOptions};
@@ -33,7 +33,6 @@ use crate::map::PointCloud;
 use crate::scene::{BodyPose, ImageId, Rigid3};
 use crate::sfm::associate::median_in_place;
 use crate::sfm::existing::{match_to_database, ExistingModel};
-use crate::sfm::keypoints::GrayImages;
 use crate::sfm::localise::SearchRegion;
 use crate::sfm::options::{AssociationKind, IntrinsicsRefinement};
 use crate::sfm::positions::run_mapper_from_positions;
@@ -816,17 +815,13 @@ pub fn run(args: &MapArgs) -> Result<()> {
         })?;
         log::info!("{n} images found in {}", dir.display());
     }
-    // Grey values for the keypoints' refinement on the map's planes.
-    let gray = match &config.image_path {
-        Some(dir)
-            if config.options.keypoints.refine
-                && config.options.association.kind != AssociationKind::None
-                && config.input_model.is_none() =>
-        {
-            Some(read_gray_images(dir, &db))
-        }
-        _ => None,
-    };
+    // The images for the keypoints' refinement on the map's planes (read
+    // after mapping, the registered ones only).
+    let image_dir = config.image_path.as_deref().filter(|_| {
+        config.options.keypoints.refine
+            && config.options.association.kind != AssociationKind::None
+            && config.input_model.is_none()
+    });
     // What may explain a failed run, from the inputs: given with its error.
     let mut hints = init_pose_hints(&config.init_poses);
     let known_poses = known_poses(&db, config.pose_priors.as_deref(), &mut hints)?;
@@ -876,7 +871,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
         known_poses: &known_poses,
         held_cameras: &BTreeSet::new(),
         run_log: Some(&run_log),
-        images: gray.as_ref(),
+        image_dir,
     };
     let mapping = std::time::Instant::now();
     let out = match &start {
@@ -1059,37 +1054,6 @@ fn fmt_params(params: &[f64]) -> String {
         })
         .collect::<Vec<_>>()
         .join(",")
-}
-
-/// The database's images from `dir` as grey values, in parallel; an image
-/// that cannot be read is left out with a warning (its keypoints keep
-/// SIFT's positions).
-fn read_gray_images(dir: &Path, db: &DatabaseSnapshot) -> GrayImages {
-    use rayon::prelude::*;
-    let t = std::time::Instant::now();
-    let read: Vec<_> = db
-        .images
-        .par_iter()
-        .map(|(id, img)| {
-            let expected = ExpectedImage::new(&img.name, &db.cameras[&img.camera_id]);
-            (*id, read_gray(dir, &expected))
-        })
-        .collect();
-    let mut images = std::collections::BTreeMap::new();
-    for (id, result) in read {
-        match result {
-            Ok(gray) => {
-                images.insert(id, gray);
-            }
-            Err(e) => log::warn!("{e}: its keypoints are not refined"),
-        }
-    }
-    log::info!(
-        "{} images read as grey values for the keypoints' refinement ({:.1} s)",
-        images.len(),
-        t.elapsed().as_secs_f64()
-    );
-    GrayImages::new(images)
 }
 
 #[cfg(test)]

@@ -87,7 +87,7 @@ pub fn map_groups(
             known_poses: &known,
             held_cameras: &held_here,
             run_log: inputs.run_log,
-            images: inputs.images,
+            image_dir: inputs.image_dir,
         };
         log::info!(
             "group of image {} ({} images): mapping it from its initial pose",

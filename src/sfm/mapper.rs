@@ -12,6 +12,7 @@
 //! inputs ([`MapperInputs`]) and errors ([`MapperError`]); the runs around it
 //! (early look, retries, restart, search) are in [`super::runs`].
 use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
 use std::time::Instant;
 
 use rand::SeedableRng;
@@ -39,7 +40,7 @@ use super::initialize::{
     focal_from_map, initialize, initialize_from_pair, swept_cameras, InitError,
     InitialPairFocalSweep, MapFocalEstimate,
 };
-use super::keypoints::{refine_keypoints, GrayImages};
+use super::keypoints::{gray_megabytes, refine_keypoints, GrayImages, RefinementRecord};
 use super::localise::{SearchError, SearchRegion};
 use super::options::{
     AssociationKind, AssociationOptions, BundleOptions, IntrinsicsRefinement, MapperOptions,
@@ -850,9 +851,9 @@ pub struct MapperInputs<'a> {
     pub known_poses: &'a BTreeMap<ImageId, KnownPose>,
     pub held_cameras: &'a BTreeSet<CameraId>,
     pub run_log: Option<&'a RunLog>,
-    /// The images' grey values (`map --image-path`), for the keypoints'
+    /// The image folder (`map --image-path`), read for the keypoints'
     /// refinement ([`crate::sfm::keypoints`]); `None` without images.
-    pub images: Option<&'a GrayImages>,
+    pub image_dir: Option<&'a Path>,
 }
 
 /// A run from the early look must leave the initial image within this of
@@ -1312,7 +1313,7 @@ fn map_staged(
         known_poses,
         held_cameras,
         run_log: _,
-        images,
+        image_dir,
     } = inputs;
     options.validate()?;
     match start {
@@ -2226,35 +2227,65 @@ fn map_staged(
     }
     stages.done("final bundle adjustment");
     // The keypoints refined on the map's planes, then the rounds again.
-    if let Some(images) = images.filter(|_| {
+    if let Some(dir) = image_dir.filter(|_| {
         lidar_gauge && options.keypoints.refine && !moving.is_empty() && existing.is_none()
     }) {
-        let (refined, mut record) = refine_keypoints(&state, images, &options.keypoints);
-        log::info!(
-            "keypoints refined on the map's planes: {} of {} observations of {} tracks (median shift {:.3} px; {} correlated too little, {} moved too far), {:.1} s",
-            record.refined,
-            record.observations,
-            record.tracks,
-            record.median_shift_px,
-            record.low_correlation,
-            record.too_far,
-            record.seconds
-        );
-        if !refined.is_empty() {
-            for (image, idx, q) in &refined {
-                if let Some(img) = state.images.get_mut(image) {
-                    img.keypoints[*idx as usize] = *q;
-                }
+        let ids: Vec<ImageId> = state
+            .images
+            .iter()
+            .filter(|(_, img)| img.is_registered())
+            .map(|(id, _)| *id)
+            .collect();
+        let megabytes = gray_megabytes(db, &ids);
+        let budget = options.keypoints.max_image_memory_mb;
+        let record = if megabytes > budget {
+            log::warn!(
+                "the keypoints are not refined on the map's planes: the {} registered images would take {megabytes:.0} MB as grey values, over keypoints.max_image_memory_mb ({budget:.0})",
+                ids.len()
+            );
+            RefinementRecord {
+                image_memory_mb: megabytes,
+                over_memory_budget: true,
+                ..RefinementRecord::default()
             }
-            let before = camera_centres(&state, &moving);
-            final_rounds(&mut state, report, &refine.last, 3)?;
-            let mut moves: Vec<f64> = camera_centres(&state, &moving)
-                .iter()
-                .zip(&before)
-                .map(|(a, b)| (a - b).norm())
-                .collect();
-            record.median_camera_move_m = Some(median_in_place(&mut moves));
-        }
+        } else {
+            let read = Instant::now();
+            let gray = GrayImages::read(dir, db, &ids);
+            let read_seconds = read.elapsed().as_secs_f64();
+            let (refined, mut record) = refine_keypoints(&state, &gray, &options.keypoints);
+            record.images_read = gray.len();
+            drop(gray);
+            record.image_memory_mb = megabytes;
+            record.read_seconds = read_seconds;
+            log::info!(
+                "keypoints refined on the map's planes: {} of {} observations of {} tracks (median shift {:.3} px; {} correlated too little, {} moved too far), {:.1} s after {:.1} s reading {} images ({megabytes:.0} MB)",
+                record.refined,
+                record.observations,
+                record.tracks,
+                record.median_shift_px,
+                record.low_correlation,
+                record.too_far,
+                record.seconds,
+                read_seconds,
+                record.images_read
+            );
+            if !refined.is_empty() {
+                for (image, idx, q) in &refined {
+                    if let Some(img) = state.images.get_mut(image) {
+                        img.keypoints[*idx as usize] = *q;
+                    }
+                }
+                let before = camera_centres(&state, &moving);
+                final_rounds(&mut state, report, &refine.last, 3)?;
+                let mut moves: Vec<f64> = camera_centres(&state, &moving)
+                    .iter()
+                    .zip(&before)
+                    .map(|(a, b)| (a - b).norm())
+                    .collect();
+                record.median_camera_move_m = Some(median_in_place(&mut moves));
+            }
+            record
+        };
         report.keypoint_refinement = Some(record);
         stages.done("keypoint refinement");
     }

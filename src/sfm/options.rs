@@ -1274,6 +1274,11 @@ pub struct KeypointOptions {
     /// ... and where it lies at most this far from the keypoint, pixels.
     /// Default 1.5.
     pub max_shift_px: f64,
+    /// The registered images are read as grey values (a byte a pixel) for
+    /// the refinement and dropped after it; when they would take more than
+    /// this many megabytes the keypoints are not refined (with a warning).
+    /// Default 8192 (about 700 12-megapixel photos).
+    pub max_image_memory_mb: f64,
 }
 
 impl Default for KeypointOptions {
@@ -1283,6 +1288,7 @@ impl Default for KeypointOptions {
             patch_half_px: 7,
             min_ncc: 0.8,
             max_shift_px: 1.5,
+            max_image_memory_mb: 8192.0,
         }
     }
 }
@@ -1299,7 +1305,8 @@ impl KeypointOptions {
             "keypoints.min_ncc",
             format!("must be at most 1, got {}", show(self.min_ncc)),
         )?;
-        positive("keypoints.max_shift_px", self.max_shift_px)
+        positive("keypoints.max_shift_px", self.max_shift_px)?;
+        positive("keypoints.max_image_memory_mb", self.max_image_memory_mb)
     }
 }
 

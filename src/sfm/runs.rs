@@ -53,7 +53,7 @@ pub fn run_mapper(
         known_poses: &BTreeMap::new(),
         held_cameras: &BTreeSet::new(),
         run_log: None,
-        images: None,
+        image_dir: None,
     };
     run_mapper_with_priors(inputs, init_image, init_cam_from_world, options, progress)
 }

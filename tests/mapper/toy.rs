@@ -1237,6 +1237,56 @@ fn toy_room_projection_associations_and_report() {
     }
 }
 
+/// The keypoints' refinement reads the registered images after mapping,
+/// within its memory budget: from a folder without the images nothing is
+/// read or refined and the model is the one mapped without a folder; over
+/// the budget nothing is read at all.
+#[test]
+fn toy_room_keypoint_refinement_reads_the_images_within_its_budget() {
+    let scene = toy(14, 0.3, 0.03, 4);
+    let init = scene.init_pose.to_cam_from_world();
+    let empty = tempfile::tempdir().unwrap();
+    let run = |image_dir: Option<&std::path::Path>, options: &MapperOptions| {
+        let inputs = MapperInputs {
+            db: &scene.db,
+            cloud: &scene.cloud,
+            known_poses: &BTreeMap::new(),
+            held_cameras: &BTreeSet::new(),
+            run_log: None,
+            image_dir,
+        };
+        run_mapper_with_priors(inputs, ImageId(1), &init, options, &mut |_, _| {}).unwrap()
+    };
+    let options = MapperOptions::default();
+    let without = run(None, &options);
+    assert!(without.report.keypoint_refinement.is_none());
+    let with = run(Some(empty.path()), &options);
+    assert_eq!(with.report.num_registered, 14);
+    let record = with.report.keypoint_refinement.as_ref().unwrap();
+    let cam = scene.db.cameras.values().next().unwrap();
+    let megabytes = 14.0 * f64::from(cam.width * cam.height) / 1_048_576.0;
+    assert!(
+        (record.image_memory_mb - megabytes).abs() < 1e-9,
+        "{record:?}"
+    );
+    assert!(!record.over_memory_budget);
+    assert_eq!((record.images_read, record.refined), (0, 0), "{record:?}");
+    for (id, img) in &without.reconstruction.images {
+        assert_eq!(
+            img.cam_from_world,
+            with.reconstruction.images[id].cam_from_world
+        );
+    }
+    // A budget below the registered images' size: nothing is read.
+    let mut small = MapperOptions::default();
+    small.keypoints.max_image_memory_mb = 0.5 * megabytes;
+    let over = run(Some(empty.path()), &small);
+    let record = over.report.keypoint_refinement.as_ref().unwrap();
+    assert!(record.over_memory_budget, "{record:?}");
+    assert_eq!((record.images_read, record.observations), (0, 0));
+    assert_eq!(over.report.num_registered, 14);
+}
+
 #[test]
 fn toy_room_image_with_too_few_matches_is_placed_at_its_known_pose() {
     let mut scene = toy(14, 0.3, 0.0, 5);
@@ -1285,7 +1335,7 @@ fn toy_room_image_with_too_few_matches_is_placed_at_its_known_pose() {
         known_poses: &known,
         held_cameras: &BTreeSet::new(),
         run_log: None,
-        images: None,
+        image_dir: None,
     };
     let out = run_mapper_with_priors(inputs, ImageId(1), &init, &options, &mut |_, _| {}).unwrap();
     let rec = out
@@ -1664,7 +1714,7 @@ fn toy_room_partly_mapped_model_is_extended() {
         known_poses: &BTreeMap::new(),
         held_cameras: &BTreeSet::new(),
         run_log: None,
-        images: None,
+        image_dir: None,
     };
     for hold in [true, false] {
         let model = match_to_database(&half, &scene.db, hold).unwrap();
@@ -1903,7 +1953,7 @@ fn toy_room_groups_mapped_in_one_run() {
         known_poses: &known,
         held_cameras: &BTreeSet::new(),
         run_log: None,
-        images: None,
+        image_dir: None,
     };
     let options = MapperOptions::default();
     let mut seen = Vec::new();
