@@ -151,11 +151,10 @@ fn sample_with_gradient(image: &GrayImage, x: f64, y: f64) -> Option<(f64, Vecto
     let (x0, y0) = (u.floor() as u32, v.floor() as u32);
     let (fx, fy) = (u - f64::from(x0), v - f64::from(y0));
     // p[j][i]: the pixel (x0 - 1 + i, y0 - 1 + j).
-    let p: [[f64; 4]; 4] = std::array::from_fn(|j| {
-        std::array::from_fn(|i| {
-            f64::from(image.get_pixel(x0 + i as u32 - 1, y0 + j as u32 - 1).0[0])
-        })
-    });
+    let (raw, w) = (image.as_raw(), w as usize);
+    let corner = (y0 as usize - 1) * w + x0 as usize - 1;
+    let p: [[f64; 4]; 4] =
+        std::array::from_fn(|j| std::array::from_fn(|i| f64::from(raw[corner + j * w + i])));
     // Sobel at the block's pixel (i, j), 1 <= i, j <= 2.
     let sobel = |i: usize, j: usize| {
         Vector2::new(
@@ -241,8 +240,9 @@ const CONVERGED_PX: f64 = 1e-3;
 /// Where `patch` fits best in `view`, from its keypoint: the position of
 /// the patch's centre and the patches' normalised cross-correlation there.
 /// `None` when a patch point falls outside the image or behind the camera,
-/// or the alignment does not converge.
-pub fn align(patch: &Patch, view: &View) -> Option<(Vector2<f64>, f64)> {
+/// or the alignment does not converge (or goes more than a pixel beyond
+/// `max_shift_px` from the keypoint, where it could not be kept).
+pub fn align(patch: &Patch, view: &View, max_shift_px: f64) -> Option<(Vector2<f64>, f64)> {
     let projected: Vec<Vector2<f64>> = patch
         .world
         .iter()
@@ -280,6 +280,10 @@ pub fn align(patch: &Patch, view: &View) -> Option<(Vector2<f64>, f64)> {
         }
         let delta = jtj.try_inverse()? * jtr;
         shift += delta;
+        // Gone farther than a pixel past what could be kept: diverging.
+        if (middle + shift - view.keypoint).norm() > max_shift_px + 1.0 {
+            return None;
+        }
         if delta.norm() < CONVERGED_PX {
             let p = middle + shift;
             // The correlation at the converged position.
@@ -359,7 +363,9 @@ pub fn refine_keypoints(
                 if k == reference {
                     continue;
                 }
-                let fit = patch.as_ref().and_then(|patch| align(patch, view));
+                let fit = patch
+                    .as_ref()
+                    .and_then(|patch| align(patch, view, options.max_shift_px));
                 match fit {
                     Some((q, ncc)) if ncc >= options.min_ncc => {
                         let shift = (q - view.keypoint).norm();
@@ -549,7 +555,7 @@ mod tests {
                 cam_from_world: &pose_b,
                 keypoint: at_b + start,
             };
-            let (fit, ncc) = align(&patch, &other).expect("converges");
+            let (fit, ncc) = align(&patch, &other, 1.5).expect("converges");
             assert!(
                 (fit - at_b).norm() < 0.02,
                 "from {start:?}: {fit:?} for {at_b:?}"
@@ -566,7 +572,7 @@ mod tests {
             cam_from_world: &pose_b,
             keypoint: at_b,
         };
-        let ncc = align(&patch, &other).map_or(-1.0, |(_, ncc)| ncc);
+        let ncc = align(&patch, &other, 1.5).map_or(-1.0, |(_, ncc)| ncc);
         assert!(ncc < 0.8, "{ncc}");
         // A flat image gives no reference patch, and one at the border none.
         let flat = GrayImage::from_pixel(cam.width, cam.height, image::Luma([90]));
