@@ -35,10 +35,6 @@ pub struct GrayImages {
 }
 
 impl GrayImages {
-    pub fn new(images: BTreeMap<ImageId, GrayImage>) -> Self {
-        Self { images }
-    }
-
     /// The images `ids` of `db` from the folder `dir` as grey values, read
     /// in parallel; an image that cannot be read is left out with a warning
     /// (its keypoints keep SIFT's positions).
