@@ -28,7 +28,9 @@ use crate::io::images::{check_image_folder, colour_points, ExpectedImage};
 use crate::io::model::{read_model, write_model, ModelFormat};
 use crate::io::pose_ply::{format_model_pose_ply, read_pose_ply};
 use crate::map::io::{read_point_cloud_with, InputUnits, LoadReport, ReadOptions};
-use crate::map::prepare::{estimate_normals, widen_normal_radius, NormalOptions};
+use crate::map::prepare::{
+    estimate_normals, score_planarity as planarity_of, widen_normal_radius, NormalOptions,
+};
 use crate::map::PointCloud;
 use crate::scene::{BodyPose, ImageId, Rigid3};
 use crate::sfm::associate::median_in_place;
@@ -752,11 +754,18 @@ pub(crate) fn check_output(dir: &Path) -> Result<()> {
 /// Reads the map; estimates normals where missing, over a radius that
 /// follows the map's spacing and noise ([`widen_normal_radius`]).
 pub fn load_map(path: &Path) -> Result<PointCloud> {
-    Ok(load_map_reporting(path, InputUnits::Auto)?.0)
+    Ok(load_map_reporting(path, InputUnits::Auto, 0.0)?.0)
 }
 
-/// [`load_map`] with the map's length unit, and what the reader saw.
-pub fn load_map_reporting(path: &Path, units: InputUnits) -> Result<(PointCloud, LoadReport)> {
+/// [`load_map`] with the map's length unit, and what the reader saw. With
+/// a `planarity_gate` above 0 (the mapper's `min_planarity`), a map that
+/// came with normals but no planarity also gets each point's planarity
+/// ([`planarity_of`]; its normals are kept), for the mapper's gate.
+pub fn load_map_reporting(
+    path: &Path,
+    units: InputUnits,
+    planarity_gate: f64,
+) -> Result<(PointCloud, LoadReport)> {
     let read = ReadOptions {
         units,
         ..ReadOptions::default()
@@ -766,6 +775,7 @@ pub fn load_map_reporting(path: &Path, units: InputUnits) -> Result<(PointCloud,
     if cloud.is_empty() {
         bail!("the LiDAR map {} holds no points", path.display());
     }
+    let file_planarity = cloud.planarity.is_some();
     if !load.had_normals || load.normals_invalid > 0 {
         let mut options = NormalOptions::default();
         let scales = widen_normal_radius(&mut options, &cloud)
@@ -782,6 +792,25 @@ pub fn load_map_reporting(path: &Path, units: InputUnits) -> Result<(PointCloud,
             report.estimated,
             report.widened_note(),
             report.failed
+        );
+    }
+    if planarity_gate > 0.0 && load.had_normals && !file_planarity {
+        let mut options = NormalOptions::default();
+        let what = || format!("scoring the planarity of {}", path.display());
+        widen_normal_radius(&mut options, &cloud).with_context(what)?;
+        let started = std::time::Instant::now();
+        let report = planarity_of(&mut cloud, &options).with_context(what)?;
+        let gated = cloud.planarity.as_ref().map_or(0, |p| {
+            p.iter().filter(|&&v| f64::from(v) < planarity_gate).count()
+        });
+        log::info!(
+            "map planarity ({:.3} m radius, normals kept as given): {} scored, {} ({:.1} %) below {} give no plane, {:.1} s",
+            options.radius_m,
+            report.estimated + report.failed,
+            gated,
+            100.0 * gated as f64 / cloud.len() as f64,
+            planarity_gate,
+            started.elapsed().as_secs_f64()
         );
     }
     Ok((cloud, load))
@@ -853,7 +882,12 @@ pub fn run(args: &MapArgs) -> Result<()> {
             None => RunStart::InitialPoses(group_starts(&db, &config, &known_poses)?),
         },
     };
-    let (cloud, load) = load_map_reporting(&config.lidar, config.input_units)?;
+    let association = &config.options.association;
+    let gate = match association.kind {
+        AssociationKind::None => 0.0,
+        _ => association.min_planarity,
+    };
+    let (cloud, load) = load_map_reporting(&config.lidar, config.input_units, gate)?;
     if matches!(start, RunStart::Positions(_)) {
         check_positions_near_map(&gps, &cloud, &config)?;
     }

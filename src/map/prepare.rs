@@ -1099,6 +1099,30 @@ pub fn estimate_normals(
     Ok(report)
 }
 
+/// Scores every point's planarity as [`estimate_normals`] would for a map
+/// without normals (the same fits, refits and widenings), and keeps the
+/// cloud's normals as they are. For a map that came with normals but no
+/// planarity: the mapper's planarity gate then drops the map points whose
+/// neighbourhood straddles a crease or a surface's border, as it does on
+/// maps whose normals it estimated. Returns what the fits did (their
+/// normals are discarded).
+pub fn score_planarity(
+    cloud: &mut PointCloud,
+    options: &NormalOptions,
+) -> Result<NormalReport, PrepareError> {
+    let mut scratch = PointCloud {
+        origin: cloud.origin,
+        points: std::mem::take(&mut cloud.points),
+        normals: None,
+        planarity: None,
+    };
+    let result = estimate_normals(&mut scratch, options);
+    cloud.points = scratch.points;
+    let report = result?;
+    cloud.planarity = scratch.planarity;
+    Ok(report)
+}
+
 /// One pass of [`estimate_normals`] at `options.radius_m` (its
 /// `sparse_widenings` not applied), and the map's noise it read (for the
 /// robust refits; `None` when it read none). With `on_plane` `(k,

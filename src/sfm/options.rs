@@ -964,10 +964,13 @@ pub struct AssociationOptions {
     /// a surface's border (a half disc reads about 0.3) and on strips
     /// narrower than the normal radius, which give no plane either (a
     /// flatness without that, `1 - l3 / l2`, measured worse: 36.4 mm
-    /// against 32.7 mm over the runs below from raw maps). A map's points
-    /// whose normals came with it get 1 unless the file gives a planarity;
-    /// refitted neighbourhoods (`prepare-map`'s robust refit) are scored by
-    /// their refit. 0 keeps all.
+    /// against 32.7 mm over the runs below from raw maps). A map that came
+    /// with normals but no planarity is scored by `map` as it loads it (the
+    /// fits `prepare-map` makes; the normals are kept as given; about 2 s
+    /// per million points): map points near creases then give no plane
+    /// either (see `docs/results.md`, session 80). Refitted neighbourhoods
+    /// (`prepare-map`'s robust refit) are scored by their refit. 0 keeps
+    /// all (and `map` scores nothing).
     /// Default 0.7: the 24-image yards, rooms and corridors (3 seeds, exact
     /// and perturbed, normals estimated with the robust refit) summed
     /// 34.1 mm of camera-centre medians without it, 30.9 mm with it (31.3

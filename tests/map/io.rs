@@ -1236,13 +1236,13 @@ fn las_coordinates_in_feet_are_read_as_metres() {
     );
     // `map` loads it so too, and its report names the unit.
     let (cloud, load) =
-        colmap_lidar::commands::map::load_map_reporting(&path, Default::default()).unwrap();
+        colmap_lidar::commands::map::load_map_reporting(&path, Default::default(), 0.0).unwrap();
     assert_eq!(cloud.len(), survey.len());
     assert_eq!(load.units, report.units);
     assert!((cloud.point_in_map(0).x - survey[0][0] * 0.3048006096012192).abs() < 1e-6);
     // `map --input-units m` overrides the record: the raw numbers.
     let (cloud, load) =
-        colmap_lidar::commands::map::load_map_reporting(&path, InputUnits::Metre).unwrap();
+        colmap_lidar::commands::map::load_map_reporting(&path, InputUnits::Metre, 0.0).unwrap();
     assert_eq!(load.units, None);
     assert!((cloud.point_in_map(0).x - survey[0][0]).abs() < 1e-6);
     let compound = format!(

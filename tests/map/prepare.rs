@@ -5,8 +5,8 @@
 use colmap_lidar::commands::prepare_map::prepare_map_file;
 use colmap_lidar::map::io::read_point_cloud;
 use colmap_lidar::map::prepare::{
-    estimate_noise_m, estimate_normals, prepare, voxel_downsample, widen_normal_radius,
-    NormalOptions, NormalOrientation, PrepareOptions,
+    estimate_noise_m, estimate_normals, prepare, score_planarity, voxel_downsample,
+    widen_normal_radius, NormalOptions, NormalOrientation, PrepareOptions,
 };
 use colmap_lidar::map::PointCloud;
 use nalgebra::{Rotation3, Vector3};
@@ -265,12 +265,17 @@ fn a_noisy_map_widens_its_normal_radius() {
     }
 }
 
-#[test]
-fn normals_at_a_box_corner_are_right_and_oriented_by_the_default_rule() {
+/// The true normals of [`box_corner`]'s faces: floor up (+z), walls towards
+/// the box's centre (+x, +y).
+const BOX_FACE_NORMALS: [[f64; 3]; 3] = [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+
+/// A box corner with 1.5 cm of noise: floor z = 0, walls x = 0 and y = 0,
+/// 1.5 m a side. Each point's face index and its distance to the other two
+/// faces' planes.
+fn box_corner() -> (Vec<[f32; 3]>, Vec<(usize, f64)>) {
     let mut rng = ChaCha8Rng::seed_from_u64(12);
     let side = 1.5;
     let noise = Normal::new(0.0, NOISE_M).unwrap();
-    // Floor z = 0, walls x = 0 and y = 0; face index and true normal.
     let mut points = Vec::new();
     let mut faces = Vec::new();
     for face in 0..3 {
@@ -282,7 +287,6 @@ fn normals_at_a_box_corner_are_right_and_oriented_by_the_default_rule() {
                 1 => [e, a, b],
                 _ => [a, e, b],
             };
-            // Distance to the other two faces' planes.
             let d = match face {
                 0 => p[0].min(p[1]),
                 1 => p[1].min(p[2]),
@@ -292,12 +296,18 @@ fn normals_at_a_box_corner_are_right_and_oriented_by_the_default_rule() {
             faces.push((face, d));
         }
     }
+    (points, faces)
+}
+
+#[test]
+fn normals_at_a_box_corner_are_right_and_oriented_by_the_default_rule() {
+    let (points, faces) = box_corner();
     let mut cloud = cloud_of(points);
     let options = NormalOptions::default();
     estimate_normals(&mut cloud, &options).unwrap();
     let normals = cloud.normals.as_ref().unwrap();
     let planarity = cloud.planarity.as_ref().unwrap();
-    let truth = [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]];
+    let truth = BOX_FACE_NORMALS;
     let mut errors = Vec::new();
     let (mut edge_planarity, mut edge_count) = (0.0, 0);
     for (i, &(face, d)) in faces.iter().enumerate() {
@@ -397,6 +407,49 @@ fn normals_at_a_box_corner_are_right_and_oriented_by_the_default_rule() {
     assert!(
         robust_off < 0.7 * unseeded_off,
         "{robust_off} vs {unseeded_off}"
+    );
+}
+
+/// A map that came with normals gets a planarity score from the same fits
+/// as a map without them (low along the creases, about 1 on the faces),
+/// and keeps its normals bit for bit.
+#[test]
+fn given_normals_are_kept_and_scored_for_planarity() {
+    let (points, faces) = box_corner();
+    let given: Vec<[f32; 3]> = faces
+        .iter()
+        .map(|&(face, _)| BOX_FACE_NORMALS[face].map(|v| v as f32))
+        .collect();
+    let mut cloud = cloud_of(points.clone());
+    cloud.normals = Some(given.clone());
+    let options = NormalOptions::default();
+    let report = score_planarity(&mut cloud, &options).unwrap();
+    assert_eq!(report.kept, 0);
+    assert_eq!(report.estimated + report.failed, faces.len());
+    assert_eq!(cloud.points, points);
+    assert_eq!(cloud.normals.as_ref(), Some(&given));
+
+    let mut estimated = cloud_of(points);
+    estimate_normals(&mut estimated, &options).unwrap();
+    assert_eq!(cloud.planarity, estimated.planarity);
+
+    let planarity = cloud.planarity.as_ref().unwrap();
+    // Medians along the corner's edges and on the faces (whose outer
+    // borders, half discs, score low too).
+    let median = |near: bool| {
+        let picked: Vec<f64> = faces
+            .iter()
+            .enumerate()
+            .filter(|(_, f)| if near { f.1 < 0.02 } else { f.1 > 0.2 })
+            .map(|(i, _)| f64::from(planarity[i]))
+            .collect();
+        percentile(&picked, 0.5)
+    };
+    let (edges, on_faces) = (median(true), median(false));
+    eprintln!("planarity of given normals: faces {on_faces:.3}, edges {edges:.3}");
+    assert!(
+        on_faces > 0.8 && edges < 0.5,
+        "faces {on_faces}, edges {edges}"
     );
 }
 
