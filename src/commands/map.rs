@@ -959,6 +959,10 @@ pub fn run(args: &MapArgs) -> Result<()> {
     out.report.runs = run_log.records(&kept);
     out.report.map_file = Some(config.lidar.display().to_string());
     out.report.map_points = Some(cloud.len());
+    out.report.map_points_below_planarity = cloud
+        .planarity
+        .as_ref()
+        .map(|p| p.iter().filter(|&&v| f64::from(v) < gate).count());
     out.report.map_units = load.units;
     if let Some(bar) = &bar {
         bar.finish_and_clear();

@@ -435,6 +435,10 @@ pub struct MapReport {
     /// maps).
     pub map_file: Option<String>,
     pub map_points: Option<usize>,
+    /// Of `map_points`, those whose planarity is below the association's
+    /// `min_planarity` and so give no plane (the planarity the file gave,
+    /// or `map`'s own score); set by `map`.
+    pub map_points_below_planarity: Option<usize>,
     /// When the map file's coordinates were not in metres: the unit they
     /// were converted from, and where it was read (the model, like the map
     /// as loaded, is in metres; [`crate::map::io::units`]).
