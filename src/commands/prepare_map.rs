@@ -14,6 +14,7 @@ use crate::map::io::{
 };
 use crate::map::prepare::{
     prepare, CropBox, NormalOrientation, PrepareError, PrepareOptions, PrepareReport,
+    KEEP_WHOLE_MAX_POINTS,
 };
 use crate::map::PointCloud;
 
@@ -31,9 +32,11 @@ pub struct PrepareMapArgs {
     /// Output binary PLY with normals.
     #[arg(long, alias = "output_path")]
     pub output: PathBuf,
-    /// Voxel size for downsampling, metres (0 = keep every point).
-    #[arg(long, default_value_t = DEFAULT_VOXEL_M)]
-    pub voxel: f64,
+    /// Voxel size for downsampling, metres (0 = keep every point)
+    /// [default: every point kept up to 20 M points (after --crop), 0.03
+    /// for a larger cloud].
+    #[arg(long)]
+    pub voxel: Option<f64>,
     /// Neighbourhood radius for normal estimation, metres [default: 0.15,
     /// or 3 times the (downsampled) cloud's spacing when that is larger].
     #[arg(long = "normal-radius", alias = "normal_radius")]
@@ -120,7 +123,11 @@ impl PrepareMapArgs {
     /// The stage options (validated).
     pub fn options(&self) -> anyhow::Result<PrepareOptions> {
         let mut options = PrepareOptions {
-            voxel_size_m: self.voxel,
+            voxel_size_m: self.voxel.unwrap_or(DEFAULT_VOXEL_M),
+            voxel_above_points: match self.voxel {
+                Some(_) => 0,
+                None => KEEP_WHOLE_MAX_POINTS,
+            },
             drop_without_normal: !self.keep_without_normal,
             ..Default::default()
         };
@@ -329,12 +336,21 @@ pub fn prepare_map_files(
     report.input_points = input_points;
     report.dropped_by_crop = dropped_by_crop;
     let kept_in_crop = report.input_points - report.dropped_by_crop;
+    let grid = if report.kept_whole {
+        format!(
+            "kept whole (at most {} points; --voxel thins it)",
+            options.voxel_above_points
+        )
+    } else if options.voxel_size_m > 0.0 {
+        format!("after the {} m voxel grid", options.voxel_size_m)
+    } else {
+        "kept whole (--voxel 0)".to_string()
+    };
     log::info!(
-        "prepared: {} -> {} points after the {} m voxel grid; normals kept {}, estimated {}, \
+        "prepared: {} -> {} points {grid}; normals kept {}, estimated {}, \
          failed {}; {} points dropped without a normal; {:.2} s",
         kept_in_crop,
         report.after_voxel,
-        options.voxel_size_m,
         report.normals.kept,
         report.normals.estimated,
         report.normals.failed,
@@ -351,8 +367,9 @@ pub fn prepare_map_files(
     {
         log::warn!(
             "the {voxel} m voxel grid merged no two of the {kept_in_crop} points: it is finer than \
-             the map's spacing and only cost time (--voxel 0 keeps every point; \
-             {DEFAULT_VOXEL_M} m, the default, thins a dense scan)"
+             the map's spacing and only cost time (--voxel 0 keeps every point; without \
+             --voxel a cloud of up to {KEEP_WHOLE_MAX_POINTS} points is kept whole and a \
+             larger one thinned at {DEFAULT_VOXEL_M} m)"
         );
     }
     if cloud.is_empty() {
@@ -403,8 +420,16 @@ pub fn run(args: &PrepareMapArgs) -> anyhow::Result<()> {
     let noise = report.noise_m.map_or(String::new(), |n| {
         format!(", map noise about {:.1} mm", n * 1e3)
     });
+    let grid = if report.kept_whole {
+        format!(
+            " (kept whole: at most {} M points; --voxel {DEFAULT_VOXEL_M} thins it)",
+            KEEP_WHOLE_MAX_POINTS / 1_000_000
+        )
+    } else {
+        String::new()
+    };
     println!(
-        "{}: {} points read ({} dropped as NaN/inf{left_out}), {cropped}{} after voxel grid, \
+        "{}: {} points read ({} dropped as NaN/inf{left_out}), {cropped}{} after voxel grid{grid}, \
          {} normals estimated ({:.3} m radius{noise}){}, {} kept, {} points written to {}",
         names(&inputs),
         loads.iter().map(|l| l.points_read).sum::<u64>(),

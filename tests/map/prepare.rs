@@ -679,8 +679,22 @@ fn prepare_map_cli_end_to_end() {
     .status;
     assert!(status.success());
     let (map, _) = read_point_cloud(&out).unwrap();
-    assert!(map.len() > 10_000);
+    assert!(map.len() > 10_000 && map.len() < 30_000, "{}", map.len());
     assert!(map.normals.unwrap().iter().all(|n| n != &[0.0; 3]));
+    // Without --voxel a scan this small is kept whole, and the log says so.
+    let whole = dir.path().join("whole.ply");
+    let output = prepare_map_cli(
+        &[&raw],
+        &whole,
+        &["--normal-radius", "0.15", "--keep-without-normal"],
+    );
+    assert!(output.status.success(), "{output:?}");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        stdout.contains("60000 after voxel grid (kept whole: at most 20 M points"),
+        "{stdout}"
+    );
+    assert_eq!(read_point_cloud(&whole).unwrap().0.len(), 60_000);
     let missing = dir.path().join("missing.ply");
     let status = prepare_map_cli(&[&missing], &out, &[]).status;
     assert!(!status.success());
