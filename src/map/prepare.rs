@@ -1126,8 +1126,11 @@ pub fn estimate_normals(
 /// cloud's normals as they are. For a map that came with normals but no
 /// planarity: the mapper's planarity gate then drops the map points whose
 /// neighbourhood straddles a crease or a surface's border, as it does on
-/// maps whose normals it estimated. Returns what the fits did (their
-/// normals are discarded).
+/// maps whose normals it estimated. A point whose fit failed (too few
+/// neighbours even at the widened radii) gets 1, not judged, as a kept
+/// normal does in [`estimate_normals`]: a poor fit here must not drop a
+/// normal the file gave. Returns what the fits did (their normals are
+/// discarded).
 pub fn score_planarity(
     cloud: &mut PointCloud,
     options: &NormalOptions,
@@ -1141,7 +1144,15 @@ pub fn score_planarity(
     let result = estimate_normals(&mut scratch, options);
     cloud.points = scratch.points;
     let report = result?;
-    cloud.planarity = scratch.planarity;
+    let mut planarity = scratch.planarity.unwrap_or_default();
+    if let Some(fitted) = &scratch.normals {
+        for (score, normal) in planarity.iter_mut().zip(fitted) {
+            if !normal_is_set(normal) {
+                *score = 1.0;
+            }
+        }
+    }
+    cloud.planarity = Some(planarity);
     Ok(report)
 }
 

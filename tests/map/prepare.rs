@@ -415,23 +415,32 @@ fn normals_at_a_box_corner_are_right_and_oriented_by_the_default_rule() {
 /// and keeps its normals bit for bit.
 #[test]
 fn given_normals_are_kept_and_scored_for_planarity() {
-    let (points, faces) = box_corner();
-    let given: Vec<[f32; 3]> = faces
+    let (mut points, faces) = box_corner();
+    let mut given: Vec<[f32; 3]> = faces
         .iter()
         .map(|&(face, _)| BOX_FACE_NORMALS[face].map(|v| v as f32))
         .collect();
+    // A lone point far from the box: too few neighbours for a fit, so its
+    // given normal is not judged (planarity 1).
+    points.push([9.0, 9.0, 9.0]);
+    given.push([0.0, 0.0, 1.0]);
     let mut cloud = cloud_of(points.clone());
     cloud.normals = Some(given.clone());
     let options = NormalOptions::default();
     let report = score_planarity(&mut cloud, &options).unwrap();
     assert_eq!(report.kept, 0);
-    assert_eq!(report.estimated + report.failed, faces.len());
+    assert_eq!(report.failed, 1);
+    assert_eq!(report.estimated + report.failed, points.len());
     assert_eq!(cloud.points, points);
     assert_eq!(cloud.normals.as_ref(), Some(&given));
+    let scored = cloud.planarity.as_ref().unwrap();
+    assert_eq!(scored[faces.len()], 1.0);
 
     let mut estimated = cloud_of(points);
     estimate_normals(&mut estimated, &options).unwrap();
-    assert_eq!(cloud.planarity, estimated.planarity);
+    let estimated = estimated.planarity.unwrap();
+    assert_eq!(estimated[faces.len()], 0.0);
+    assert_eq!(scored[..faces.len()], estimated[..faces.len()]);
 
     let planarity = cloud.planarity.as_ref().unwrap();
     // Medians along the corner's edges and on the faces (whose outer
