@@ -757,6 +757,13 @@ pub fn load_map(path: &Path) -> Result<PointCloud> {
     Ok(load_map_reporting(path, InputUnits::Auto, 0.0)?.0)
 }
 
+/// The map points whose planarity is below `gate` (they give no plane);
+/// `None` when the map has no planarity.
+fn points_below_planarity(cloud: &PointCloud, gate: f64) -> Option<usize> {
+    let planarity = cloud.planarity.as_ref()?;
+    Some(planarity.iter().filter(|&&v| f64::from(v) < gate).count())
+}
+
 /// [`load_map`] with the map's length unit, and what the reader saw. With
 /// a `planarity_gate` above 0 (the mapper's `min_planarity`), a map that
 /// came with normals but no planarity also gets each point's planarity
@@ -776,13 +783,24 @@ pub fn load_map_reporting(
         bail!("the LiDAR map {} holds no points", path.display());
     }
     let file_planarity = cloud.planarity.is_some();
-    if !load.had_normals || load.normals_invalid > 0 {
-        let mut options = NormalOptions::default();
-        let scales = widen_normal_radius(&mut options, &cloud)
-            .with_context(|| format!("estimating normals of {}", path.display()))?;
-        if let Some(noise) = scales.noise_m {
-            log::info!("map noise about {:.1} mm", noise * 1e3);
-        }
+    let estimate = !load.had_normals || load.normals_invalid > 0;
+    let score = planarity_gate > 0.0 && load.had_normals && !file_planarity;
+    if !(estimate || score) {
+        return Ok((cloud, load));
+    }
+    // One radius for both: it follows the map's points, not its normals.
+    let mut options = NormalOptions::default();
+    let what = if estimate {
+        "estimating normals of"
+    } else {
+        "scoring the planarity of"
+    };
+    let scales = widen_normal_radius(&mut options, &cloud)
+        .with_context(|| format!("{what} {}", path.display()))?;
+    if let Some(noise) = scales.noise_m {
+        log::info!("map noise about {:.1} mm", noise * 1e3);
+    }
+    if estimate {
         let report = estimate_normals(&mut cloud, &options)
             .with_context(|| format!("estimating normals of {}", path.display()))?;
         log::info!(
@@ -794,15 +812,11 @@ pub fn load_map_reporting(
             report.failed
         );
     }
-    if planarity_gate > 0.0 && load.had_normals && !file_planarity {
-        let mut options = NormalOptions::default();
-        let what = || format!("scoring the planarity of {}", path.display());
-        widen_normal_radius(&mut options, &cloud).with_context(what)?;
+    if score {
         let started = std::time::Instant::now();
-        let report = planarity_of(&mut cloud, &options).with_context(what)?;
-        let gated = cloud.planarity.as_ref().map_or(0, |p| {
-            p.iter().filter(|&&v| f64::from(v) < planarity_gate).count()
-        });
+        let report = planarity_of(&mut cloud, &options)
+            .with_context(|| format!("scoring the planarity of {}", path.display()))?;
+        let gated = points_below_planarity(&cloud, planarity_gate).unwrap_or(0);
         log::info!(
             "map planarity ({:.3} m radius, normals kept as given): {} scored, {} ({:.1} %) below {} give no plane, {:.1} s",
             options.radius_m,
@@ -959,10 +973,7 @@ pub fn run(args: &MapArgs) -> Result<()> {
     out.report.runs = run_log.records(&kept);
     out.report.map_file = Some(config.lidar.display().to_string());
     out.report.map_points = Some(cloud.len());
-    out.report.map_points_below_planarity = cloud
-        .planarity
-        .as_ref()
-        .map(|p| p.iter().filter(|&&v| f64::from(v) < gate).count());
+    out.report.map_points_below_planarity = points_below_planarity(&cloud, gate);
     out.report.map_units = load.units;
     if let Some(bar) = &bar {
         bar.finish_and_clear();
