@@ -1144,7 +1144,9 @@ pub fn score_planarity(
     let result = estimate_normals(&mut scratch, options);
     cloud.points = scratch.points;
     let report = result?;
-    let mut planarity = scratch.planarity.unwrap_or_default();
+    // One score per point whatever the fits left (1: not judged).
+    let n = cloud.points.len();
+    let mut planarity = scratch.planarity.unwrap_or_else(|| vec![1.0; n]);
     if let Some(fitted) = &scratch.normals {
         for (score, normal) in planarity.iter_mut().zip(fitted) {
             if !normal_is_set(normal) {
